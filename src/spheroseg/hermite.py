@@ -1,0 +1,280 @@
+"""Bicubic Hermite functions on a periodic-by-interval grid (paper section 3).
+
+A function ``f(v1, v2)`` on ``[0, 2 pi) x [v2_min, v2_max]`` is stored as
+four coefficients per node (paper eqs. 11-12), in this order:
+
+    k = 0: f,   k = 1: df/dv1,   k = 2: df/dv2,   k = 3: d2f/dv1dv2
+
+with derivatives per unit of ``v1`` and ``v2`` (radians, or mm for the
+cylindrical ``z``), not per local patch coordinate.  ``v1 = theta`` is
+periodic: the grid has ``n1`` patches and ``n1`` node columns (node ``n1``
+is node ``0``).  ``v2`` has ``n2`` patches and ``n2 + 1`` node rows.
+
+Ends of the ``v2`` interval that are poles of the coordinate system (the
+apex, ``mu = 0``) are constrained so the surface is well formed there:
+one value ``c`` for the whole row, ``df/dv1 = 0`` and
+``df/dv2 = p1 cos(theta) + p2 sin(theta)`` at the nodes (the surface of a
+tilted tangent plane), with the matching cross derivative.  These
+constraints are the linear map ``coefficients = constraints @ parameters``
+(:meth:`HermiteGrid.constraints`); optimisers work on the parameters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = ["hermite_basis", "HermiteGrid", "basis_norms"]
+
+
+def hermite_basis(t: np.ndarray, derivative: int = 0) -> np.ndarray:
+    """The four cubic Hermite basis functions of paper eq. 7 on ``[0, 1]``.
+
+    Parameters
+    ----------
+    t : array
+        Local coordinate ``V`` in ``[0, 1]``.
+    derivative : {0, 1, 2}
+        Order of the derivative with respect to ``V``.
+
+    Returns
+    -------
+    array, shape ``(4,) + t.shape``
+        ``psi_0^0, psi_0^1, psi_1^0, psi_1^1``: value and slope at the
+        patch's first node, value and slope at its second node.
+    """
+    t = np.asarray(t, dtype=float)
+    if derivative == 0:
+        return np.stack([1 - 3 * t**2 + 2 * t**3, t * (t - 1) ** 2, t**2 * (3 - 2 * t), t**2 * (t - 1)])
+    if derivative == 1:
+        return np.stack([6 * t * (t - 1), (3 * t - 1) * (t - 1), 6 * t * (1 - t), t * (3 * t - 2)])
+    if derivative == 2:
+        return np.stack([12 * t - 6, 6 * t - 4, 6 - 12 * t, 6 * t - 2])
+    raise ValueError(f"derivative must be 0, 1 or 2, got {derivative!r}")
+
+
+def basis_norms(n1: int, n2: int, v2_range: tuple[float, float]) -> np.ndarray:
+    """L2 norms of the global basis functions ``f_i^{d1,d2}`` (paper eq. 10).
+
+    In local patch units ``|f^0|^2 = 26/35`` and ``|f^1|^2 = 2/105`` over the
+    two patches around an interior node; a slope basis function carries the
+    patch width ``h`` (it is ``h psi^1``) and ``dv = h dV``, so in global
+    units ``|f^0|^2 = 26/35 h`` and ``|f^1|^2 = 2/105 h^3``.  Nodes on the
+    ends of the ``v2`` interval have one patch, hence half of this.
+
+    Returns
+    -------
+    array, shape ``(n2 + 1, n1, 4)``
+    """
+    h1 = 2 * np.pi / n1
+    h2 = (v2_range[1] - v2_range[0]) / n2
+    one1 = np.array([26 / 35 * h1, 2 / 105 * h1**3])
+    one2 = np.array([26 / 35 * h2, 2 / 105 * h2**3])
+    rows = np.ones(n2 + 1)
+    rows[[0, -1]] = 0.5
+    sq = np.empty((n2 + 1, n1, 4))
+    for k in range(4):
+        sq[:, :, k] = (rows * one2[k // 2])[:, None] * one1[k % 2]
+    return np.sqrt(sq)
+
+
+@dataclass(frozen=True)
+class HermiteGrid:
+    """Node grid and basis of a bicubic Hermite function.
+
+    Parameters
+    ----------
+    n1, n2 : int
+        Patches along ``v1`` (periodic theta) and ``v2``; at least 2 each.
+    v2_range : (float, float)
+        Interval of ``v2``.
+    poles : tuple of float
+        Values of ``v2`` where the coordinate system has a pole; ends of
+        ``v2_range`` equal to one of them are constrained (module docstring).
+    """
+
+    n1: int = 8
+    n2: int = 8
+    v2_range: tuple[float, float] = (0.0, np.pi / 2)
+    poles: tuple[float, ...] = (0.0, np.pi)
+
+    def __post_init__(self):
+        for name in ("n1", "n2"):
+            n = getattr(self, name)
+            if not isinstance(n, (int, np.integer)) or n < 2:
+                raise ValueError(f"{name} (number of patches) must be an integer >= 2, got {n!r}")
+        lo, hi = (float(v) for v in self.v2_range)
+        if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
+            raise ValueError(f"v2_range must be an increasing finite interval, got {self.v2_range!r}")
+        object.__setattr__(self, "v2_range", (lo, hi))
+        object.__setattr__(self, "poles", tuple(float(p) for p in self.poles))
+
+    @property
+    def n_coefficients(self) -> int:
+        return (self.n2 + 1) * self.n1 * 4
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Shape of the coefficient array: (v2 nodes, v1 nodes, 4)."""
+        return (self.n2 + 1, self.n1, 4)
+
+    @property
+    def node_v1(self) -> np.ndarray:
+        return np.arange(self.n1) * (2 * np.pi / self.n1)
+
+    @property
+    def node_v2(self) -> np.ndarray:
+        return np.linspace(*self.v2_range, self.n2 + 1)
+
+    @property
+    def pole_rows(self) -> tuple[int, ...]:
+        """Node rows (0 and/or n2) that lie on a pole."""
+        rows = []
+        for row, v in ((0, self.v2_range[0]), (self.n2, self.v2_range[1])):
+            if any(abs(v - p) < 1e-12 for p in self.poles):
+                rows.append(row)
+        return tuple(rows)
+
+    def refined(self) -> "HermiteGrid":
+        """The grid with every patch split in two (2 n1 x 2 n2)."""
+        return HermiteGrid(2 * self.n1, 2 * self.n2, self.v2_range, self.poles)
+
+    # -- evaluation -------------------------------------------------------
+
+    def _locate(self, v1, v2):
+        v1 = np.mod(np.asarray(v1, dtype=float), 2 * np.pi)
+        lo, hi = self.v2_range
+        u1 = v1 * (self.n1 / (2 * np.pi))
+        u2 = (np.asarray(v2, dtype=float) - lo) * (self.n2 / (hi - lo))
+        i1 = np.clip(np.floor(u1).astype(np.int64), 0, self.n1 - 1)
+        i2 = np.clip(np.floor(u2).astype(np.int64), 0, self.n2 - 1)
+        return i1, u1 - i1, i2, u2 - i2
+
+    def _factors(self, t, derivative, width):
+        # global-unit basis: value dofs are psi, slope dofs are width * psi;
+        # each derivative in v divides by width
+        b = hermite_basis(t, derivative)
+        scale = np.array([1.0, width, 1.0, width]) / width**derivative
+        return b * scale.reshape((4,) + (1,) * t.ndim)
+
+    def basis_matrix(self, v1, v2, d1: int = 0, d2: int = 0) -> sp.csr_matrix:
+        """Sparse matrix ``B`` with ``B @ coefficients.ravel()`` the
+        ``(d1, d2)``-th partial derivative of ``f`` at the points.
+
+        ``v1`` is wrapped into ``[0, 2 pi)``; ``v2`` outside the range is
+        extrapolated from the end patch.
+        """
+        v1, v2 = np.broadcast_arrays(np.ravel(v1), np.ravel(v2))
+        n = v1.size
+        i1, t1, i2, t2 = self._locate(v1, v2)
+        w1 = 2 * np.pi / self.n1
+        w2 = (self.v2_range[1] - self.v2_range[0]) / self.n2
+        b1 = self._factors(t1, d1, w1)  # (4, n): node a=0/1 x dof e=0/1 -> 2a+e
+        b2 = self._factors(t2, d2, w2)
+        rows, cols, vals = [], [], []
+        for a1 in (0, 1):
+            node1 = (i1 + a1) % self.n1
+            for a2 in (0, 1):
+                node2 = i2 + a2
+                base = (node2 * self.n1 + node1) * 4
+                for e1 in (0, 1):
+                    for e2 in (0, 1):
+                        rows.append(np.arange(n))
+                        cols.append(base + e1 + 2 * e2)
+                        vals.append(b1[2 * a1 + e1] * b2[2 * a2 + e2])
+        return sp.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(n, self.n_coefficients),
+        )
+
+    def evaluate(self, coefficients, v1, v2, d1: int = 0, d2: int = 0) -> np.ndarray:
+        """``d^(d1+d2) f / dv1^d1 dv2^d2`` at the points (shape of ``v1``)."""
+        shape = np.broadcast_shapes(np.shape(v1), np.shape(v2))
+        c = np.asarray(coefficients, dtype=float).reshape(-1)
+        return (self.basis_matrix(v1, v2, d1, d2) @ c).reshape(shape)
+
+    # -- quadrature -------------------------------------------------------
+
+    def quadrature(self, order: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Gauss-Legendre points per patch: ``(v1, v2, weights)``, flat.
+
+        ``sum(weights * g(v1, v2))`` integrates ``g dv1 dv2`` over the whole
+        domain, exactly for piecewise polynomials of degree < 2 order.
+        """
+        if order < 1:
+            raise ValueError(f"quadrature order must be >= 1, got {order!r}")
+        x, w = np.polynomial.legendre.leggauss(order)
+        t, w = (x + 1) / 2, w / 2
+        w1 = 2 * np.pi / self.n1
+        lo, hi = self.v2_range
+        w2 = (hi - lo) / self.n2
+        q1 = (np.arange(self.n1)[:, None] + t[None, :]).ravel() * w1
+        q2 = lo + (np.arange(self.n2)[:, None] + t[None, :]).ravel() * w2
+        wq1 = np.tile(w, self.n1) * w1
+        wq2 = np.tile(w, self.n2) * w2
+        v2, v1 = np.meshgrid(q2, q1, indexing="ij")
+        return v1.ravel(), v2.ravel(), np.outer(wq2, wq1).ravel()
+
+    # -- pole constraints -------------------------------------------------
+
+    @cached_property
+    def constraints(self) -> sp.csr_matrix:
+        """Matrix ``A`` (coefficients x parameters) with
+        ``coefficients = A @ parameters`` for every well-formed surface.
+
+        Free nodes keep their four coefficients as parameters; each pole row
+        is replaced by three parameters ``(c, p1, p2)`` (module docstring).
+        """
+        idx = np.arange(self.n_coefficients).reshape(self.shape)
+        rows, cols, vals = [], [], []
+        n_param = 0
+        pole_rows = self.pole_rows
+        for r in range(self.n2 + 1):
+            if r in pole_rows:
+                th = self.node_v1
+                c, p1, p2 = n_param, n_param + 1, n_param + 2
+                n_param += 3
+                rows += list(idx[r, :, 0]) + list(idx[r, :, 2]) * 2 + list(idx[r, :, 3]) * 2
+                cols += [c] * self.n1 + [p1] * self.n1 + [p2] * self.n1 + [p1] * self.n1 + [p2] * self.n1
+                vals += [1.0] * self.n1 + list(np.cos(th)) + list(np.sin(th)) + list(-np.sin(th)) + list(np.cos(th))
+            else:
+                k = idx[r].ravel()
+                rows += list(k)
+                cols += list(range(n_param, n_param + k.size))
+                vals += [1.0] * k.size
+                n_param += k.size
+        return sp.csr_matrix((vals, (rows, cols)), shape=(self.n_coefficients, n_param))
+
+    @cached_property
+    def _constraint_pinv(self) -> sp.csr_matrix:
+        # the columns of A are mutually orthogonal, so pinv(A) = diag(1/|a_j|^2) A^T
+        a = self.constraints
+        norms = np.asarray(a.multiply(a).sum(axis=0)).ravel()
+        return (sp.diags(1.0 / norms) @ a.T).tocsr()
+
+    def parameters(self, coefficients) -> np.ndarray:
+        """Least-squares parameters of (possibly unconstrained) coefficients."""
+        return self._constraint_pinv @ np.asarray(coefficients, dtype=float).reshape(-1)
+
+    def constrain(self, coefficients) -> np.ndarray:
+        """Nearest well-formed coefficients (exact for well-formed input)."""
+        return (self.constraints @ self.parameters(coefficients)).reshape(self.shape)
+
+    # -- refinement -------------------------------------------------------
+
+    def refine(self, coefficients) -> tuple["HermiteGrid", np.ndarray]:
+        """Exact representation on the grid with twice the patches.
+
+        The bicubic Hermite space on ``n`` patches is a subspace of that on
+        ``2 n`` patches, so the values, slopes and cross derivatives of the
+        surface at the new nodes define the same function.
+        """
+        fine = self.refined()
+        v2, v1 = np.meshgrid(fine.node_v2, fine.node_v1, indexing="ij")
+        c = np.empty(fine.shape)
+        for k, (d1, d2) in enumerate(((0, 0), (1, 0), (0, 1), (1, 1))):
+            c[:, :, k] = self.evaluate(coefficients, v1, v2, d1, d2)
+        return fine, c

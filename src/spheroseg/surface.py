@@ -1,0 +1,301 @@
+"""The cavity surface ``v0 = f(v1, v2)``: evaluation, volume, mask, mesh.
+
+A :class:`Surface` ties a coordinate system, a pose in world space and a
+bicubic Hermite function together.  The cavity it bounds is
+
+    { x : v0(x) <= f(v1(x), v2(x)) and v2(x) in v2_range }
+
+which, with the pose's origin at the base point, is closed by the base
+(mitral) plane ``x1 = 0`` (see :mod:`spheroseg.coords`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .coords import CoordinateSystem, Pose, coordinate_system
+from .hermite import HermiteGrid
+
+__all__ = ["Surface", "ImageGrid", "signed_volume"]
+
+#: base radius / apex-to-base distance of the initial surface
+DEFAULT_RADIUS_RATIO = 0.3
+
+
+@dataclass(frozen=True)
+class ImageGrid:
+    """Geometry of an image in ITK physical space (what a mask is drawn on).
+
+    ``world = origin + direction @ (spacing * index_xyz)``; arrays are
+    indexed ``[z, y, x]``, so ``shape`` is ``(nz, ny, nx)`` while
+    ``spacing`` and ``origin`` are ``(x, y, z)``.
+    """
+
+    shape: tuple[int, int, int]
+    spacing: np.ndarray = field(default_factory=lambda: np.ones(3))
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    direction: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    def __post_init__(self):
+        object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
+        object.__setattr__(self, "spacing", np.asarray(self.spacing, dtype=float).reshape(3))
+        object.__setattr__(self, "origin", np.asarray(self.origin, dtype=float).reshape(3))
+        object.__setattr__(self, "direction", np.asarray(self.direction, dtype=float).reshape(3, 3))
+        if len(self.shape) != 3:
+            raise ValueError(f"an image grid must be 3D, got shape {self.shape}")
+        if not np.all(self.spacing > 0):
+            raise ValueError(f"spacing must be positive, got {self.spacing}")
+
+    def index_to_world(self, index_xyz) -> np.ndarray:
+        return (np.asarray(index_xyz, dtype=float) * self.spacing) @ self.direction.T + self.origin
+
+    def world_to_index(self, world) -> np.ndarray:
+        """Continuous index ``(i, j, k)`` (x, y, z order) of world points."""
+        return np.linalg.solve(self.direction, (np.asarray(world, dtype=float) - self.origin).T).T / self.spacing
+
+
+def signed_volume(points: np.ndarray, faces: np.ndarray) -> float:
+    """Volume enclosed by a closed triangle mesh (divergence theorem), in the
+    units of ``points`` cubed; positive for outward-facing triangles."""
+    p = points[faces]
+    return float(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6.0)
+
+
+@dataclass
+class Surface:
+    """A cavity surface: coordinate system, pose and Hermite coefficients.
+
+    Parameters
+    ----------
+    system : CoordinateSystem
+    pose : Pose
+        Local frame in world space (origin at the base point).
+    grid : HermiteGrid
+    coefficients : array, shape ``grid.shape``
+        Hermite coefficients of ``v0 = f(v1, v2)`` (see :mod:`spheroseg.hermite`).
+    """
+
+    system: CoordinateSystem
+    pose: Pose
+    grid: HermiteGrid
+    coefficients: np.ndarray
+
+    def __post_init__(self):
+        c = np.asarray(self.coefficients, dtype=float)
+        if c.size != self.grid.n_coefficients:
+            raise ValueError(f"coefficients must have {self.grid.n_coefficients} values, got {c.size}")
+        if not np.all(np.isfinite(c)):
+            raise ValueError("coefficients must be finite")
+        self.coefficients = c.reshape(self.grid.shape)
+
+    # -- construction -----------------------------------------------------
+
+    @classmethod
+    def from_apex_base(
+        cls,
+        apex,
+        base,
+        *,
+        system: str | CoordinateSystem = "prolate",
+        patches: tuple[int, int] = (8, 8),
+        radius_ratio: float = DEFAULT_RADIUS_RATIO,
+    ) -> "Surface":
+        """The initial surface of the paper: an isosurface placed by the apex
+        and base points.
+
+        The local frame has its origin at ``base`` and its long axis towards
+        ``apex``.  The surface is the half-ellipsoid through the apex with
+        base radius ``radius_ratio * |apex - base|``: in prolate spheroidal
+        coordinates the isosurface ``lambda = atanh(radius_ratio)`` with focal
+        length ``|apex - base| sqrt(1 - radius_ratio^2)``.
+        """
+        if not 0 < radius_ratio < 1:
+            raise ValueError(f"radius_ratio must be in (0, 1), got {radius_ratio!r}")
+        pose = Pose.from_apex_base(apex, base)
+        length = float(np.linalg.norm(np.asarray(apex, float) - np.asarray(base, float)))
+        system, v0 = coordinate_system(system).initial_v0(length, radius_ratio * length)
+        grid = HermiteGrid(*patches, v2_range=system.default_v2_range(length), poles=system.poles)
+        return cls.from_function(system, pose, grid, v0)
+
+    @classmethod
+    def from_function(
+        cls, system: CoordinateSystem, pose: Pose, grid: HermiteGrid, v0: float | Callable
+    ) -> "Surface":
+        """Surface from a constant or from a function of ``v2`` alone, its
+        nodal slopes taken by central differences."""
+        coefficients = np.zeros(grid.shape)
+        if callable(v0):
+            v2 = grid.node_v2
+            eps = 1e-6 * (grid.v2_range[1] - grid.v2_range[0])
+            coefficients[:, :, 0] = v0(v2)[:, None]
+            coefficients[:, :, 2] = ((v0(v2 + eps) - v0(v2 - eps)) / (2 * eps))[:, None]
+            coefficients = np.nan_to_num(coefficients)
+        else:
+            coefficients[:, :, 0] = float(v0)
+        return cls(system, pose, grid, grid.constrain(coefficients))
+
+    # -- evaluation -------------------------------------------------------
+
+    def evaluate(self, v1, v2, d1: int = 0, d2: int = 0) -> np.ndarray:
+        """``f`` or its partial derivatives at ``(v1, v2)``."""
+        return self.grid.evaluate(self.coefficients, v1, v2, d1, d2)
+
+    def radius(self, v1, v2) -> np.ndarray:
+        """``max(f, 0)``: where ``f`` dips below 0 the surface lies on the axis
+        (the focal segment for prolate coordinates) and encloses nothing."""
+        return np.maximum(self.evaluate(v1, v2), 0.0)
+
+    def points(self, v1, v2) -> np.ndarray:
+        """World points (mm) of the surface at ``(v1, v2)``, shape ``(..., 3)``."""
+        return self.pose.to_world(self.system.to_cartesian(self.radius(v1, v2), v1, v2))
+
+    def model_coordinates(self, world) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(v0, v1, v2)`` of world points."""
+        return self.system.from_cartesian(self.pose.to_local(world))
+
+    def contains(self, world) -> np.ndarray:
+        """Whether world points lie in the closed cavity."""
+        v0, v1, v2 = self.model_coordinates(world)
+        lo, hi = self.grid.v2_range
+        inside = (v2 >= lo) & (v2 <= hi)
+        f = np.full(v0.shape, -np.inf)
+        f[inside] = self.evaluate(v1[inside], v2[inside])
+        return inside & (v0 <= f)
+
+    def volume_ml(self, order: int = 8) -> float:
+        """Volume of the closed cavity in mL.
+
+        ``V = int int R(f(v1, v2), v2) dv1 dv2`` where ``R`` is the radial
+        integral of the volume element (ARCHITECTURE.md section 2), by
+        Gauss-Legendre quadrature on every patch.
+        """
+        v1, v2, w = self.grid.quadrature(order)
+        return float(w @ self.system.radial_volume(self.radius(v1, v2), v2)) / 1000.0
+
+    def bounding_box(self, n: int = 48) -> tuple[np.ndarray, np.ndarray]:
+        """World bounding box (min, max corners) of the closed cavity."""
+        v2, v1 = np.meshgrid(np.linspace(*self.grid.v2_range, n), np.linspace(0, 2 * np.pi, 2 * n), indexing="ij")
+        p = np.concatenate([self.points(v1, v2).reshape(-1, 3), self.pose.origin[None]])
+        margin = 0.02 * np.ptp(p, axis=0).max()  # between sampled points
+        return p.min(0) - margin, p.max(0) + margin
+
+    def mask(self, grid: ImageGrid) -> np.ndarray:
+        """Boolean mask ``[z, y, x]`` of voxel centres inside the closed cavity.
+
+        Only the voxels in the surface's bounding box are tested: each one's
+        centre is converted to model coordinates and compared with ``f``.
+        """
+        out = np.zeros(grid.shape, dtype=bool)
+        lo, hi = self.bounding_box()
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        idx = grid.world_to_index(corners)
+        start = np.clip(np.floor(idx.min(0)).astype(int), 0, np.array(grid.shape[::-1]))
+        stop = np.clip(np.ceil(idx.max(0)).astype(int) + 1, 0, np.array(grid.shape[::-1]))
+        if np.any(stop <= start):
+            return out
+        k, j, i = np.meshgrid(*(np.arange(a, b) for a, b in zip(start[::-1], stop[::-1])), indexing="ij")
+        world = grid.index_to_world(np.stack([i, j, k], axis=-1).reshape(-1, 3))
+        out[start[2] : stop[2], start[1] : stop[1], start[0] : stop[0]] = self.contains(world).reshape(i.shape)
+        return out
+
+    def mesh(self, n_v1: int = 64, n_v2: int = 32, *, closed: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Triangle mesh of the cavity wall, world mm, outward-facing.
+
+        Poles become one vertex; with ``closed=True`` every other end of the
+        ``v2`` range is capped by a fan around the axis (the base plane, and
+        for the cylindrical system the far end), so the mesh is watertight.
+        With ``closed=False`` the base-plane cap is left open, as in the
+        CETUS reference meshes.
+
+        Returns
+        -------
+        points : array (n, 3), float
+        faces : array (m, 3), int
+        """
+        v2 = np.linspace(*self.grid.v2_range, n_v2 + 1)
+        v1 = np.arange(n_v1) * (2 * np.pi / n_v1)
+        pole_at = {0: 0 in self.grid.pole_rows, n_v2: self.grid.n2 in self.grid.pole_rows}
+        local = [None] * (n_v2 + 1)
+        ring_start = []
+        points = []
+        count = 0
+        for r, v in enumerate(v2):
+            if pole_at.get(r, False):
+                ring = self.system.to_cartesian(self.radius(0.0, v), 0.0, v)[None]
+            else:
+                ring = self.system.to_cartesian(self.radius(v1, np.full_like(v1, v)), v1, v)
+            local[r] = ring
+            ring_start.append(count)
+            points.append(ring)
+            count += len(ring)
+        faces = []
+        for r in range(n_v2):
+            a, b = ring_start[r], ring_start[r + 1]
+            na, nb = len(local[r]), len(local[r + 1])
+            j = np.arange(n_v1)
+            jn = (j + 1) % n_v1
+            if na == 1:
+                faces.append(np.stack([np.full(n_v1, a), b + j, b + jn], 1))
+            elif nb == 1:
+                faces.append(np.stack([a + j, np.full(n_v1, b), a + jn], 1))
+            else:
+                faces.append(np.stack([a + j, b + j, b + jn], 1))
+                faces.append(np.stack([a + j, b + jn, a + jn], 1))
+        base_row = self._base_row(n_v2)
+        for r in (0, n_v2):
+            if len(local[r]) == 1 or (r == base_row and not closed):
+                continue
+            centre = self.system.to_cartesian(0.0, 0.0, v2[r])[None]
+            c = count
+            points.append(centre)
+            count += 1
+            j = ring_start[r] + np.arange(n_v1)
+            jn = ring_start[r] + (np.arange(n_v1) + 1) % n_v1
+            # each ring edge runs opposite to its use by the wall triangles
+            faces.append(np.stack([np.full(n_v1, c), j, jn] if r == 0 else [np.full(n_v1, c), jn, j], 1))
+        points = self.pose.to_world(np.concatenate(points))
+        faces = np.concatenate(faces).astype(np.int64)
+        # fix the orientation once, by the sign of the enclosed volume of the
+        # closed mesh (the open one inherits it)
+        if closed:
+            flip = signed_volume(points, faces) < 0
+        else:
+            flip = signed_volume(*self.mesh(n_v1, n_v2, closed=True)) < 0
+        if flip:
+            faces = faces[:, ::-1].copy()
+        return points, faces
+
+    def _base_row(self, n_v2: int) -> int:
+        # the end of the v2 range that lies on the base plane x1 = 0
+        ends = [0, n_v2]
+        x1 = [abs(self.system.to_cartesian(1.0, 0.0, v)[0]) for v in self.grid.v2_range]
+        return ends[int(np.argmin(x1))]
+
+    # -- refinement and serialisation -------------------------------------
+
+    def refine(self) -> "Surface":
+        """The same surface on a grid with twice the patches (exact)."""
+        grid, coefficients = self.grid.refine(self.coefficients)
+        return Surface(self.system, self.pose, grid, coefficients)
+
+    def with_coefficients(self, coefficients) -> "Surface":
+        return Surface(self.system, self.pose, self.grid, coefficients)
+
+    def to_dict(self) -> dict:
+        return {
+            "coordinate_system": self.system.to_dict(),
+            "pose": self.pose.to_dict(),
+            "patches": [self.grid.n1, self.grid.n2],
+            "v2_range": list(self.grid.v2_range),
+            "coefficient_order": ["f", "df/dv1", "df/dv2", "d2f/dv1dv2"],
+            "coefficients": self.coefficients.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Surface":
+        system = coordinate_system(d["coordinate_system"])
+        grid = HermiteGrid(*d["patches"], v2_range=tuple(d["v2_range"]), poles=system.poles)
+        return cls(system, Pose.from_dict(d["pose"]), grid, np.array(d["coefficients"]))

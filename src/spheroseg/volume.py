@@ -1,0 +1,133 @@
+"""An image with its geometry, and trilinear sampling at world points."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .surface import ImageGrid
+
+__all__ = ["Volume"]
+
+
+class Volume:
+    """A 3D image in ITK physical space.
+
+    Parameters
+    ----------
+    array : array, shape (nz, ny, nx)
+        Voxel values, indexed ``[z, y, x]`` as SimpleITK's ``GetArrayFromImage``.
+    spacing, origin : (x, y, z) floats, mm
+    direction : 3x3 array
+        Columns are the image axes (i, j, k) in world coordinates.
+    no_data_value : float, optional
+        Value that marks voxels without data (the black outside of an
+        echo sector, 0 in CETUS volumes).  Samples touching such a voxel are
+        treated as missing.  ``None``: every voxel is data.
+
+    Notes
+    -----
+    ``world = origin + direction @ (spacing * (i, j, k))``; world points are
+    ``(x, y, z)`` in mm (LPS).
+    """
+
+    def __init__(self, array, *, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), direction=None, no_data_value=None):
+        array = np.asarray(array)
+        if array.ndim != 3:
+            raise ValueError(f"a volume must be a 3D array [z, y, x], got {array.ndim}D with shape {array.shape}")
+        if min(array.shape) < 2:
+            raise ValueError(f"a volume needs at least 2 voxels along each axis, got shape {array.shape}")
+        if not np.issubdtype(array.dtype, np.number) or np.iscomplexobj(array):
+            raise ValueError(f"volume values must be real numbers, got dtype {array.dtype}")
+        self.array = np.ascontiguousarray(array, dtype=np.float32)
+        if not np.all(np.isfinite(self.array)):
+            raise ValueError("volume contains NaN or infinite voxels")
+        spacing = np.asarray(spacing, dtype=float)
+        if spacing.shape != (3,) or not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
+            raise ValueError(f"spacing must be 3 positive numbers (x, y, z), got {spacing!r}")
+        direction = np.eye(3) if direction is None else np.asarray(direction, dtype=float).reshape(3, 3)
+        if abs(np.linalg.det(direction)) < 1e-6:
+            raise ValueError("direction must be an invertible 3x3 matrix")
+        self.grid = ImageGrid(self.array.shape, spacing, origin, direction)
+        self.no_data_value = None if no_data_value is None else float(no_data_value)
+        # world -> continuous index (x, y, z order) as one affine map
+        self._to_index = np.linalg.inv(direction * self.grid.spacing[None, :])
+        self._flat = self.array.ravel()
+        nz, ny, nx = self.array.shape
+        self._upper = np.array([nx - 1, ny - 1, nz - 1], dtype=float)
+        self._strides = np.array([1, nx, nx * ny], dtype=np.int64)
+        if self.no_data_value is not None:
+            self._no_data = (self.array == self.no_data_value).ravel()
+
+    # geometry ------------------------------------------------------------
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return self.array.shape
+
+    @property
+    def spacing(self) -> np.ndarray:
+        return self.grid.spacing
+
+    @property
+    def origin(self) -> np.ndarray:
+        return self.grid.origin
+
+    @property
+    def direction(self) -> np.ndarray:
+        return self.grid.direction
+
+    def world_to_index(self, world) -> np.ndarray:
+        """Continuous index ``(i, j, k)`` (x, y, z order)."""
+        return (np.asarray(world, dtype=float) - self.grid.origin) @ self._to_index.T
+
+    def index_to_world(self, index_xyz) -> np.ndarray:
+        return self.grid.index_to_world(index_xyz)
+
+    def contains(self, world) -> np.ndarray:
+        """Whether world points lie within the image (between the first and
+        last voxel centres)."""
+        idx = self.world_to_index(world)
+        return np.all((idx >= 0) & (idx <= self._upper), axis=-1)
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """World bounding box of the voxel centres."""
+        corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]) * self._upper
+        w = self.index_to_world(corners)
+        return w.min(0), w.max(0)
+
+    # sampling ------------------------------------------------------------
+
+    def sample(self, world, *, fill_value: float = np.nan) -> np.ndarray:
+        """Trilinear interpolation at world points, shape ``world.shape[:-1]``.
+
+        Points outside the image (or touching a no-data voxel) get
+        ``fill_value``.
+        """
+        world = np.asarray(world, dtype=float)
+        shape = world.shape[:-1]
+        idx = self.world_to_index(world.reshape(-1, 3))
+        valid = np.all((idx >= 0) & (idx <= self._upper), axis=1)
+        idx = np.clip(idx, 0, self._upper)
+        base = np.minimum(np.floor(idx), np.maximum(self._upper - 1, 0)).astype(np.int64)
+        t = idx - base
+        flat0 = base @ self._strides
+        out = np.zeros(len(idx))
+        for dz in (0, 1):
+            wz = t[:, 2] if dz else 1 - t[:, 2]
+            for dy in (0, 1):
+                wy = t[:, 1] if dy else 1 - t[:, 1]
+                for dx in (0, 1):
+                    wx = t[:, 0] if dx else 1 - t[:, 0]
+                    flat = flat0 + (dx * self._strides[0] + dy * self._strides[1] + dz * self._strides[2])
+                    out += wx * wy * wz * self._flat[flat]
+                    if self.no_data_value is not None:
+                        valid &= ~self._no_data[flat]
+        out[~valid] = fill_value
+        return out.reshape(shape)
+
+    def __call__(self, world) -> np.ndarray:
+        return self.sample(world)
+
+    def __repr__(self) -> str:
+        return f"Volume(shape={self.shape}, spacing={tuple(self.spacing.round(4))}, origin={tuple(self.origin.round(3))})"

@@ -1,0 +1,115 @@
+import numpy as np
+import pytest
+
+from spheroseg.coords import Cylindrical, Pose, ProlateSpheroidal, Spherical, coordinate_system
+
+SYSTEMS = [ProlateSpheroidal(37.0), Spherical(), Cylindrical(90.0)]
+
+
+def random_coords(system, rng, n=500, margin=0.05):
+    v1 = rng.uniform(0, 2 * np.pi, n)
+    if isinstance(system, ProlateSpheroidal):
+        return rng.uniform(0.1, 2.0, n), v1, rng.uniform(margin, np.pi - margin, n)
+    if isinstance(system, Spherical):
+        return rng.uniform(1.0, 80.0, n), v1, rng.uniform(margin, np.pi - margin, n)
+    return rng.uniform(1.0, 80.0, n), v1, rng.uniform(-50, 50, n)
+
+
+@pytest.mark.parametrize("system", SYSTEMS, ids=lambda s: s.name)
+def test_round_trip(system, rng):
+    v = random_coords(system, rng)
+    back = system.from_cartesian(system.to_cartesian(*v))
+    for a, b in zip(v, back):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-10)
+    x = rng.normal(scale=40.0, size=(500, 3))
+    np.testing.assert_allclose(system.to_cartesian(*system.from_cartesian(x)), x, atol=1e-10)
+
+
+def test_prolate_finite_near_poles_and_foci():
+    s = ProlateSpheroidal(30.0)
+    x = np.array([[30.0, 0, 0], [30.0 + 1e-9, 1e-12, 0], [0, 0, 0], [-30, 1e-9, 0], [50, 0, 0], [29.0, 0, 0]])
+    v = s.from_cartesian(x)
+    assert all(np.all(np.isfinite(c)) for c in v)
+    np.testing.assert_allclose(s.to_cartesian(*v), x, atol=1e-7)
+    # on the axis beyond the focus mu = 0 exactly, between the foci lambda = 0
+    assert v[2][4] == 0 and v[0][5] == 0
+
+
+def numerical_jacobian(system, v, eps=1e-6):
+    cols = []
+    for i in range(3):
+        hi = [c.copy() for c in v]
+        lo = [c.copy() for c in v]
+        hi[i] = hi[i] + eps
+        lo[i] = lo[i] - eps
+        cols.append((system.to_cartesian(*hi) - system.to_cartesian(*lo)) / (2 * eps))
+    return np.stack(cols, axis=-1)  # (..., 3 xyz, 3 v)
+
+
+@pytest.mark.parametrize("system", SYSTEMS, ids=lambda s: s.name)
+def test_scale_factors_and_volume_element(system, rng):
+    v = random_coords(system, rng, n=200)
+    jac = numerical_jacobian(system, v)
+    np.testing.assert_allclose(system.jacobian(*v), jac, rtol=1e-7, atol=1e-6)
+    h = np.stack(system.scale_factors(*v), axis=-1)
+    np.testing.assert_allclose(np.linalg.norm(jac, axis=-2), np.abs(h), rtol=1e-7, atol=1e-7)
+    # orthogonal system: J^T J is diagonal
+    gram = np.einsum("nij,nik->njk", jac, jac)
+    off = gram - np.einsum("nj,jk->njk", np.diagonal(gram, axis1=1, axis2=2), np.eye(3))
+    assert np.abs(off).max() < 1e-5 * np.abs(gram).max()
+    np.testing.assert_allclose(np.abs(np.linalg.det(jac)), np.abs(system.volume_element(*v)), rtol=1e-6)
+
+
+@pytest.mark.parametrize("system", SYSTEMS, ids=lambda s: s.name)
+def test_scale_factor_derivatives(system, rng):
+    v0, v1, v2 = random_coords(system, rng, n=200)
+    eps = 1e-6
+    hi = system.scale_factors(v0 + eps, v1, v2)
+    lo = system.scale_factors(v0 - eps, v1, v2)
+    for d, a, b in zip(system.scale_factor_derivatives(v0, v1, v2), hi, lo):
+        np.testing.assert_allclose(d, (a - b) / (2 * eps), rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("system", SYSTEMS, ids=lambda s: s.name)
+def test_radial_volume_is_integral_of_volume_element(system, rng):
+    f = rng.uniform(0.3, 1.5, 20) * (1 if isinstance(system, ProlateSpheroidal) else 40)
+    v2 = rng.uniform(0.1, 1.5, 20)
+    x, w = np.polynomial.legendre.leggauss(40)
+    t = (x + 1) / 2
+    numeric = (w / 2 * f[:, None] * system.volume_element(f[:, None] * t, 0.0, v2[:, None])).sum(1)
+    np.testing.assert_allclose(system.radial_volume(f, v2), numeric, rtol=1e-10)
+
+
+def test_bad_focal_length():
+    for d in (0.0, -1.0, np.nan):
+        with pytest.raises(ValueError, match="focal_length"):
+            ProlateSpheroidal(d)
+    with pytest.raises(ValueError, match="coordinate system"):
+        coordinate_system("toroidal")
+
+
+def test_pose_from_apex_base(rng):
+    apex, base = np.array([10.0, 20, 90]), np.array([12.0, 25, 10])
+    pose = Pose.from_apex_base(apex, base)
+    np.testing.assert_allclose(pose.rotation.T @ pose.rotation, np.eye(3), atol=1e-12)
+    assert np.linalg.det(pose.rotation) > 0
+    np.testing.assert_allclose(pose.to_local(base), 0, atol=1e-12)
+    np.testing.assert_allclose(pose.to_local(apex), [np.linalg.norm(apex - base), 0, 0], atol=1e-12)
+    x = rng.normal(size=(10, 3))
+    np.testing.assert_allclose(pose.to_world(pose.to_local(x)), x, atol=1e-12)
+    again = Pose.from_dict(pose.to_dict())
+    np.testing.assert_array_equal(again.rotation, pose.rotation)
+
+
+@pytest.mark.parametrize(
+    "apex, base, message",
+    [
+        ([0, 0, 1], [0, 0, 1], "apex and base"),
+        ([0, np.nan, 1], [0, 0, 0], "apex"),
+        ([0, 0, 1], [0, np.inf, 0], "base"),
+        ([0, 0], [0, 0, 0], "apex"),
+    ],
+)
+def test_pose_bad_points(apex, base, message):
+    with pytest.raises(ValueError, match=message):
+        Pose.from_apex_base(apex, base)

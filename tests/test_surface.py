@@ -1,0 +1,127 @@
+import numpy as np
+import pytest
+
+from spheroseg.coords import Pose, ProlateSpheroidal
+from spheroseg.hermite import HermiteGrid
+from spheroseg.surface import ImageGrid, Surface, signed_volume
+
+APEX, BASE = np.array([3.0, -4.0, 85.0]), np.array([0.0, 0.0, 5.0])
+
+
+def constant_prolate(l0, d=40.0, v2_range=(0.0, np.pi / 2)):
+    system = ProlateSpheroidal(d)
+    grid = HermiteGrid(8, 8, v2_range, poles=system.poles)
+    return Surface.from_function(system, Pose.from_apex_base(APEX, BASE), grid, l0)
+
+
+def test_constant_lambda_volume_is_analytic():
+    d, l0 = 40.0, 0.7
+    a, b = d * np.cosh(l0), d * np.sinh(l0)
+    full = constant_prolate(l0, d, (0.0, np.pi))
+    np.testing.assert_allclose(full.volume_ml(), 4 / 3 * np.pi * a * b * b / 1000, rtol=1e-6)
+    half = constant_prolate(l0, d)
+    np.testing.assert_allclose(half.volume_ml(), 2 / 3 * np.pi * a * b * b / 1000, rtol=1e-6)
+
+
+@pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])
+def test_initial_surface_is_half_ellipsoid_through_apex(system):
+    s = Surface.from_apex_base(APEX, BASE, system=system, radius_ratio=0.35)
+    length = np.linalg.norm(APEX - BASE)
+    # the hemi-ellipsoid of semi-axes (L, 0.35 L, 0.35 L); the cylindrical
+    # Hermite fit of sqrt(1 - z^2) near the apex is the coarsest
+    tol = 0.02 if system == "cylindrical" else 1e-3
+    np.testing.assert_allclose(s.volume_ml(), 2 / 3 * np.pi * length * (0.35 * length) ** 2 / 1000, rtol=tol)
+    p, _ = s.mesh(closed=True)
+    assert np.min(np.linalg.norm(p - APEX, axis=1)) < 0.02 * length
+
+
+def test_mask_of_ellipsoid_matches_analytic_volume():
+    s = constant_prolate(0.6)
+    # a grid whose voxel centres do not line up with the base plane
+    grid = ImageGrid((100, 80, 80), spacing=(0.9, 0.9, 0.9), origin=(-35.3, -35.6, 0.2))
+    mask = s.mask(grid)
+    voxel_ml = 0.9**3 / 1000
+    # voxelisation error: about (surface area) x (voxel size) x 0.1 in the
+    # worst case; the half-ellipsoid here has ~ 8000 mm^2 of surface
+    assert abs(mask.sum() * voxel_ml - s.volume_ml()) < 8000 * 0.9 * 0.1 / 1000
+    # and every voxel centre agrees with the analytic inside test
+    k, j, i = np.nonzero(np.ones(grid.shape, bool))
+    world = grid.index_to_world(np.stack([i, j, k], 1))
+    local = s.pose.to_local(world)
+    lam, _, mu = s.system.from_cartesian(local)
+    analytic = ((lam <= 0.6) & (mu <= np.pi / 2)).reshape(grid.shape)
+    np.testing.assert_array_equal(mask, analytic)
+
+
+def test_mask_outside_image_is_empty():
+    s = constant_prolate(0.6)
+    grid = ImageGrid((10, 10, 10), origin=(500.0, 500.0, 500.0))
+    assert not s.mask(grid).any()
+
+
+@pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])
+def test_mesh_is_watertight_and_encloses_the_volume(system, rng):
+    s = Surface.from_apex_base(APEX, BASE, system=system)
+    a = s.grid.constraints
+    params = s.grid.parameters(s.coefficients)
+    s = s.with_coefficients(a @ (params * (1 + 0.03 * rng.normal(size=params.shape))))
+    points, faces = s.mesh(96, 48)
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(counts == 2), "every edge in exactly two triangles"
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    assert len(np.unique(directed, axis=0)) == len(directed), "consistently oriented"
+    np.testing.assert_allclose(signed_volume(points, faces) / 1000, s.volume_ml(), rtol=5e-3)
+    open_points, open_faces = s.mesh(96, 48, closed=False)
+    assert len(open_faces) == len(faces) - 96  # the base cap
+
+
+def test_apex_is_smooth_for_random_coefficients(rng):
+    """Normals around the apex agree: one tangent plane, no spike or crease."""
+    s = Surface.from_apex_base(APEX, BASE)
+    a = s.grid.constraints
+    params = s.grid.parameters(s.coefficients) + 0.05 * rng.normal(size=a.shape[1])
+    s = s.with_coefficients(a @ params)
+    th = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+
+    def normal_spread(mu):
+        eps = 1e-2 * mu
+        dth = (s.points(th + eps, mu) - s.points(th - eps, mu)) / (2 * eps)
+        dmu = (s.points(th, mu + eps) - s.points(th, mu - eps)) / (2 * eps)
+        n = np.cross(dmu, dth)
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        m = n.mean(0) / np.linalg.norm(n.mean(0))
+        return np.degrees(np.arccos(np.clip(n @ m, -1, 1))).max()
+
+    # normals turn in proportion to the distance from the apex (curvature),
+    # a cone or crease would leave a spread that does not vanish
+    assert normal_spread(1e-4) < 0.15 * normal_spread(1e-3) + 0.01
+    # one apex point
+    apex_points = s.points(th, 0.0)
+    assert np.ptp(apex_points, axis=0).max() < 1e-9
+
+
+def test_refine_keeps_surface(rng):
+    s = Surface.from_apex_base(APEX, BASE, patches=(4, 4))
+    fine = s.refine()
+    th, mu = rng.uniform(0, 2 * np.pi, 100), rng.uniform(0, np.pi / 2, 100)
+    np.testing.assert_allclose(fine.evaluate(th, mu), s.evaluate(th, mu), atol=1e-12)
+    assert (fine.grid.n1, fine.grid.n2) == (8, 8)
+
+
+def test_dict_round_trip():
+    s = Surface.from_apex_base(APEX, BASE, system="cylindrical", patches=(6, 4))
+    again = Surface.from_dict(s.to_dict())
+    np.testing.assert_array_equal(again.coefficients, s.coefficients)
+    assert again.system == s.system and again.grid == s.grid
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="apex and base"):
+        Surface.from_apex_base(BASE, BASE)
+    with pytest.raises(ValueError, match="number of patches"):
+        Surface.from_apex_base(APEX, BASE, patches=(1, 8))
+    with pytest.raises(ValueError, match="radius_ratio"):
+        Surface.from_apex_base(APEX, BASE, radius_ratio=0)
+    with pytest.raises(ValueError, match="apex"):
+        Surface.from_apex_base([np.nan, 0, 0], BASE)
