@@ -23,7 +23,7 @@ def test_smoothness_shrinks_wiggles(rng):
     th, mu = rng.uniform(0, 2 * np.pi, 3000), rng.uniform(0, np.pi / 2, 3000)
     noisy = truth.points(th, mu) + rng.normal(scale=1.0, size=(3000, 3))
     rough = fit_surface(noisy, system=truth.system, pose=truth.pose, smoothness=0)
-    smooth = fit_surface(noisy, system=truth.system, pose=truth.pose, smoothness=1e-2)
+    smooth = fit_surface(noisy, system=truth.system, pose=truth.pose, smoothness=1e-5)
     err = lambda s: np.abs(s.evaluate(th, mu) - truth.evaluate(th, mu)).mean()
     assert err(smooth) < err(rough)
 

@@ -175,10 +175,20 @@ class ProlateSpheroidal(CoordinateSystem):
         return (0.0, np.pi / 2)
 
     def initial_v0(self, length, radius):
-        # a = d cosh(l0) = length, b = d sinh(l0) = radius
-        if not radius < length:
-            raise ValueError("the initial radius must be smaller than the apex-base distance")
-        return ProlateSpheroidal(float(np.sqrt(length**2 - radius**2))), float(np.arctanh(radius / length))
+        # The paper's lambda = 1 coordinate surface passes through the apex:
+        # d = length / cosh(1) puts the focus a third of the way down from
+        # the apex, far from the wall, so the surface can move without
+        # meeting the focal singularity.  The initial surface is the
+        # half-ellipsoid of semi-axes (length, radius, radius) as lambda(mu).
+        a, b = float(length), float(radius)
+        d = a / np.cosh(1.0)
+
+        def v0(mu):
+            s2, c2 = np.sin(mu) ** 2, np.cos(mu) ** 2
+            cosh_l = np.sqrt((1 + d * d * s2 / b**2) / (d * d * c2 / a**2 + d * d * s2 / b**2))
+            return np.arccosh(np.maximum(cosh_l, 1.0))
+
+        return ProlateSpheroidal(d), v0
 
     def to_dict(self):
         return {"name": self.name, "focal_length": self.focal_length}

@@ -7,7 +7,6 @@ how well a given number of patches can represent a real ventricle.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .coords import CoordinateSystem, Pose
@@ -65,13 +64,7 @@ def fit_surface(
     lhs = (b.T @ b) / keep.sum()
     rhs = b.T @ v0[keep] / keep.sum()
     if smoothness > 0:
-        q1, q2, w = grid.quadrature(4)
-        area = w.sum()
-        tp = sp.csr_matrix(lhs.shape)
-        for d1, d2, m in ((2, 0, 1.0), (1, 1, 2.0), (0, 2, 1.0)):
-            d = grid.basis_matrix(q1, q2, d1, d2) @ a
-            tp = tp + m * (d.T @ sp.diags(w / area) @ d)
-        lhs = lhs + smoothness * tp
+        lhs = lhs + smoothness * grid.roughness_matrix()
     params = np.linalg.solve(lhs.toarray(), rhs)
     return Surface(system, pose, grid, a @ params)
 

@@ -263,6 +263,18 @@ class HermiteGrid:
         """Nearest well-formed coefficients (exact for well-formed input)."""
         return (self.constraints @ self.parameters(coefficients)).reshape(self.shape)
 
+    def roughness_matrix(self, order: int = 4) -> sp.csr_matrix:
+        """Thin-plate energy in the parameters: ``p^T T p = int f_11^2 +
+        2 f_12^2 + f_22^2 dv1 dv2 / area``, zero for constant ``f``."""
+        q1, q2, w = self.quadrature(order)
+        w = w / w.sum()
+        a = self.constraints
+        t = sp.csr_matrix((a.shape[1], a.shape[1]))
+        for d1, d2, m in ((2, 0, 1.0), (1, 1, 2.0), (0, 2, 1.0)):
+            d = self.basis_matrix(q1, q2, d1, d2) @ a
+            t = t + m * (d.T @ d.multiply(w[:, None]))
+        return t.tocsr()
+
     # -- refinement -------------------------------------------------------
 
     def refine(self, coefficients) -> tuple["HermiteGrid", np.ndarray]:

@@ -57,6 +57,10 @@ MODES = ("local", "chan-vese", "fast")
 
 # along-normal offsets (mm) averaged for the grey level at the surface
 _SURFACE_OFFSETS = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
+# the thin-plate matrix relative to the mass matrix for smoothness = 1:
+# its eigenvalues grow as k^4 for angular wavenumber k; this makes
+# smoothness = 1 damp a k = 8 wave (patch scale at 8 x 8) by half per step
+_ROUGHNESS_SCALE = 8.0**4
 # least cosine between the normal and the v0 direction when converting a
 # normal displacement into a v0 displacement (keeps grazing rays bounded)
 _MIN_COS = 0.3
@@ -161,21 +165,32 @@ def _otsu(values: np.ndarray) -> float:
 class _Descent:
     """The iteration at one level of the coarse-to-fine schedule."""
 
-    def __init__(self, volume, surface, *, order, step, band, band_out, landmarks, landmark_weight, nu):
+    def __init__(self, volume, surface, reference, *, order, step, band, band_out, landmarks, landmark_weights, nu,
+                 smoothness):
         self.volume = volume
         self.model = SampledSurface(surface.system, surface.pose, surface.grid, order)
         self.p = self.model.parameters(surface.coefficients)
         self.step, self.band, self.band_out, self.nu = step, band, band_out, nu
         m = self.model.mass_matrix
+        self.projector = scipy.linalg.cho_factor(m)
+        # the update solves (M + a T + w L^T L) p_new = M p + B^T W dv0 + a T p_ref + w L^T res:
+        # least squares on the displacement, an implicit (unconditionally
+        # stable) thin-plate smoothing step of the departure from the
+        # reference (initial) shape, and the landmark rows
+        self.mass = m
+        area = self.model.weights.sum()  # T is per unit area, M is not
+        smoothing = smoothness * area / _ROUGHNESS_SCALE * surface.grid.roughness_matrix().toarray()
+        self.prior = smoothing @ self.model.parameters(reference.coefficients)
+        system = m + smoothing
         self.landmarks = None
         if landmarks is not None and len(landmarks):
             self.landmarks = Landmarks.from_world(self.model, landmarks)
-            # weight: each landmark counts like `landmark_weight` times the
-            # mean share of the surface held by one sample point
-            self.omega = landmark_weight * self.model.weights.sum() / len(self.landmarks) * 0.05
+            # weight 1: a landmark outweighs the data over 5 % of the (v1, v2)
+            # domain, about one patch at 4 x 4
+            self.omega = np.asarray(landmark_weights, float) * 0.05 * self.model.weights.sum()
             b = self.landmarks.basis.toarray()
-            m = m + self.omega * b.T @ b
-        self.solver = scipy.linalg.cho_factor(m + 1e-12 * np.trace(m) / len(m) * np.eye(len(m)))
+            system = system + b.T @ (self.omega[:, None] * b)
+        self.solver = scipy.linalg.cho_factor(system)
         self._inside_t = np.array([0.15, 0.35, 0.55, 0.75, 0.95])
         self._shell = np.linspace(0, band_out, 6)[1:]
         self._band = np.linspace(0, band, 5)[1:]
@@ -187,7 +202,7 @@ class _Descent:
         return self.volume.sample(pts)
 
     def surface_grey(self, g):
-        return np.nanmean(self._along_normal(g, _SURFACE_OFFSETS), axis=1)
+        return _row_nanmean(self._along_normal(g, _SURFACE_OFFSETS))
 
     def global_means(self, g):
         """Volume-weighted cavity mean and area-weighted shell mean."""
@@ -203,15 +218,15 @@ class _Descent:
 
     def local_means(self, g):
         """Per-point means in bands along the normal, smoothed by projection."""
-        inside = np.nanmean(self._along_normal(g, -self._band), axis=1)
-        outside = np.nanmean(self._along_normal(g, self._band), axis=1)
+        inside = _row_nanmean(self._along_normal(g, -self._band))
+        outside = _row_nanmean(self._along_normal(g, self._band))
         fields = []
         for c in (inside, outside):
             ok = np.isfinite(c)
             if not ok.any():
                 return None
             c = np.where(ok, c, np.median(c[ok]))
-            fields.append(self.model.b_f @ scipy.linalg.cho_solve(self.solver, self.model.b_f.T @ (self.model.weights * c)))
+            fields.append(self.model.b_f @ scipy.linalg.cho_solve(self.projector, self.model.b_f.T @ (self.model.weights * c)))
         return fields
 
     # the step ---------------------------------------------------------------
@@ -220,27 +235,41 @@ class _Descent:
         m, g = self.model, self.model.geometry(self.p)
         u = self.surface_grey(g) if u_override is None else u_override
         r = region_force(u, c_in, c_out) / scale
-        speed = np.where(np.isfinite(r), -np.clip(r, -1.0, 1.0), 0.0)  # mm per step, outward
+        # mm per step, outward; a surface point off the image's data (out of
+        # the sector) is pulled back: the cavity is where the data are
+        speed = np.where(np.isfinite(r), -np.clip(r, -1.0, 1.0), np.where(np.isfinite(u), 0.0, -1.0))
         h0 = m.system.scale_factors(g.f, m.v1, m.v2)[0]
         cos = np.einsum("ij,ij->i", g.normal @ m.pose.rotation, g.jacobian[:, :, 0]) / h0
-        dv0 = self.step * speed / (h0 * np.maximum(cos, _MIN_COS))
+        # (h0 is bounded below too: near a focal point v0 barely moves the surface)
+        dv0 = self.step * speed / np.maximum(h0 * np.maximum(cos, _MIN_COS), 0.3 * np.median(h0))
         rhs = m.b_f.T @ (m.weights * dv0)
         if self.nu:
             # area term: gradient scaled to mm of motion per unit of nu
             grad = area_gradient(m, self.p, g)
             rhs -= self.nu * self.step * grad / (np.median(h0) * max(g.area.mean(), 1e-12))
         if self.landmarks is not None:
+            # rows omega |L p_new - (L p + res)|^2: move towards each landmark
+            # by at most a step
             lm = self.landmarks
-            res = lm.v0 - lm.basis @ self.p
-            res = np.clip(res * lm.h0, -self.step, self.step) / lm.h0
-            rhs += self.omega * (lm.basis.T @ res)
-        dp = scipy.linalg.cho_solve(self.solver, rhs)
-        self.p = self.p + dp
+            f = lm.basis @ self.p
+            res = np.clip((lm.v0 - f) * lm.h0, -self.step, self.step) / lm.h0
+            rhs += lm.basis.T @ (self.omega * (f + res))
+        p_new = scipy.linalg.cho_solve(self.solver, self.mass @ self.p + self.prior + rhs)
+        dp = p_new - self.p
+        self.p = p_new
         motion = np.sqrt(np.average((h0 * (m.b_f @ dp)) ** 2, weights=m.weights))
         return motion, g, u
 
     def surface(self, like: Surface) -> Surface:
         return like.with_coefficients(self.model.coefficients(self.p))
+
+
+def _row_nanmean(values: np.ndarray) -> np.ndarray:
+    """Mean of each row's finite values; NaN for a row with none."""
+    ok = np.isfinite(values)
+    n = ok.sum(axis=1)
+    total = np.where(ok, values, 0.0).sum(axis=1)
+    return np.where(n > 0, total / np.maximum(n, 1), np.nan)
 
 
 def _weighted_nanmean(values, weights) -> float:
@@ -300,8 +329,10 @@ def segment(
     band_out: float = 15.0,
     interface: float | None = None,
     nu: float = 0.0,
+    smoothness: float = 1.0,
     landmarks=None,
     landmark_weight: float = 1.0,
+    apex_weight: float = 1.0,
     order: int = 8,
     radius_ratio: float = DEFAULT_RADIUS_RATIO,
     init: Surface | None = None,
@@ -343,11 +374,20 @@ def segment(
         threshold of the samples around the initial surface).
     nu : float
         Weight of the area term (paper eqs. 16-17, 23-24), 0 as in the paper.
+    smoothness : float
+        Weight of a thin-plate regularisation of the surface's departure
+        from its initial shape (the half-ellipsoid, or ``init``), applied as
+        an implicit step each iteration (0 for the paper's method).  It costs
+        nothing per iteration and keeps the surface from squeezing through
+        gaps in the wall (dropout) at the patch scale; 1 halves a wave of
+        the patch size at 8 x 8 patches per step.
     landmarks : array (k, 3), optional
         World points the surface must pass through (to stop a leak).
     landmark_weight : float
         How strongly the landmarks hold the surface (1: a landmark
-        outweighs the data over about a patch).
+        outweighs the data over 5 % of the surface, about a patch at 4 x 4).
+    apex_weight : float
+        The apex point is a landmark of this weight (0: free apex).
     order : int
         Sample points per patch and direction (paper: 8).
     radius_ratio : float
@@ -377,12 +417,20 @@ def segment(
             raise ValueError(f"{name} must be a positive number, got {value!r}")
     if not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 0):
         raise ValueError(f"max_iterations must be a non-negative integer, got {max_iterations!r}")
-    if nu < 0 or landmark_weight < 0:
-        raise ValueError("nu and landmark_weight must be >= 0")
+    if min(nu, landmark_weight, apex_weight, smoothness) < 0:
+        raise ValueError("nu, smoothness, landmark_weight and apex_weight must be >= 0")
     if landmarks is not None:
         landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 3)
         for k, lm in enumerate(landmarks):
             _check_point(volume, lm, f"landmark {k}")
+    if apex_weight > 0:
+        # the apex is a point of the endocardium the user clicked: hold the
+        # surface there (near-field clutter would otherwise push it down)
+        held = landmarks if landmarks is not None else np.empty((0, 3))
+        landmarks = np.concatenate([held, apex[None]])
+        weights = np.concatenate([np.full(len(held), landmark_weight), [apex_weight]])
+    else:
+        weights = None if landmarks is None else np.full(len(landmarks), landmark_weight)
 
     levels = _levels(patches, coarse_to_fine and init is None)
     if init is None:
@@ -390,16 +438,17 @@ def segment(
     else:
         surface = init
     settings = dict(order=order, step=step, band=band, band_out=band_out, landmarks=landmarks,
-                    landmark_weight=landmark_weight, nu=nu)
+                    landmark_weights=weights, nu=nu, smoothness=smoothness)
 
     # region statistics of the initial surface: a check that there is
     # something to segment, the scale of the contrast, the fast mode's levels
-    probe = _Descent(volume, surface, **settings)
+    reference = surface
+    probe = _Descent(volume, surface, reference, **settings)
     g = probe.model.geometry(probe.p)
     c_in0, c_out0 = probe.global_means(g)
     samples = np.concatenate([probe._along_normal(g, -probe._band).ravel(), probe._along_normal(g, probe._shell).ravel()])
     samples = samples[np.isfinite(samples)]
-    if samples.size < 10 or np.ptp(samples) == 0:
+    if samples.size < 10 or np.ptp(samples) <= 1e-6 * max(np.abs(samples).max(), 1.0):
         raise ValueError("the image is constant (or empty) around the initial surface: nothing to segment")
     spread = np.std(samples)
     stats = {"min_scale": (0.05 * spread) ** 2}
@@ -412,8 +461,8 @@ def segment(
     total, converged, c_in, c_out = 0, False, c_in0, c_out0
     for li, level in enumerate(levels):
         while (surface.grid.n1, surface.grid.n2) != level:
-            surface = surface.refine()
-        descent = probe if li == 0 else _Descent(volume, surface, **settings)
+            surface, reference = surface.refine(), reference.refine()
+        descent = probe if li == 0 else _Descent(volume, surface, reference, **settings)
         stats["global_level"] = mode == "local" and li < len(levels) - 1
         n, converged, c_in, c_out = _run_level(
             descent, mode, stats, max_iterations=max_iterations, tol=tol, callback=iter_callback,
@@ -431,7 +480,8 @@ def segment(
         seconds=time.perf_counter() - started,
         parameters=dict(system=surface.system.name, patches=list(patches), mode=mode, step=step,
                         max_iterations=max_iterations, tol=tol, coarse_to_fine=coarse_to_fine, band=band,
-                        band_out=band_out, interface=interface, nu=nu, landmark_weight=landmark_weight,
+                        band_out=band_out, interface=interface, nu=nu, smoothness=smoothness, landmark_weight=landmark_weight,
+                        apex_weight=apex_weight,
                         order=order, radius_ratio=radius_ratio),
     )
 
@@ -441,7 +491,7 @@ def track(
     apex,
     base,
     *,
-    iterations_per_frame: int = 5,
+    iterations_per_frame: int = 20,
     progress: Callable[[int, int], None] | None = None,
     **kwargs,
 ) -> TrackingResult:
@@ -449,9 +499,12 @@ def track(
 
     The first frame is segmented from ``apex`` and ``base`` (all of
     :func:`segment`'s keywords apply); every later frame starts from the
-    previous frame's coefficients and runs ``iterations_per_frame``
-    iterations (the paper: 3 to 5).  The apex and base points, so the base
-    plane, stay those of the first frame.
+    previous frame's coefficients and runs until the surface stops moving
+    (``tol``), at most ``iterations_per_frame`` iterations.  The paper used
+    3 to 5 at 20-30 frames per cycle; at 8-10 frames per cycle the wall
+    moves up to 4 mm between frames and needs 10-25 (docs/benchmarks.md).
+    The apex and base points, so the base plane, stay those of the first
+    frame.
 
     Returns
     -------

@@ -103,14 +103,14 @@ class Surface:
         patches: tuple[int, int] = (8, 8),
         radius_ratio: float = DEFAULT_RADIUS_RATIO,
     ) -> "Surface":
-        """The initial surface of the paper: an isosurface placed by the apex
-        and base points.
+        """The initial surface, placed by the apex and base points.
 
         The local frame has its origin at ``base`` and its long axis towards
         ``apex``.  The surface is the half-ellipsoid through the apex with
-        base radius ``radius_ratio * |apex - base|``: in prolate spheroidal
-        coordinates the isosurface ``lambda = atanh(radius_ratio)`` with focal
-        length ``|apex - base| sqrt(1 - radius_ratio^2)``.
+        base radius ``radius_ratio * |apex - base|``.  In prolate spheroidal
+        coordinates the focal length makes the paper's initial isosurface
+        ``lambda = 1`` pass through the apex (see
+        :meth:`ProlateSpheroidal.initial_v0`).
         """
         if not 0 < radius_ratio < 1:
             raise ValueError(f"radius_ratio must be in (0, 1), got {radius_ratio!r}")

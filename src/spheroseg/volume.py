@@ -8,6 +8,10 @@ from .surface import ImageGrid
 
 __all__ = ["Volume"]
 
+# points this close (in voxels) outside the first or last voxel centre count
+# as on it: world -> index round-off must not lose the image's edge
+_EDGE = 1e-6
+
 
 class Volume:
     """A 3D image in ITK physical space.
@@ -87,7 +91,7 @@ class Volume:
         """Whether world points lie within the image (between the first and
         last voxel centres)."""
         idx = self.world_to_index(world)
-        return np.all((idx >= 0) & (idx <= self._upper), axis=-1)
+        return np.all((idx >= -_EDGE) & (idx <= self._upper + _EDGE), axis=-1)
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -107,7 +111,7 @@ class Volume:
         world = np.asarray(world, dtype=float)
         shape = world.shape[:-1]
         idx = self.world_to_index(world.reshape(-1, 3))
-        valid = np.all((idx >= 0) & (idx <= self._upper), axis=1)
+        valid = np.all((idx >= -_EDGE) & (idx <= self._upper + _EDGE), axis=1)
         idx = np.clip(idx, 0, self._upper)
         base = np.minimum(np.floor(idx), np.maximum(self._upper - 1, 0)).astype(np.int64)
         t = idx - base

@@ -1,0 +1,61 @@
+import numpy as np
+import pytest
+
+from spheroseg.volume import Volume
+
+
+def affine_volume():
+    rng = np.random.default_rng(3)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    direction = q * np.sign(np.linalg.det(q))
+    shape = (9, 11, 13)  # z, y, x
+    k, j, i = np.meshgrid(*(np.arange(n) for n in shape), indexing="ij")
+    values = 2.0 * i - 3.0 * j + 0.5 * k + 7.0  # linear in the index: trilinear is exact
+    return Volume(values, spacing=(0.7, 1.1, 1.3), origin=(5.0, -2.0, 10.0), direction=direction)
+
+
+def test_world_index_round_trip(rng):
+    vol = affine_volume()
+    idx = rng.uniform(0, 8, size=(50, 3))
+    np.testing.assert_allclose(vol.world_to_index(vol.index_to_world(idx)), idx, atol=1e-10)
+
+
+def test_trilinear_is_exact_for_linear_images(rng):
+    vol = affine_volume()
+    idx = rng.uniform(0, 1, size=(200, 3)) * [12, 10, 8]
+    expected = 2.0 * idx[:, 0] - 3.0 * idx[:, 1] + 0.5 * idx[:, 2] + 7.0
+    np.testing.assert_allclose(vol.sample(vol.index_to_world(idx)), expected, atol=1e-4)
+    # voxel centres give the voxels, including the last ones
+    corner = np.array([[12.0, 10.0, 8.0]])
+    assert vol.sample(vol.index_to_world(corner))[0] == pytest.approx(vol.array[8, 10, 12])
+
+
+def test_outside_is_fill_value():
+    vol = affine_volume()
+    out = vol.index_to_world(np.array([[-0.01, 0, 0], [0, 10.01, 0], [0, 0, 100]]))
+    assert np.all(np.isnan(vol.sample(out)))
+    assert np.all(vol.sample(out, fill_value=-1.0) == -1.0)
+
+
+def test_no_data_value_marks_missing_samples():
+    a = np.full((4, 4, 4), 50.0)
+    a[:, :, 0] = 0
+    vol = Volume(a, no_data_value=0)
+    s = vol.sample(np.array([[0.5, 1, 1], [2.0, 1, 1], [1.0, 1, 1]]))
+    assert np.isnan(s[0]) and s[1] == 50.0 and s[2] == 50.0
+
+
+@pytest.mark.parametrize(
+    "array, kwargs, message",
+    [
+        (np.zeros((4, 4)), {}, "3D"),
+        (np.zeros((2, 4, 4, 4)), {}, "3D"),
+        (np.full((4, 4, 4), np.nan), {}, "NaN"),
+        (np.zeros((4, 4, 4)), {"spacing": (1, 0, 1)}, "spacing"),
+        (np.zeros((4, 4, 4)), {"direction": np.zeros((3, 3))}, "direction"),
+        (np.zeros((1, 4, 4)), {}, "at least 2"),
+    ],
+)
+def test_bad_volumes(array, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        Volume(array, **kwargs)
