@@ -1,8 +1,22 @@
 """spheroseg: real-time left-ventricle segmentation in 3D echocardiography
-with an explicit bicubic Hermite surface in prolate spheroidal coordinates."""
+with an explicit bicubic Hermite surface in prolate spheroidal coordinates.
+
+>>> import spheroseg
+>>> vol = spheroseg.load("case.mhd")                      # doctest: +SKIP
+>>> res = spheroseg.segment(vol, apex=(x, y, z), base=(x, y, z))  # doctest: +SKIP
+>>> res.volume_ml, res.mask(vol), res.mesh()             # doctest: +SKIP
+"""
+
+__version__ = "0.1.0"
 
 from .coords import Cylindrical, Pose, ProlateSpheroidal, Spherical
 from .hermite import HermiteGrid
+from .io import load, load_sequence, save_mask
+from .segment import SegmentationResult, TrackingResult, segment, track
 from .surface import ImageGrid, Surface
+from .volume import Volume
 
-__version__ = "0.1.0"
+__all__ = [
+    "load", "load_sequence", "save_mask", "segment", "track", "Volume", "Surface", "ImageGrid", "Pose",
+    "ProlateSpheroidal", "Spherical", "Cylindrical", "HermiteGrid", "SegmentationResult", "TrackingResult",
+]

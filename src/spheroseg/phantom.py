@@ -185,7 +185,7 @@ def make_phantom(
     # geometry: probe at the top centre, the apex 22 mm deep, the axis tilted
     tilt = np.radians(tilt_deg)
     axis_down = np.array([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), np.cos(tilt)])
-    extent_lat = 2 * (radius * 1.25 + wall + 14) + 2 * length * np.sin(tilt) * 0.6
+    extent_lat = 2 * (radius * 1.25 + 24) + 2 * length * np.sin(tilt) * 0.6  # the same for every frame
     depth = 22 + length * np.cos(tilt) + 50
     nx = ny = int(np.ceil(extent_lat / spacing)) | 1
     nz = int(np.ceil(depth / spacing))
@@ -195,9 +195,9 @@ def make_phantom(
     base = apex + axis_down * length
     frame = _frame(-axis_down)  # e1 from base to apex
 
-    z, y, x = np.meshgrid(*(np.arange(n) * spacing for n in (nz, ny, nx)), indexing="ij")
+    z, y, x = np.meshgrid(*(np.arange(n, dtype=np.float32) * np.float32(spacing) for n in (nz, ny, nx)), indexing="ij")
     world = np.stack([x, y, z], -1)
-    local = (world - base) @ frame
+    local = (world - base.astype(np.float32)) @ frame.astype(np.float32)
     r = np.linalg.norm(local, axis=-1)
     rho = np.hypot(local[..., 1], local[..., 2])
     phi = np.arctan2(rho, local[..., 0])

@@ -82,18 +82,27 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_mesh(path: str | os.PathLike, points: np.ndarray, faces: np.ndarray) -> None:
-    """Write a triangle mesh (world mm, LPS) with meshio, atomically."""
+    """Write a triangle mesh (world mm, LPS) with meshio, atomically.
+
+    The format follows the suffix (.vtk, .ply, .stl, .obj); legacy VTK is
+    binary with ``SPACE=LPS`` in its header line for 3D Slicer.
+    """
     import meshio
 
     path = Path(path)
-    mesh = meshio.Mesh(np.asarray(points, float), [("triangle", np.asarray(faces, np.int64))])
-    binary = path.suffix.lower() != ".vtk"
+    suffix = path.suffix.lower()
+    if suffix not in (".vtk", ".ply", ".stl", ".obj"):
+        raise ValueError(f"{path}: mesh format must be .vtk, .ply, .stl or .obj")
+    mesh = meshio.Mesh(np.asarray(points, float), [("triangle", np.asarray(faces, np.int32))])
     with atomic_path(path) as tmp:
-        meshio.write(tmp, mesh, binary=binary) if path.suffix.lower() in (".vtk", ".ply", ".stl") else meshio.write(tmp, mesh)
-        if path.suffix.lower() == ".vtk":
-            lines = tmp.read_text().split("\n", 2)
-            lines[1] = "spheroseg cavity mesh, SPACE=LPS, units mm"
-            tmp.write_text("\n".join(lines))
+        if suffix == ".obj":
+            meshio.write(tmp, mesh)
+        else:
+            meshio.write(tmp, mesh, binary=True)
+        if suffix == ".vtk":
+            head, rest = tmp.read_bytes().split(b"\n", 1)
+            _, rest = rest.split(b"\n", 1)
+            tmp.write_bytes(head + b"\nspheroseg cavity mesh, SPACE=LPS, units mm\n" + rest)
 
 
 def write_surface_json(path: str | os.PathLike, surface: Surface, **extra) -> None:

@@ -1,0 +1,340 @@
+"""The command line: ``spheroseg segment | track | demo``.
+
+Every failure is one line on stderr and a non-zero exit status.  Outputs
+are written to temporary files and renamed; existing outputs are kept
+unless ``--force``; an input is never overwritten.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+
+EXIT_ERROR = 2
+
+
+class CliError(Exception):
+    """A user-facing error: printed as one line."""
+
+
+# -- arguments ---------------------------------------------------------------
+
+
+def _point(text):
+    return np.asarray(text, dtype=float)
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--apex", nargs=3, type=float, metavar=("X", "Y", "Z"), help="apex point, world mm (LPS)")
+    p.add_argument("--base", nargs=3, type=float, metavar=("X", "Y", "Z"), help="centre of the mitral plane, world mm")
+    p.add_argument("--points", metavar="MRK_JSON", help="3D Slicer markups with points labelled apex, base, landmark...")
+    p.add_argument("--landmark", nargs=3, type=float, action="append", default=[], metavar=("X", "Y", "Z"),
+                   help="a point the surface must pass through (repeatable)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
+    p.add_argument("--force", action="store_true", help="overwrite existing outputs in DIR")
+    p.add_argument("--system", default="prolate", choices=["prolate", "spherical", "cylindrical"])
+    p.add_argument("--patches", nargs=2, type=int, default=(8, 8), metavar=("N_THETA", "N_MU"))
+    p.add_argument("--mode", default="local", choices=["local", "chan-vese", "fast"], help="data term")
+    p.add_argument("--step", type=float, default=1.0, help="largest surface motion per iteration, mm")
+    p.add_argument("--max-iterations", type=int, default=60, help="per coarse-to-fine level")
+    p.add_argument("--smoothness", type=float, default=1.0, help="thin-plate prior weight (0: the paper's method)")
+    p.add_argument("--spacing", nargs=3, type=float, metavar=("SX", "SY", "SZ"),
+                   help="voxel spacing in mm (required for .npy, overrides the file's)")
+    p.add_argument("--no-data", type=float, metavar="VALUE",
+                   help="voxel value meaning 'no data' (e.g. 0 outside a CETUS sector)")
+    p.add_argument("--mask-format", metavar="EXT", help="mask file type, e.g. .nii.gz (default: the input's)")
+    p.add_argument("--stl", action="store_true", help="also write the mesh as STL")
+    p.add_argument("--no-report", action="store_true", help="skip the PNG report")
+    p.add_argument("--quiet", action="store_true", help="no progress or summary on stdout")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="spheroseg",
+        description="Left-ventricle segmentation in 3D echocardiography (prolate spheroidal Hermite surfaces).",
+    )
+    parser.add_argument("--version", action="version", version=f"spheroseg {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+    seg = sub.add_parser("segment", help="segment one 3D image")
+    seg.add_argument("image", help="3D image (.mhd, .mha, .nii[.gz], .nrrd, .npy, DICOM folder)")
+    _add_common(seg)
+    tr = sub.add_parser("track", help="segment every frame of a 3D+t sequence; EDV, ESV, EF")
+    tr.add_argument("sequence", help="4D image, .seq.nrrd, folder or glob of 3D frames, DICOM folder")
+    _add_common(tr)
+    tr.add_argument("--iterations-per-frame", type=int, default=20)
+    demo = sub.add_parser("demo", help="track a built-in synthetic sequence and compare with its truth")
+    demo.add_argument("--out", metavar="DIR", help="output folder (default: a new ./spheroseg-demo*)")
+    demo.add_argument("--force", action="store_true")
+    demo.add_argument("--quiet", action="store_true")
+    return parser
+
+
+# -- helpers -----------------------------------------------------------------
+
+
+def _say(args, *lines) -> None:
+    if not getattr(args, "quiet", False):
+        for line in lines:
+            print(line)
+
+
+def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -> None:
+    if out.exists() and not out.is_dir():
+        raise CliError(f"output folder {out} is a file")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CliError(f"cannot create output folder {out}: {exc.strerror}") from None
+    if not os.access(out, os.W_OK):
+        raise CliError(f"output folder {out} is not writable")
+    resolved_inputs = {p.resolve() for p in inputs if p.exists()}
+    for name in names:
+        target = (out / name).resolve()
+        if target in resolved_inputs:
+            raise CliError(f"output {target} would overwrite an input; choose another --out")
+        if target.exists() and not force:
+            raise CliError(f"{target} exists; use --force to overwrite")
+
+
+def _points(args):
+    apex = None if args.apex is None else _point(args.apex)
+    base = None if args.base is None else _point(args.base)
+    landmarks = [_point(p) for p in args.landmark]
+    if args.points:
+        from .io import read_markups
+
+        marks = read_markups(args.points)
+        apex = marks["apex"] if apex is None else apex
+        base = marks["base"] if base is None else base
+        landmarks += list(marks["landmarks"])
+    if apex is None or base is None:
+        raise CliError("give the apex and the base: --apex X Y Z --base X Y Z, or --points with labels apex and base")
+    return apex, base, (np.array(landmarks) if landmarks else None)
+
+
+def _segment_kwargs(args) -> dict:
+    return dict(system=args.system, patches=tuple(args.patches), mode=args.mode, step=args.step,
+                max_iterations=args.max_iterations, smoothness=args.smoothness)
+
+
+def _mask_suffix(args, source: Path) -> str:
+    from .io import image_format
+
+    if args.mask_format:
+        suffix = args.mask_format if args.mask_format.startswith(".") else "." + args.mask_format
+        allowed = (".mhd", ".mha", ".nii", ".nii.gz", ".nrrd", ".npy")
+        if suffix.lower() not in allowed:
+            raise CliError(f"--mask-format must be one of {', '.join(allowed)}, got {args.mask_format}")
+        return suffix.lower()
+    fmt = image_format(source) if source.is_file() else ".nii.gz"
+    return {".seq.nrrd": ".nrrd", ".nhdr": ".nrrd"}.get(fmt, fmt if fmt in (".mhd", ".mha", ".nii", ".nii.gz", ".nrrd", ".npy") else ".nii.gz")
+
+
+def _versions() -> dict:
+    import scipy
+    import SimpleITK
+
+    return {"spheroseg": __version__, "python": platform.python_version(), "numpy": np.__version__,
+            "scipy": scipy.__version__, "SimpleITK": SimpleITK.Version_VersionString()}
+
+
+def _write_json(path: Path, data: dict) -> None:
+    from .io import write_atomically
+
+    write_atomically(path, lambda tmp: tmp.write_text(json.dumps(data, indent=1, default=_json_default)))
+
+
+def _json_default(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def _write_surface_outputs(out: Path, stem: str, surface_name: str, result, args_stl: bool) -> dict:
+    from .surface_io import write_mesh, write_surface_json
+
+    points, faces = result.mesh()
+    files = {}
+    for suffix in (".vtk", ".ply") + ((".stl",) if args_stl else ()):
+        write_mesh(out / f"{stem}{suffix}", points, faces)
+        files[f"mesh{suffix}"] = f"{stem}{suffix}"
+    write_surface_json(out / surface_name, result.surface, volume_ml=result.volume_ml)
+    files["surface"] = surface_name
+    return files
+
+
+# -- commands ----------------------------------------------------------------
+
+
+def cmd_segment(args) -> int:
+    from .io import load, save_mask
+    from .segment import segment
+
+    source = Path(args.image)
+    suffix = _mask_suffix(args, source)
+    names = ["mask" + suffix, "mesh.vtk", "mesh.ply", "surface.json", "results.json", "report.png"] + (["mesh.stl"] if args.stl else [])
+    apex, base, landmarks = _points(args)
+    _prepare_out(Path(args.out), names, args.force, [source])
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    volume = load(source, spacing=args.spacing, no_data_value=args.no_data)
+    t_load = time.perf_counter() - t0
+    result = segment(volume, apex, base, landmarks=landmarks, **_segment_kwargs(args))
+    mask = result.mask(volume)
+    save_mask(out / ("mask" + suffix), mask, volume)
+    files = {"mask": "mask" + suffix, **_write_surface_outputs(out, "mesh", "surface.json", result, args.stl)}
+    if not args.no_report:
+        from .report import save_report
+
+        save_report(out / "report.png", volume, result.surface, mask=mask, title=f"{source.name}: {result.volume_ml:.1f} mL")
+        files["report"] = "report.png"
+    results = {
+        "input": str(source), "volume_ml": result.volume_ml, "iterations": result.iterations,
+        "converged": result.converged, "c_in": result.c_in, "c_out": result.c_out,
+        "seconds": {"load": t_load, "segment": result.seconds}, "apex": apex, "base": base,
+        "landmarks": landmarks if landmarks is not None else [], "parameters": result.parameters,
+        "units": {"points": "mm, LPS (ITK physical space)", "volume": "mL"}, "files": files, "versions": _versions(),
+    }
+    _write_json(out / "results.json", results)
+    _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
+    return 0
+
+
+def cmd_track(args) -> int:
+    from .io import load_sequence, save_mask
+    from .segment import track
+
+    source = Path(args.sequence)
+    suffix = _mask_suffix(args, source)
+    apex, base, landmarks = _points(args)
+    names = ["masks", "meshes", "results.json", "report.png"]
+    _prepare_out(Path(args.out), names, args.force, [source])
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    volumes = load_sequence(args.sequence, spacing=args.spacing, no_data_value=args.no_data)
+    t_load = time.perf_counter() - t0
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(volumes), unit="frame", desc="tracking", file=sys.stderr)
+    progress = (lambda done, total: bar.update(done - bar.n)) if bar is not None else None
+    try:
+        result = track(volumes, apex, base, landmarks=landmarks, iterations_per_frame=args.iterations_per_frame,
+                       progress=progress, **_segment_kwargs(args))
+    finally:
+        if bar is not None:
+            bar.close()
+    (out / "masks").mkdir(exist_ok=True)
+    (out / "meshes").mkdir(exist_ok=True)
+    for t, (frame, volume) in enumerate(zip(result.frames, volumes)):
+        save_mask(out / "masks" / f"frame_{t:03d}{suffix}", frame.mask(volume), volume)
+        _write_surface_outputs(out / "meshes", f"frame_{t:03d}", f"frame_{t:03d}_surface.json", frame, args.stl)
+    if not args.no_report:
+        from .report import save_report
+
+        ed = result.ed_frame
+        save_report(out / "report.png", volumes[ed], result.frames[ed].surface, volumes_ml=result.volumes_ml,
+                    ed_frame=ed, es_frame=result.es_frame,
+                    title=f"{source.name}: EDV {result.edv_ml:.1f} mL, ESV {result.esv_ml:.1f} mL, EF {result.ef:.1f} %")
+    results = {
+        "input": str(source), "frames": len(volumes), "volumes_ml": result.volumes_ml, "edv_ml": result.edv_ml,
+        "esv_ml": result.esv_ml, "ef_percent": result.ef, "ed_frame": result.ed_frame, "es_frame": result.es_frame,
+        "iterations": [f.iterations for f in result.frames],
+        "seconds": {"load": t_load, "segment": [f.seconds for f in result.frames]}, "apex": apex, "base": base,
+        "parameters": {**result.frames[0].parameters, "iterations_per_frame": args.iterations_per_frame},
+        "units": {"points": "mm, LPS (ITK physical space)", "volume": "mL", "ef": "percent"}, "versions": _versions(),
+    }
+    _write_json(out / "results.json", results)
+    _say(args, f"EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
+               f"(frame {result.es_frame}), EF {result.ef:.1f} %; outputs in {out}")
+    return 0
+
+
+def _fresh_demo_folder() -> Path:
+    base = Path("spheroseg-demo")
+    candidate, k = base, 2
+    while candidate.exists():
+        candidate = Path(f"{base}-{k}")
+        k += 1
+    return candidate
+
+
+def cmd_demo(args) -> int:
+    from .metrics import dice, surface_distances
+    from .phantom import make_sequence
+    from .report import save_report
+    from .segment import track
+    from .surface_io import write_mesh
+
+    out = Path(args.out) if args.out else _fresh_demo_folder()
+    _prepare_out(out, ["results.json", "report.png", "mesh_ed.vtk", "mesh_ed.ply"], args.force, [])
+    _say(args, "spheroseg demo: a synthetic apical 3D+t echo sequence (10 frames, 1.25 mm voxels, speckle), tracked "
+               "from its apex and base points and compared with its exact truth")
+    t0 = time.perf_counter()
+    seq = make_sequence(seed=0, n_frames=10, spacing=1.25)
+    t_make = time.perf_counter() - t0
+    first = seq.frames[0]
+    result = track(seq.volumes, first.apex, first.base)
+    ed, es = result.ed_frame, result.es_frame
+    rows = []
+    for t, (frame, truth) in enumerate(zip(result.frames, seq.frames)):
+        d = dice(frame.mask(truth.volume), truth.truth_mask)
+        rows.append({"frame": t, "volume_ml": frame.volume_ml, "truth_ml": truth.truth_volume_ml, "dice": d,
+                     "iterations": frame.iterations, "ms": 1000 * frame.seconds})
+    sd = surface_distances(result.frames[ed].mesh(closed=False), seq.frames[ed].truth_mesh)
+    points, faces = result.frames[ed].mesh()
+    write_mesh(out / "mesh_ed.vtk", points, faces)
+    write_mesh(out / "mesh_ed.ply", points, faces)
+    save_report(out / "report.png", seq.volumes[ed], result.frames[ed].surface, volumes_ml=result.volumes_ml,
+                ed_frame=ed, es_frame=es, truth_mask=seq.frames[ed].truth_mask,
+                title=f"demo: EF {result.ef:.1f} % (truth {seq.truth_ef:.1f} %); yellow spheroseg, red truth")
+    seg_ms = 1000 * sum(f.seconds for f in result.frames)
+    summary = {
+        "frames": rows, "edv_ml": result.edv_ml, "esv_ml": result.esv_ml, "ef_percent": result.ef,
+        "truth": {"edv_ml": float(seq.truth_volumes_ml.max()), "esv_ml": float(seq.truth_volumes_ml.min()),
+                  "ef_percent": seq.truth_ef},
+        "ed_surface_distance_mm": sd, "seconds": {"make_phantom": t_make, "segment_all_frames": seg_ms / 1000},
+        "versions": _versions(),
+    }
+    _write_json(out / "results.json", summary)
+    dices = np.array([r["dice"] for r in rows])
+    _say(args,
+         f"  Dice per frame: median {np.median(dices):.3f}, worst {dices.min():.3f}",
+         f"  ED frame {ed}: mean surface distance {sd['mean']:.2f} mm, Hausdorff {sd['hausdorff']:.2f} mm",
+         f"  EDV {result.edv_ml:.1f} mL (truth {seq.truth_volumes_ml.max():.1f}), "
+         f"ESV {result.esv_ml:.1f} mL (truth {seq.truth_volumes_ml.min():.1f})",
+         f"  EF {result.ef:.1f} % (truth {seq.truth_ef:.1f} %)",
+         f"  segmentation of all {len(rows)} frames: {seg_ms:.0f} ms",
+         f"  outputs in {out}/ (results.json, report.png, mesh_ed.vtk, mesh_ed.ply)")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    handlers = {"segment": cmd_segment, "track": cmd_track, "demo": cmd_demo}
+    try:
+        return handlers[args.command](args)
+    except KeyboardInterrupt:
+        print("spheroseg: interrupted", file=sys.stderr)
+        return 130
+    except (CliError, ValueError, TypeError, OSError, RuntimeError, MemoryError) as exc:
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"spheroseg: error: {message}", file=sys.stderr)
+        return EXIT_ERROR
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,179 @@
+"""The command line, end to end, through a real subprocess."""
+
+import json
+import os
+import subprocess
+import sys
+
+import meshio
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from spheroseg.io import load
+from spheroseg.phantom import make_phantom, make_sequence
+from spheroseg.segment import segment
+
+
+def run(*args, cwd=None):
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    return subprocess.run([sys.executable, "-m", "spheroseg", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, env=env, timeout=300)
+
+
+def assert_one_line_error(proc, pattern=""):
+    assert proc.returncode != 0
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("spheroseg: error:"), proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert pattern.lower() in lines[0].lower(), lines[0]
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    """A phantom written as an image, with its apex and base."""
+    folder = tmp_path_factory.mktemp("case")
+    ph = make_phantom(seed=41, spacing=1.5)
+    image = sitk.GetImageFromArray(ph.volume.array.astype(np.uint8))
+    image.SetSpacing(tuple(ph.volume.spacing))
+    image.SetOrigin((12.0, -30.0, 5.0))
+    return folder, image, ph
+
+
+def points_args(ph, shift):
+    return ["--apex", *(ph.apex + shift), "--base", *(ph.base + shift)]
+
+
+@pytest.mark.parametrize("suffix", [".mha", ".mhd", ".nii.gz", ".nrrd"])
+def test_segment_each_format(case, suffix, tmp_path):
+    folder, image, ph = case
+    path = folder / f"case{suffix}"
+    sitk.WriteImage(image, str(path))
+    shift = np.array(image.GetOrigin())
+    out = tmp_path / "out"
+    proc = run("segment", path, *points_args(ph, shift), "--out", out, "--quiet", "--stl")
+    assert proc.returncode == 0, proc.stderr
+    results = json.loads((out / "results.json").read_text())
+    # the same segmentation through the Python API
+    vol = load(path)
+    api = segment(vol, ph.apex + shift, ph.base + shift)
+    assert results["volume_ml"] == pytest.approx(api.volume_ml, rel=1e-9)
+    mask_image = sitk.ReadImage(str(out / f"mask{suffix}"))
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(mask_image).astype(bool), api.mask(vol))
+    np.testing.assert_allclose(mask_image.GetOrigin(), image.GetOrigin(), atol=1e-6)
+    for mesh_file in ("mesh.vtk", "mesh.ply", "mesh.stl"):
+        mesh = meshio.read(out / mesh_file)
+        assert len(mesh.points) > 100
+        np.testing.assert_allclose(mesh.points.mean(0), api.mesh()[0].mean(0), atol=1e-3)
+    assert b"SPACE=LPS" in (out / "mesh.vtk").read_bytes()[:200]
+    surface = json.loads((out / "surface.json").read_text())
+    assert surface["coordinate_system"]["name"] == "prolate"
+    assert (out / "report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_points_from_markups_and_landmarks(case, tmp_path):
+    folder, image, ph = case
+    path = folder / "case.mha"
+    sitk.WriteImage(image, str(path))
+    shift = np.array(image.GetOrigin())
+    doc = {"markups": [{"coordinateSystem": "LPS", "controlPoints": [
+        {"label": "apex", "position": list(ph.apex + shift)},
+        {"label": "base", "position": list(ph.base + shift)},
+        {"label": "landmark", "position": list((ph.apex + ph.base) / 2 + shift + [12.0, 0, 0])},
+    ]}]}
+    (tmp_path / "p.mrk.json").write_text(json.dumps(doc))
+    proc = run("segment", path, "--points", tmp_path / "p.mrk.json", "--out", tmp_path / "o", "--quiet", "--no-report")
+    assert proc.returncode == 0, proc.stderr
+    results = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert len(results["landmarks"]) == 1
+
+
+def test_track_4d_image_and_frames(tmp_path):
+    seq = make_sequence(seed=42, n_frames=4, spacing=2.0)
+    frames = np.stack([v.array for v in seq.volumes]).astype(np.uint8)
+    image = sitk.GetImageFromArray(frames, isVector=False)
+    image.SetSpacing((2.0, 2.0, 2.0, 1.0))
+    sitk.WriteImage(image, str(tmp_path / "seq.mha"))
+    first = seq.frames[0]
+    proc = run("track", tmp_path / "seq.mha", "--apex", *first.apex, "--base", *first.base, "--out", tmp_path / "o",
+               "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    results = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert len(results["volumes_ml"]) == 4
+    assert results["ef_percent"] == pytest.approx(100 * (results["edv_ml"] - results["esv_ml"]) / results["edv_ml"])
+    assert len(list((tmp_path / "o" / "masks").iterdir())) == 4
+    assert (tmp_path / "o" / "report.png").exists()
+
+
+def test_demo(tmp_path):
+    proc = run("demo", "--out", tmp_path / "demo")
+    assert proc.returncode == 0, proc.stderr
+    assert "EF" in proc.stdout
+    summary = json.loads((tmp_path / "demo" / "results.json").read_text())
+    assert abs(summary["ef_percent"] - summary["truth"]["ef_percent"]) < 5
+    # without --out: a new folder beside an earlier demo's, nothing overwritten
+    (tmp_path / "spheroseg-demo").mkdir()
+    (tmp_path / "spheroseg-demo" / "results.json").write_text("earlier")
+    assert run("demo", "--quiet", cwd=tmp_path).returncode == 0
+    assert (tmp_path / "spheroseg-demo" / "results.json").read_text() == "earlier"
+    assert (tmp_path / "spheroseg-demo-2" / "results.json").exists()
+
+
+def test_refuses_to_overwrite_without_force(case, tmp_path):
+    folder, image, ph = case
+    path = folder / "case.nii.gz"
+    sitk.WriteImage(image, str(path))
+    shift = np.array(image.GetOrigin())
+    args = ["segment", path, *points_args(ph, shift), "--out", tmp_path / "o", "--quiet", "--no-report"]
+    assert run(*args).returncode == 0
+    before = (tmp_path / "o" / "results.json").read_bytes()
+    assert_one_line_error(run(*args), "--force")
+    assert (tmp_path / "o" / "results.json").read_bytes() == before
+    assert run(*args, "--force").returncode == 0
+
+
+def test_never_overwrites_the_input(case, tmp_path):
+    folder, image, ph = case
+    path = tmp_path / "mask.mha"  # an input named like the output
+    sitk.WriteImage(image, str(path))
+    before = path.read_bytes()
+    shift = np.array(image.GetOrigin())
+    proc = run("segment", path, *points_args(ph, shift), "--out", tmp_path, "--force", "--quiet")
+    assert_one_line_error(proc, "overwrite an input")
+    assert path.read_bytes() == before
+
+
+@pytest.mark.parametrize(
+    "make_args, pattern",
+    [
+        (lambda d, img: ["segment", d / "missing.mha", "--apex", 0, 0, 0, "--base", 0, 0, 9, "--out", d / "o"], "no such file"),
+        (lambda d, img: ["segment", d / "notes.txt", "--apex", 0, 0, 0, "--base", 0, 0, 9, "--out", d / "o"], "cannot read"),
+        (lambda d, img: ["segment", d / "flat.mha", "--apex", 0, 0, 0, "--base", 0, 0, 9, "--out", d / "o"], "3D"),
+        (lambda d, img: ["segment", img, "--apex", 9999, 0, 0, "--base", 20, 20, 20, "--out", d / "o"], "outside the image"),
+        (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--base", 20, 20, 20, "--out", d / "o"], "distinct"),
+        (lambda d, img: ["segment", img, "--points", d / "bad.mrk.json", "--out", d / "o"], "markups"),
+        (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--out", d / "o"], "base"),
+        (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "notes.txt"], "is a file"),
+        (lambda d, img: ["track", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o"], "3D+t"),
+    ],
+)
+def test_bad_input_is_one_line(case, tmp_path, make_args, pattern):
+    folder, image, ph = case
+    img = folder / "case.mha"
+    sitk.WriteImage(image, str(img))
+    (tmp_path / "notes.txt").write_text("hello")
+    (tmp_path / "bad.mrk.json").write_text("{not json")
+    sitk.WriteImage(sitk.GetImageFromArray(np.zeros((5, 6), np.uint8)), str(tmp_path / "flat.mha"))
+    assert_one_line_error(run(*make_args(tmp_path, img)), pattern)
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root ignores file permissions")
+def test_unwritable_output(case, tmp_path):
+    folder, image, ph = case
+    img = folder / "case.mha"
+    sitk.WriteImage(image, str(img))
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    shift = np.array(image.GetOrigin())
+    assert_one_line_error(run("segment", img, *points_args(ph, shift), "--out", locked, "--quiet"), "not writable")

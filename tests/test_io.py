@@ -1,0 +1,129 @@
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from spheroseg.io import image_format, load, load_sequence, read_markups, save_mask
+from spheroseg.volume import Volume
+
+DIRECTION = (0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+
+
+def write_3d(path, array, spacing=(0.8, 0.9, 1.1), origin=(-10.0, 5.0, 2.0)):
+    image = sitk.GetImageFromArray(array)
+    image.SetSpacing(spacing)
+    image.SetOrigin(origin)
+    if image.GetDimension() == 3:
+        image.SetDirection(DIRECTION)
+    sitk.WriteImage(image, str(path))
+
+
+@pytest.mark.parametrize("suffix", [".mha", ".mhd", ".nii.gz", ".nrrd"])
+def test_load_keeps_geometry(tmp_path, suffix, rng):
+    array = rng.integers(0, 255, size=(6, 7, 8)).astype(np.uint8)
+    write_3d(tmp_path / f"img{suffix}", array)
+    vol = load(tmp_path / f"img{suffix}")
+    np.testing.assert_array_equal(vol.array, array)
+    np.testing.assert_allclose(vol.spacing, (0.8, 0.9, 1.1), rtol=1e-6)
+    np.testing.assert_allclose(vol.origin, (-10.0, 5.0, 2.0), rtol=1e-6)
+    np.testing.assert_allclose(vol.direction.ravel(), DIRECTION, atol=1e-6)
+    # the world position of a voxel agrees with SimpleITK's
+    image = sitk.ReadImage(str(tmp_path / f"img{suffix}"))
+    np.testing.assert_allclose(vol.index_to_world([[3, 2, 1]])[0], image.TransformIndexToPhysicalPoint((3, 2, 1)), atol=1e-5)
+
+
+def test_4d_round_trip_needs_is_vector_false(tmp_path, rng):
+    frames = rng.random((5, 6, 7, 8)).astype(np.float32)  # [t, z, y, x]
+    image = sitk.GetImageFromArray(frames, isVector=False)
+    assert image.GetDimension() == 4
+    sitk.WriteImage(image, str(tmp_path / "seq.mha"))
+    seq = load_sequence(tmp_path / "seq.mha")
+    assert len(seq) == 5
+    for t in range(5):
+        np.testing.assert_array_equal(seq[t].array, frames[t])
+    with pytest.raises(ValueError, match="3D\\+t"):
+        load(tmp_path / "seq.mha")
+
+
+def test_slicer_sequence_as_vector_image(tmp_path, rng):
+    frames = rng.integers(0, 255, size=(3, 6, 7, 8)).astype(np.uint8)
+    image = sitk.GetImageFromArray(np.moveaxis(frames, 0, -1), isVector=True)  # components are frames
+    sitk.WriteImage(image, str(tmp_path / "cine.seq.nrrd"))
+    seq = load_sequence(tmp_path / "cine.seq.nrrd")
+    assert [v.shape for v in seq] == [(6, 7, 8)] * 3
+    np.testing.assert_array_equal(seq[2].array, frames[2])
+    assert image_format(tmp_path / "cine.seq.nrrd") == ".seq.nrrd"
+
+
+def test_folder_and_glob_of_frames(tmp_path, rng):
+    arrays = [rng.integers(0, 9, size=(4, 5, 6)).astype(np.int16) for _ in range(3)]
+    for t, a in enumerate(arrays):
+        write_3d(tmp_path / f"frame_{t:02d}.nii.gz", a)
+    for source in (tmp_path, str(tmp_path / "frame_*.nii.gz")):
+        seq = load_sequence(source)
+        assert len(seq) == 3
+        np.testing.assert_array_equal(seq[1].array, arrays[1])
+
+
+def test_dicom_series(tmp_path, rng):
+    array = rng.integers(0, 1000, size=(4, 6, 5)).astype(np.int16)
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    for k in range(array.shape[0]):
+        s = sitk.GetImageFromArray(array[k : k + 1])
+        s.SetSpacing((0.7, 0.7, 1.5))
+        s.SetOrigin((0.0, 0.0, 1.5 * k))
+        s.SetMetaData("0020|0032", f"0\\0\\{1.5 * k}")
+        s.SetMetaData("0020|0013", str(k))
+        s.SetMetaData("0020|000e", "1.2.826.0.1.3680043.2.1125.1")
+        s.SetMetaData("0020|0037", "1\\0\\0\\0\\1\\0")
+        writer.SetFileName(str(tmp_path / f"slice{k}.dcm"))
+        writer.Execute(s)
+    vol = load(tmp_path)
+    assert vol.shape == (4, 6, 5)
+    np.testing.assert_array_equal(vol.array, array)
+    np.testing.assert_allclose(vol.spacing[2], 1.5, rtol=1e-4)
+
+
+def test_npy_needs_spacing(tmp_path):
+    np.save(tmp_path / "a.npy", np.zeros((4, 4, 4)))
+    with pytest.raises(ValueError, match="spacing"):
+        load(tmp_path / "a.npy")
+    assert load(tmp_path / "a.npy", spacing=(0.9, 0.9, 0.9)).spacing[0] == 0.9
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(ValueError, match="no such file"):
+        load(tmp_path / "missing.mha")
+    (tmp_path / "junk.mha").write_text("not an image")
+    with pytest.raises(ValueError, match="cannot read"):
+        load(tmp_path / "junk.mha")
+    write_3d(tmp_path / "flat.mha", np.zeros((5, 6), np.uint8), spacing=(1, 1), origin=(0, 0))
+    with pytest.raises(ValueError, match="3D"):
+        load(tmp_path / "flat.mha")
+
+
+@pytest.mark.parametrize("suffix", [".mhd", ".nii.gz", ".nrrd", ".npy"])
+def test_save_mask_round_trip(tmp_path, suffix, rng):
+    like = Volume(np.zeros((5, 6, 7)), spacing=(0.5, 0.6, 0.7), origin=(1.0, 2.0, 3.0))
+    mask = rng.random((5, 6, 7)) > 0.5
+    save_mask(tmp_path / f"mask{suffix}", mask, like)
+    back = np.load(tmp_path / "mask.npy") if suffix == ".npy" else sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / f"mask{suffix}")))
+    np.testing.assert_array_equal(back.astype(bool), mask)
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".spheroseg-")], "no temporary left behind"
+
+
+def test_markups(tmp_path):
+    doc = {"markups": [{"type": "Fiducial", "coordinateSystem": "RAS", "controlPoints": [
+        {"label": "Apex", "position": [1.0, 2.0, 3.0]},
+        {"label": "base", "position": [4.0, 5.0, 6.0]},
+        {"label": "landmark-1", "position": [7.0, 8.0, 9.0]},
+    ]}]}
+    (tmp_path / "p.mrk.json").write_text(json.dumps(doc))
+    marks = read_markups(tmp_path / "p.mrk.json")
+    np.testing.assert_array_equal(marks["apex"], [-1.0, -2.0, 3.0])  # RAS -> LPS
+    np.testing.assert_array_equal(marks["landmarks"], [[-7.0, -8.0, 9.0]])
+    (tmp_path / "bad.mrk.json").write_text("{\"markups\": 3}")
+    with pytest.raises(ValueError, match="markups"):
+        read_markups(tmp_path / "bad.mrk.json")
