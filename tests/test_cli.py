@@ -68,6 +68,7 @@ def test_segment_each_format(case, suffix, tmp_path):
     assert b"SPACE=LPS" in (out / "mesh.vtk").read_bytes()[:200]
     surface = json.loads((out / "surface.json").read_text())
     assert surface["coordinate_system"]["name"] == "prolate"
+    assert (out / "surface.exnode").exists() and (out / "surface.exelem").exists()
     assert (out / "report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

@@ -162,7 +162,7 @@ def _json_default(value):
 
 
 def _write_surface_outputs(out: Path, stem: str, surface_name: str, result, args_stl: bool) -> dict:
-    from .surface_io import write_mesh, write_surface_json
+    from .surface_io import write_cmiss, write_mesh, write_surface_json
 
     points, faces = result.mesh()
     files = {}
@@ -171,6 +171,9 @@ def _write_surface_outputs(out: Path, stem: str, surface_name: str, result, args
         files[f"mesh{suffix}"] = f"{stem}{suffix}"
     write_surface_json(out / surface_name, result.surface, volume_ml=result.volume_ml)
     files["surface"] = surface_name
+    if result.surface.system.name == "prolate":
+        exnode, exelem = write_cmiss(out / Path(surface_name).stem, result.surface)
+        files["cmiss"] = [exnode.name, exelem.name]
     return files
 
 
@@ -183,7 +186,8 @@ def cmd_segment(args) -> int:
 
     source = Path(args.image)
     suffix = _mask_suffix(args, source)
-    names = ["mask" + suffix, "mesh.vtk", "mesh.ply", "surface.json", "results.json", "report.png"] + (["mesh.stl"] if args.stl else [])
+    names = ["mask" + suffix, "mesh.vtk", "mesh.ply", "surface.json", "surface.exnode", "surface.exelem", "results.json",
+             "report.png"] + (["mesh.stl"] if args.stl else [])
     apex, base, landmarks = _points(args)
     _prepare_out(Path(args.out), names, args.force, [source])
     out = Path(args.out)

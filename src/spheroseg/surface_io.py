@@ -15,7 +15,7 @@ import numpy as np
 
 from .surface import Surface
 
-__all__ = ["read_mesh", "write_mesh", "write_surface_json", "read_surface_json", "atomic_path"]
+__all__ = ["read_mesh", "write_mesh", "write_surface_json", "read_surface_json", "write_cmiss", "atomic_path"]
 
 
 def atomic_path(path: str | os.PathLike):
@@ -116,3 +116,77 @@ def read_surface_json(path: str | os.PathLike) -> Surface:
         return Surface.from_dict(json.loads(Path(path).read_text()))
     except (OSError, KeyError, TypeError, json.JSONDecodeError) as exc:
         raise ValueError(f"{path}: not a spheroseg surface file ({exc})") from exc
+
+
+def _cmiss_header(focus: float) -> str:
+    return (
+        f" #Fields=1\n"
+        f" 1) coordinates, coordinate, prolate spheroidal, focus= {focus:.16e}, #Components=3\n"
+    )
+
+
+def write_cmiss(stem: str | os.PathLike, surface: Surface, *, group: str = "spheroseg") -> tuple[Path, Path]:
+    """Write the surface as a CMISS/OpenCMISS ``.exnode``/``.exelem`` pair.
+
+    The field ``coordinates`` is prolate spheroidal with ``focus=`` the
+    focal length (mm), in the model's local frame (x along the long axis,
+    ``mu = 0`` at the apex; the pose to world space is in the JSON output).
+    ``lambda`` is ``c.Hermite*c.Hermite`` over ``xi1 = theta``,
+    ``xi2 = mu``; ``mu`` and ``theta`` are ``l.Lagrange*l.Lagrange``.
+    No scale factors are written, so nodal derivatives are per unit xi:
+    the Hermite slopes times the element widths.  The theta seam has its
+    own column of nodes at ``theta = 2 pi`` (same lambda parameters as
+    ``theta = 0``), and every apex node has ``mu = 0``: a single point.
+
+    Returns the two paths written.
+    """
+    from .coords import ProlateSpheroidal
+
+    if not isinstance(surface.system, ProlateSpheroidal):
+        raise ValueError(f"CMISS export needs prolate spheroidal coordinates, not {surface.system.name}")
+    stem = Path(stem)
+    grid, c = surface.grid, surface.coefficients
+    n1, n2 = grid.n1, grid.n2
+    d_theta = 2 * np.pi / n1
+    d_mu = (grid.v2_range[1] - grid.v2_range[0]) / n2
+    scale = np.array([1.0, d_theta, d_mu, d_theta * d_mu])
+    node_id = lambda r, j: r * (n1 + 1) + j + 1  # noqa: E731
+
+    lines = [f" Group name: {group}\n", _cmiss_header(surface.system.focal_length),
+             "   lambda.  Value index= 1, #Derivatives= 3 (d/ds1,d/ds2,d2/ds1ds2)\n",
+             "   mu.  Value index= 5, #Derivatives= 0\n",
+             "   theta.  Value index= 6, #Derivatives= 0\n"]
+    for r, mu in enumerate(grid.node_v2):
+        for j in range(n1 + 1):
+            lam = c[r, j % n1] * scale
+            lines.append(f" Node: {node_id(r, j)}\n")
+            lines.append("  " + " ".join(f"{v: .16e}" for v in lam) + "\n")
+            lines.append(f"  {mu: .16e}\n  {j * d_theta: .16e}\n")
+    exnode = "".join(lines)
+
+    def component(name, basis, values):
+        out = [f"   {name}.  {basis}, no modify, standard node based.\n", "     #Nodes= 4\n"]
+        for k in range(1, 5):
+            out.append(f"      {k}.  #Values={values}\n")
+            out.append("       Value indices: " + " ".join(str(v + 1) for v in range(values)) + "\n")
+            out.append("       Scale factor indices: " + " ".join("0" for _ in range(values)) + "\n")
+        return "".join(out)
+
+    lines = [f" Group name: {group}\n", " Shape.  Dimension=2\n", " #Scale factor sets= 0\n", " #Nodes= 4\n",
+             _cmiss_header(surface.system.focal_length),
+             component("lambda", "c.Hermite*c.Hermite", 4),
+             component("mu", "l.Lagrange*l.Lagrange", 1),
+             component("theta", "l.Lagrange*l.Lagrange", 1)]
+    element = 1
+    for r in range(n2):
+        for j in range(n1):
+            nodes = (node_id(r, j), node_id(r, j + 1), node_id(r + 1, j), node_id(r + 1, j + 1))
+            lines.append(f" Element: {element} 0 0\n   Nodes:\n    " + " ".join(map(str, nodes)) + "\n")
+            element += 1
+    exelem = "".join(lines)
+
+    paths = (stem.with_suffix(".exnode"), stem.with_suffix(".exelem"))
+    for path, text in zip(paths, (exnode, exelem)):
+        with atomic_path(path) as tmp:
+            tmp.write_text(text)
+    return paths
