@@ -1,0 +1,140 @@
+"""Compose docs/benchmarks.md from the JSON the benchmarks wrote.
+
+    python benchmarks/report.py
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import DOCS  # noqa: E402
+
+
+def _load(name):
+    path = DOCS / name
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _fmt(v, digits=2):
+    return "n/a" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{digits}f}"
+
+
+def _machine(m):
+    return (f"{m['date']}, {m['cpu']}, Python {m['python']}, spheroseg {m['spheroseg']}, numpy {m['numpy']}, "
+            f"scipy {m['scipy']}, SimpleITK {m['SimpleITK']}, scikit-image {m['scikit-image']}")
+
+
+def _accuracy(acc) -> list[str]:
+    out = ["## Accuracy on phantoms", "",
+           f"Command: `{acc['command']}` ({acc['wall_seconds'] / 60:.0f} min). Machine: {_machine(acc['machine'])}.", "",
+           "Synthetic apical 3D echo volumes (`spheroseg.phantom`, 1 mm voxels) with exact truth; every method starts "
+           "from the same half-ellipsoid placed by the true apex and base points and is closed at the same base plane. "
+           "Dice on the voxel grid; mean surface distance (MSD, the average of the two directed means) and Hausdorff "
+           "distance (HD) between the wall surfaces, open at the mitral plane as in CETUS; volume error relative to the "
+           "exact volume; time per volume on one process. Median (worst) over seeds.", ""]
+    methods = list(acc["cases"][0]["results"])
+    families = list(dict.fromkeys(c["family"] for c in acc["cases"]))
+    out += ["| family | method | Dice | MSD mm | HD mm | volume error % | seconds |",
+            "| --- | --- | --- | --- | --- | --- | --- |"]
+    summary = {}
+    for fam in families:
+        for m in methods:
+            rows = [c["results"][m] for c in acc["cases"] if c["family"] == fam]
+            d = np.array([r["dice"] for r in rows])
+            msd = np.array([r["msd_mm"] for r in rows])
+            hd = np.array([r["hausdorff_mm"] for r in rows])
+            ve = np.array([r["volume_error_pct"] for r in rows])
+            t = np.array([r["seconds"] for r in rows])
+            summary.setdefault(m, []).extend(rows)
+            out.append(f"| {fam} | {m} | {_fmt(np.median(d), 3)} ({_fmt(d.min(), 3)}) | {_fmt(np.nanmedian(msd))} "
+                       f"({_fmt(np.nanmax(msd))}) | {_fmt(np.nanmedian(hd), 1)} ({_fmt(np.nanmax(hd), 1)}) | "
+                       f"{_fmt(np.median(ve), 1)} ({_fmt(ve[np.argmax(np.abs(ve))], 1)}) | {_fmt(np.median(t), 3)} |")
+    out += ["", "All families together:", "", "| method | median Dice | worst Dice | median MSD mm | median seconds |",
+            "| --- | --- | --- | --- | --- |"]
+    for m, rows in summary.items():
+        d = np.array([r["dice"] for r in rows])
+        out.append(f"| {m} | {_fmt(np.median(d), 3)} | {_fmt(d.min(), 3)} | "
+                   f"{_fmt(np.nanmedian([r['msd_mm'] for r in rows]))} | {_fmt(np.median([r['seconds'] for r in rows]), 3)} |")
+    if acc.get("peer_params"):
+        out += ["", f"Peer parameters (fixed after a sweep on one case, `--sweep`, see docs/peer_sweep.json): "
+                f"`{json.dumps(acc['peer_params'])}`. Each peer smooths the image with a Gaussian of `sigma_mm`, runs "
+                "the level set, keeps the component that overlaps the initial ellipsoid and the apex side of the base plane."]
+    seqs = acc.get("sequences") or []
+    if seqs:
+        out += ["", "## Ejection fraction on phantom sequences", "",
+                "10 frames per cycle from end-diastole; spheroseg tracks every frame (each starts from the previous "
+                "one); the peers segment the true ED and ES frames only. EF error in points (median, worst absolute).", "",
+                "| method | median abs EF error | worst abs EF error |", "| --- | --- | --- |"]
+        names = [k for k in seqs[0] if k not in ("seed", "truth_ef")]
+        for name in names:
+            err = np.array([abs(r[name]["ef"] - r["truth_ef"]) for r in seqs])
+            out.append(f"| {name} | {_fmt(np.median(err), 1)} | {_fmt(err.max(), 1)} |")
+    p7 = acc.get("cetus_patient7")
+    if p7:
+        out += ["", "## Real echo: CETUS Patient 7 (no ground truth)", "",
+                f"ED and ES volumes of CETUS Patient 7 (CC BY-NC-SA 4.0, Bernard et al. 2016; read from ../shared, not "
+                f"shipped). The voxel spacing was not stored with these arrays: {p7['assumed_spacing_mm']} mm isotropic is "
+                "assumed, so volumes in mL carry that assumption (EF does not).", "",
+                "| method | EDV mL | ESV mL | EF % | seconds per volume |", "| --- | --- | --- | --- | --- |"]
+        for name, v in p7.items():
+            if isinstance(v, dict) and "ED" in v:
+                out.append(f"| {name} | {_fmt(v['ED']['volume_ml'], 1)} | {_fmt(v['ES']['volume_ml'], 1)} | "
+                           f"{_fmt(v['ef_percent'], 1)} | {_fmt((v['ED']['seconds'] + v['ES']['seconds']) / 2, 3)} |")
+        out += ["", "![CETUS Patient 7](cetus_patient7.png)"]
+    return out
+
+
+def _speed(sp) -> list[str]:
+    out = ["## Speed", "", f"Command: `{sp['command']}`. Machine: {_machine(sp['machine'])}. "
+           "Medians over repeats, one process, one thread for spheroseg.", ""]
+    out += ["| image | voxels | load from disk ms | spheroseg per iteration us | spheroseg whole segmentation ms |"
+            " skimage ms | SimpleITK ms |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for row in sp["sizes"]:
+        out.append(f"| {row['shape']} | {row['voxels']} | {_fmt(row['load_ms'], 1)} | {_fmt(row['iteration_us'], 0)} | "
+                   f"{_fmt(row['segment_ms'], 1)} | {_fmt(row.get('skimage_ms'), 0)} | {_fmt(row.get('sitk_ms'), 0)} |")
+    out += ["", f"Tracking: {_fmt(sp['tracking']['volumes_per_second'], 0)} volumes per second at "
+            f"{sp['tracking']['iterations_per_frame']} iterations per frame (excluding file reading).", ""]
+    if sp.get("profile"):
+        out += ["Time of the parts of one iteration at each patch count (8 x 8 sample points per patch):", "",
+                "| patches | sample points | geometry us | image samples us | projection us | iteration us |",
+                "| --- | --- | --- | --- | --- | --- |"]
+        for row in sp["profile"]:
+            out.append(f"| {row['patches']} | {row['samples']} | {_fmt(row['geometry_us'], 0)} | {_fmt(row['sampling_us'], 0)} "
+                       f"| {_fmt(row['projection_us'], 0)} | {_fmt(row['iteration_us'], 0)} |")
+    if sp.get("notes"):
+        out += [""] + sp["notes"]
+    return out
+
+
+def _fit(fit) -> list[str]:
+    out = ["## How well Hermite surfaces represent a real ventricle", "",
+           f"Command: `{fit['command']}`. Least-squares fits (`spheroseg.fit.fit_surface`) to the CETUS Patient 1 "
+           "expert meshes (metres in the file, mm here), pose from the mesh's mitral ring and apex. Distance from every "
+           "reference vertex to the fitted wall; the reference's mitral ring is not planar, so points up to ~2 mm "
+           "beyond the base plane raise the overall maximum.", "",
+           "| phase | patches | mean mm | max mm | max below the base plane mm |", "| --- | --- | --- | --- | --- |"]
+    for r in fit["rows"]:
+        out.append(f"| {r['phase']} | {r['patches']} | {_fmt(r['mean_mm'])} | {_fmt(r['max_mm'])} | {_fmt(r['max_in_range_mm'])} |")
+    return out
+
+
+def write_markdown() -> Path:
+    parts = ["# Benchmarks", "",
+             "Generated by the scripts in `benchmarks/` (each section names its command); the numbers are also in the "
+             "JSON files beside this page. Targets that are missed say so.", ""]
+    for name, fn in (("fit.json", _fit), ("accuracy.json", _accuracy), ("speed.json", _speed)):
+        data = _load(name)
+        if data:
+            parts += fn(data) + [""]
+    path = DOCS / "benchmarks.md"
+    path.write_text("\n".join(parts))
+    return path
+
+
+if __name__ == "__main__":
+    print("wrote", write_markdown())
