@@ -55,12 +55,16 @@ class Volume:
         self.no_data_value = None if no_data_value is None else float(no_data_value)
         # world -> continuous index (x, y, z order) as one affine map
         self._to_index = np.linalg.inv(direction * self.grid.spacing[None, :])
-        self._flat = self.array.ravel()
+        # what sampling reads: the values, with NaN on no-data voxels so that
+        # any sample touching one comes out NaN without a second lookup
+        if no_data_value is not None and np.any(self.array == float(no_data_value)):
+            self._samples = np.where(self.array == float(no_data_value), np.float32(np.nan), self.array)
+        else:
+            self._samples = self.array
+        self._flat = self._samples.ravel()
         nz, ny, nx = self.array.shape
         self._upper = np.array([nx - 1, ny - 1, nz - 1], dtype=float)
         self._strides = np.array([1, nx, nx * ny], dtype=np.int64)
-        if self.no_data_value is not None:
-            self._no_data = (self.array == self.no_data_value).ravel()
 
     # geometry ------------------------------------------------------------
 
@@ -125,9 +129,7 @@ class Volume:
                     wx = t[:, 0] if dx else 1 - t[:, 0]
                     flat = flat0 + (dx * self._strides[0] + dy * self._strides[1] + dz * self._strides[2])
                     out += wx * wy * wz * self._flat[flat]
-                    if self.no_data_value is not None:
-                        valid &= ~self._no_data[flat]
-        out[~valid] = fill_value
+        out[~valid | np.isnan(out)] = fill_value
         return out.reshape(shape)
 
     def __call__(self, world) -> np.ndarray:

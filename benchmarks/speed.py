@@ -1,0 +1,145 @@
+"""Speed, side by side in one process: spheroseg's iteration and whole
+segmentation at three image sizes, the time to load the image from disk,
+the peers, tracking throughput, and a profile of one iteration.
+
+    python benchmarks/speed.py           # about 10 minutes on 2 cores
+
+Writes docs/speed.json and regenerates docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import PEER_PARAMS, machine, median_time, run_sitk, run_skimage, write_json  # noqa: E402
+from report import write_markdown  # noqa: E402
+
+import spheroseg  # noqa: E402
+from spheroseg import _kernels  # noqa: E402
+from spheroseg.phantom import make_phantom, make_sequence  # noqa: E402
+from spheroseg.segment import _Descent, segment, track  # noqa: E402
+from spheroseg.surface import Surface  # noqa: E402
+
+
+def descent(volume, apex, base, patches=(8, 8), compiled=True):
+    s = Surface.from_apex_base(apex, base, patches=patches)
+    return _Descent(volume, s, s, order=8, step=1.0, band=8.0, band_out=15.0, landmarks=apex[None],
+                    landmark_weights=[1.0], nu=0.0, smoothness=1.0, compiled=compiled)
+
+
+def iteration_parts(d, repeats=300) -> dict:
+    """Median times (us) of the parts of one local-mode iteration."""
+    p0 = d.p.copy()
+    obs = d.observe(True)
+    c_in, c_out = d.local_means(obs)
+
+    def project():
+        d.p = p0.copy()
+        cin, cout = d.local_means(obs)
+        d.iterate(obs, cin, cout, 100.0)
+
+    def whole():
+        d.p = p0.copy()
+        o = d.observe(True)
+        cin, cout = d.local_means(o)
+        d.iterate(o, cin, cout, 100.0)
+
+    out = {"sampling_us": 1e6 * median_time(lambda: d.observe(True), repeats),
+           "projection_us": 1e6 * median_time(project, repeats),
+           "iteration_us": 1e6 * median_time(whole, repeats)}
+    out["geometry_us"] = 1e6 * median_time(lambda: d.model.geometry(d.p), repeats) if not d.kernel else np.nan
+    d.p = p0
+    return out
+
+
+def memory_bytes(d) -> int:
+    """Bytes of what a level precomputes beyond the image."""
+    total = 0
+    for value in vars(d).values():
+        if isinstance(value, np.ndarray):
+            total += value.nbytes
+        elif isinstance(value, (list, tuple)):
+            total += sum(v.nbytes for v in value if isinstance(v, np.ndarray))
+        elif hasattr(value, "data") and hasattr(value, "indices"):
+            total += value.data.nbytes + value.indices.nbytes + value.indptr.nbytes
+    m = d.model
+    for mat in (m.b_f, m.b_1, m.b_2, m.constraints):
+        total += mat.data.nbytes + mat.indices.nbytes + mat.indptr.nbytes
+    total += m.mass_matrix.nbytes + d.solver[0].nbytes + d.projector[0].nbytes
+    return int(total)
+
+
+def main():
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        import SimpleITK as sitk
+
+        for spacing in (2.5, 1.25, 0.625):
+            ph = make_phantom(seed=0, spacing=spacing)
+            vol = ph.volume
+            path = Path(tmp) / f"case_{spacing}.mha"
+            image = sitk.GetImageFromArray(vol.array.astype(np.uint8))
+            image.SetSpacing((spacing,) * 3)
+            sitk.WriteImage(image, str(path))
+            load_s = median_time(lambda: spheroseg.load(path, no_data_value=0), 5)
+            d = descent(vol, ph.apex, ph.base)
+            parts = iteration_parts(d)
+            seg_s = median_time(lambda: segment(vol, ph.apex, ph.base), 10)
+            res = segment(vol, ph.apex, ph.base)
+            row = {"spacing_mm": spacing, "shape": "x".join(map(str, vol.shape)), "voxels": int(np.prod(vol.shape)),
+                   "load_ms": 1000 * load_s, "iteration_us": parts["iteration_us"], "segment_ms": 1000 * seg_s,
+                   "iterations": res.iterations}
+            for name, fn in (("skimage", run_skimage), ("sitk", run_sitk)):
+                _, seconds = fn(vol, ph.apex, ph.base, **PEER_PARAMS[name])
+                row[f"{name}_ms"] = 1000 * seconds
+            rows.append(row)
+            print(row, flush=True)
+
+    ph = make_phantom(seed=0)
+    profile = []
+    for patches in ((4, 4), (8, 8), (16, 16)):
+        d = descent(ph.volume, ph.apex, ph.base, patches)
+        parts = iteration_parts(d)
+        ref = iteration_parts(descent(ph.volume, ph.apex, ph.base, patches, compiled=False), repeats=50)
+        profile.append({"patches": f"{patches[0]} x {patches[1]}", "samples": d.model.n_samples, **parts,
+                        "numpy_iteration_us": ref["iteration_us"], "numpy_geometry_us": ref["geometry_us"],
+                        "memory_kb": memory_bytes(d) / 1024})
+        print(profile[-1], flush=True)
+
+    seq = make_sequence(seed=0, n_frames=10)
+    first = seq.frames[0]
+    start = segment(seq.volumes[0], first.apex, first.base)
+    tracking = {}
+    for ipf in (5, 20):
+        def follow():
+            prev = start.surface
+            for vol in seq.volumes[1:]:
+                prev = segment(vol, first.apex, first.base, init=prev, max_iterations=ipf, coarse_to_fine=False).surface
+        seconds = median_time(follow, 5)
+        tracking[ipf] = (len(seq.volumes) - 1) / seconds
+    full = median_time(lambda: track(seq.volumes, first.apex, first.base), 3)
+
+    notes = [
+        f"numba {'is' if _kernels.AVAILABLE else 'is NOT'} installed: the compiled path "
+        f"{'ran' if _kernels.AVAILABLE else 'did not run'} (the numpy path is the reference; tests check both agree "
+        "to 1e-6).",
+        f"Whole tracking of the 10-frame sequence (first frame from apex and base, then up to 20 iterations per "
+        f"frame): {1000 * full:.0f} ms, {len(seq.volumes) / full:.0f} volumes per second.",
+    ]
+    data = {"command": "python benchmarks/speed.py", "machine": machine(), "sizes": rows, "profile": profile,
+            "tracking": {"iterations_per_frame": 5, "volumes_per_second": tracking[5],
+                         "volumes_per_second_20": tracking[20]},
+            "notes": notes}
+    print("wrote", write_json("speed.json", data))
+    print("wrote", write_markdown())
+
+
+if __name__ == "__main__":
+    main()
