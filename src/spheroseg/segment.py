@@ -246,28 +246,40 @@ class _Descent:
         return obs
 
     def _prepare_kernel(self):
-        m, vol = self.model, self.volume
-        b = m.grid.basis_matrix(m.v1, m.v2).tocsr()
-        b1 = m.grid.basis_matrix(m.v1, m.v2, 1, 0).tocsr()
-        b2 = m.grid.basis_matrix(m.v1, m.v2, 0, 1).tocsr()
-        # every row has the same 16 columns in the same order in the three matrices
-        self._cols = b.indices.reshape(m.n_samples, -1)
-        self._wf, self._w1, self._w2 = (x.data.reshape(m.n_samples, -1) for x in (b, b1, b2))
-        assert all(np.array_equal(x.indices.reshape(m.n_samples, -1), self._cols) for x in (b1, b2))
+        m = self.model
+        self._tables = _kernels.basis_tables(m.grid, m.order)
         self._trig = (np.cos(m.v1), np.sin(m.v1), np.cos(m.v2), np.sin(m.v2))
+        self._coefficients = np.empty(m.grid.shape)
         n, nb = m.n_samples, int(self.band_rows.sum())
         self._out = [np.empty(n) for _ in range(4)] + [np.empty(nb), np.empty(nb)]
+        self._no_bands = np.zeros(n, bool)
 
     def _observe_compiled(self, bands: bool) -> _Observation:
         m, vol = self.model, self.volume
-        coefficients = m.constraints @ self.p
         f, h0, cos, u, inside, outside = self._out
         _kernels.prolate_observe(
-            coefficients, self._cols, self._wf, self._w1, self._w2, *self._trig, m.system.focal_length,
-            m.pose.rotation, m.pose.origin, vol._samples, vol._to_index,
-            vol.grid.origin, vol._upper, _SURFACE_OFFSETS, self._band,
-            self.band_rows if bands else np.zeros(len(f), bool), f, h0, cos, u, inside, outside)
+            (m.constraints @ self.p).reshape(m.grid.shape), m.grid.n1, m.order, *self._tables, *self._trig,
+            m.system.focal_length, m.pose.rotation, m.pose.origin, vol._samples, vol._to_index, vol.grid.origin,
+            vol._upper, _SURFACE_OFFSETS, self._band, self.band_rows if bands else self._no_bands,
+            f, h0, cos, u, inside, outside)
         return _Observation(f, h0, cos, u, inside if bands else None, outside if bands else None)
+
+    def _at_samples(self, p) -> np.ndarray:
+        """``B p``: the function of parameters ``p`` at every sample point."""
+        m = self.model
+        if not self.kernel:
+            return m.b_f @ p
+        out = np.empty(m.n_samples)
+        _kernels.gather((m.constraints @ p).reshape(m.grid.shape), m.grid.n1, m.order, *self._tables, out)
+        return out
+
+    def _transpose(self, values) -> np.ndarray:
+        """``B^T values``, in the parameters."""
+        m = self.model
+        if not self.kernel:
+            return m.b_f.T @ values
+        _kernels.scatter(values, m.grid.n1, m.order, *self._tables, self._coefficients)
+        return m.constraints.T @ self._coefficients.ravel()
 
     def global_means(self, g):
         """Volume-weighted cavity mean and area-weighted shell mean."""
@@ -289,8 +301,8 @@ class _Descent:
         if not ok[:, 0].any() or not ok[:, 1].any():
             return None
         fields = np.where(ok, fields, np.nanmean(fields, axis=0))
-        smooth = self.model.b_f @ scipy.linalg.cho_solve(self.projector, self._b_band_t @ (self._w_band[:, None] * fields))
-        return smooth[:, 0], smooth[:, 1]
+        smooth = scipy.linalg.cho_solve(self.projector, self._b_band_t @ (self._w_band[:, None] * fields))
+        return self._at_samples(smooth[:, 0]), self._at_samples(smooth[:, 1])
 
     # the step ---------------------------------------------------------------
 
@@ -305,7 +317,7 @@ class _Descent:
             self._h0_floor = 0.3 * float(np.median(h0))
         # (h0 is bounded below too: near a focal point v0 barely moves the surface)
         dv0 = self.step * speed / np.maximum(h0 * np.maximum(obs.cos, _MIN_COS), self._h0_floor)
-        rhs = m.b_f.T @ (m.weights * dv0)
+        rhs = self._transpose(m.weights * dv0)
         if self.nu:
             # area term: gradient scaled to mm of motion per unit of nu
             g = obs.geometry or m.geometry(self.p)
@@ -321,7 +333,7 @@ class _Descent:
         p_new = scipy.linalg.cho_solve(self.solver, self.mass @ self.p + self.prior + rhs)
         dp = p_new - self.p
         self.p = p_new
-        return np.sqrt(np.average((h0 * (m.b_f @ dp)) ** 2, weights=m.weights))
+        return np.sqrt(np.average((h0 * self._at_samples(dp)) ** 2, weights=m.weights))
 
     def surface(self, like: Surface) -> Surface:
         return like.with_coefficients(self.model.coefficients(self.p))
