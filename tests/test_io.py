@@ -127,3 +127,13 @@ def test_markups(tmp_path):
     (tmp_path / "bad.mrk.json").write_text("{\"markups\": 3}")
     with pytest.raises(ValueError, match="markups"):
         read_markups(tmp_path / "bad.mrk.json")
+
+
+def test_load_finds_the_sector_padding(tmp_path):
+    a = np.full((20, 20, 20), 60, np.uint8)
+    a[:, :3] = 0
+    write_3d(tmp_path / "echo.mha", a)
+    assert load(tmp_path / "echo.mha").no_data_mask.sum() == 20 * 3 * 20
+    assert load(tmp_path / "echo.mha", no_data_value=None).no_data_mask is None
+    with pytest.raises(ValueError, match="no_data_value"):
+        load(tmp_path / "echo.mha", no_data_value="sometimes")

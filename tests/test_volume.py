@@ -59,3 +59,17 @@ def test_no_data_value_marks_missing_samples():
 def test_bad_volumes(array, kwargs, message):
     with pytest.raises(ValueError, match=message):
         Volume(array, **kwargs)
+
+
+def test_outside_sector_is_the_padding_not_the_blood():
+    from spheroseg.volume import outside_sector
+
+    a = np.full((30, 30, 30), 80.0)
+    a[:, :, :6] = 0  # padding touching the faces
+    a[12:18, 12:18, 12:18] = 0  # a noise-free blood pool: zero but enclosed
+    mask = outside_sector(a)
+    assert mask[:, :, :6].all() and not mask[12:18, 12:18, 12:18].any() and mask.sum() == 30 * 30 * 6
+    assert outside_sector(np.full((10, 10, 10), 5.0)) is None
+    vol = Volume(a, no_data_mask=mask)
+    assert np.isnan(vol.sample(np.array([[2.0, 15, 15]])))[0]  # x = 2: padding
+    assert vol.sample(np.array([[15.0, 15, 15]]))[0] == 0.0  # the pool is data

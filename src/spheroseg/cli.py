@@ -33,6 +33,15 @@ def _point(text):
     return np.asarray(text, dtype=float)
 
 
+def _no_data(text: str):
+    if text.lower() in ("auto", "none"):
+        return None if text.lower() == "none" else "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected auto, none or a number, got {text!r}") from None
+
+
 def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--apex", nargs=3, type=float, metavar=("X", "Y", "Z"), help="apex point, world mm (LPS)")
     p.add_argument("--base", nargs=3, type=float, metavar=("X", "Y", "Z"), help="centre of the mitral plane, world mm")
@@ -49,8 +58,9 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--smoothness", type=float, default=1.0, help="thin-plate prior weight (0: the paper's method)")
     p.add_argument("--spacing", nargs=3, type=float, metavar=("SX", "SY", "SZ"),
                    help="voxel spacing in mm (required for .npy, overrides the file's)")
-    p.add_argument("--no-data", type=float, metavar="VALUE",
-                   help="voxel value meaning 'no data' (e.g. 0 outside a CETUS sector)")
+    p.add_argument("--no-data", default="auto", type=_no_data, metavar="auto|none|VALUE",
+                   help="voxels without data: 'auto' (default) the zero padding around an echo sector, "
+                        "'none', or a voxel value")
     p.add_argument("--mask-format", metavar="EXT", help="mask file type, e.g. .nii.gz (default: the input's)")
     p.add_argument("--stl", action="store_true", help="also write the mesh as STL")
     p.add_argument("--no-report", action="store_true", help="skip the PNG report")

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .volume import Volume
+from .volume import Volume, outside_sector
 
 __all__ = ["load", "load_sequence", "save_mask", "read_markups", "image_format", "IMAGE_SUFFIXES", "write_atomically"]
 
@@ -57,22 +57,32 @@ def _read_image(path: Path):
         raise ValueError(f"{path}: cannot read image ({detail.strip()[:200]})") from None
 
 
+def _make_volume(array, no_data_value, **geometry) -> Volume:
+    """A Volume whose no-data voxels follow ``no_data_value``: a value,
+    ``None``, or ``"auto"`` (the zero padding around an echo sector)."""
+    if isinstance(no_data_value, str):
+        if no_data_value != "auto":
+            raise ValueError(f"no_data_value must be a number, None or 'auto', got {no_data_value!r}")
+        return Volume(array, **geometry, no_data_mask=outside_sector(array))
+    return Volume(array, **geometry, no_data_value=no_data_value)
+
+
 def _volume_from_image(image, no_data_value) -> Volume:
     sitk = _sitk()
     if image.GetDimension() != 3:
         raise ValueError(f"expected a 3D image, got {image.GetDimension()}D")
     if image.GetNumberOfComponentsPerPixel() != 1:
         raise ValueError(f"expected a scalar image, got {image.GetNumberOfComponentsPerPixel()} components per voxel")
-    return Volume(
+    return _make_volume(
         sitk.GetArrayFromImage(image),
+        no_data_value,
         spacing=image.GetSpacing(),
         origin=image.GetOrigin(),
         direction=np.array(image.GetDirection()).reshape(3, 3),
-        no_data_value=no_data_value,
     )
 
 
-def load(path: str | os.PathLike, *, spacing=None, no_data_value: float | None = None) -> Volume:
+def load(path: str | os.PathLike, *, spacing=None, no_data_value: float | str | None = "auto") -> Volume:
     """Read a 3D image as a :class:`Volume` (geometry kept: LPS, mm).
 
     Parameters
@@ -82,8 +92,10 @@ def load(path: str | os.PathLike, *, spacing=None, no_data_value: float | None =
         (indexed ``[z, y, x]``, origin 0, identity direction).
     spacing : (x, y, z) floats, optional
         Required for ``.npy``; overrides the file's spacing otherwise.
-    no_data_value : float, optional
-        Value of voxels without data (the outside of an echo sector).
+    no_data_value : float, None or "auto"
+        Voxels without data: those of this value, none, or (``"auto"``, the
+        default) the exact zeros connected to the image's faces, i.e. the
+        black padding around a scan-converted echo sector (CETUS).
     """
     path = Path(path)
     if image_format(path) == ".npy":
@@ -95,7 +107,7 @@ def load(path: str | os.PathLike, *, spacing=None, no_data_value: float | None =
             raise ValueError(f"{path}: cannot read numpy array ({exc})") from None
         if spacing is None:
             raise ValueError(f"{path}: a .npy array has no geometry; give its voxel spacing")
-        return Volume(array, spacing=spacing, no_data_value=no_data_value)
+        return _make_volume(array, no_data_value, spacing=spacing)
     image = _read_image(path)
     if image.GetDimension() == 4 or image.GetNumberOfComponentsPerPixel() > 1:
         raise ValueError(f"{path}: a 3D+t image; use load_sequence (spheroseg track)")
@@ -104,11 +116,11 @@ def load(path: str | os.PathLike, *, spacing=None, no_data_value: float | None =
     volume = _volume_from_image(image, no_data_value)
     if spacing is not None:
         volume = Volume(volume.array, spacing=spacing, origin=volume.origin, direction=volume.direction,
-                        no_data_value=no_data_value)
+                        no_data_mask=volume.no_data_mask)
     return volume
 
 
-def load_sequence(path: str | os.PathLike, *, spacing=None, no_data_value: float | None = None) -> list[Volume]:
+def load_sequence(path: str | os.PathLike, *, spacing=None, no_data_value: float | str | None = "auto") -> list[Volume]:
     """Read a 3D+t sequence as a list of :class:`Volume`.
 
     Accepts a 4D image (.mha, .nrrd, .nii: the fourth axis is time), a
@@ -136,7 +148,7 @@ def load_sequence(path: str | os.PathLike, *, spacing=None, no_data_value: float
             raise ValueError(f"{path}: expected a 4D array [t, z, y, x], got {array.ndim}D")
         if spacing is None:
             raise ValueError(f"{path}: a .npy array has no geometry; give its voxel spacing")
-        return [Volume(a, spacing=spacing, no_data_value=no_data_value) for a in array]
+        return [_make_volume(a, no_data_value, spacing=spacing) for a in array]
     image = _read_image(path)
     if image.GetNumberOfComponentsPerPixel() > 1 and image.GetDimension() == 3:
         frames = [sitk.VectorIndexSelectionCast(image, k) for k in range(image.GetNumberOfComponentsPerPixel())]
@@ -147,7 +159,7 @@ def load_sequence(path: str | os.PathLike, *, spacing=None, no_data_value: float
         raise ValueError(f"{path}: expected a 3D+t image (4D, or frames as components), got a {image.GetDimension()}D image")
     volumes = [_volume_from_image(f, no_data_value) for f in frames]
     if spacing is not None:
-        volumes = [Volume(v.array, spacing=spacing, origin=v.origin, direction=v.direction, no_data_value=no_data_value)
+        volumes = [Volume(v.array, spacing=spacing, origin=v.origin, direction=v.direction, no_data_mask=v.no_data_mask)
                    for v in volumes]
     return volumes
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from .surface import ImageGrid
 
-__all__ = ["Volume"]
+__all__ = ["Volume", "outside_sector"]
 
 # points this close (in voxels) outside the first or last voxel centre count
 # as on it: world -> index round-off must not lose the image's edge
@@ -27,6 +27,8 @@ class Volume:
         Value that marks voxels without data (the black outside of an
         echo sector, 0 in CETUS volumes).  Samples touching such a voxel are
         treated as missing.  ``None``: every voxel is data.
+    no_data_mask : bool array, optional
+        Voxels without data, in addition (see :func:`sector_mask`).
 
     Notes
     -----
@@ -34,7 +36,8 @@ class Volume:
     ``(x, y, z)`` in mm (LPS).
     """
 
-    def __init__(self, array, *, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), direction=None, no_data_value=None):
+    def __init__(self, array, *, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), direction=None, no_data_value=None,
+                 no_data_mask=None):
         array = np.asarray(array)
         if array.ndim != 3:
             raise ValueError(f"a volume must be a 3D array [z, y, x], got {array.ndim}D with shape {array.shape}")
@@ -57,8 +60,15 @@ class Volume:
         self._to_index = np.linalg.inv(direction * self.grid.spacing[None, :])
         # what sampling reads: the values, with NaN on no-data voxels so that
         # any sample touching one comes out NaN without a second lookup
-        if no_data_value is not None and np.any(self.array == float(no_data_value)):
-            self._samples = np.where(self.array == float(no_data_value), np.float32(np.nan), self.array)
+        missing = None if no_data_value is None else self.array == float(no_data_value)
+        if no_data_mask is not None:
+            no_data_mask = np.asarray(no_data_mask, dtype=bool)
+            if no_data_mask.shape != self.array.shape:
+                raise ValueError(f"no_data_mask must have the volume's shape {self.array.shape}, got {no_data_mask.shape}")
+            missing = no_data_mask if missing is None else missing | no_data_mask
+        self.no_data_mask = missing
+        if missing is not None and missing.any():
+            self._samples = np.where(missing, np.float32(np.nan), self.array)
         else:
             self._samples = self.array
         self._flat = self._samples.ravel()
@@ -137,3 +147,25 @@ class Volume:
 
     def __repr__(self) -> str:
         return f"Volume(shape={self.shape}, spacing={tuple(self.spacing.round(4))}, origin={tuple(self.origin.round(3))})"
+
+
+def outside_sector(array: np.ndarray, *, min_fraction: float = 0.01) -> np.ndarray | None:
+    """Voxels of the black padding around a scan-converted echo sector: the
+    exact zeros connected to the faces of the image (6-connectivity).
+
+    Zeros inside the anatomy (a noise-free blood pool) are not connected to
+    the faces and stay data.  Returns ``None`` when that padding is under
+    ``min_fraction`` of the image.
+    """
+    from scipy import ndimage
+
+    zero = np.asarray(array) == 0
+    if zero.mean() < min_fraction:
+        return None
+    labels, n = ndimage.label(zero)
+    faces = np.concatenate([labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()])
+    touching = np.unique(faces[faces > 0])
+    if touching.size == 0:
+        return None
+    mask = np.isin(labels, touching)
+    return mask if mask.mean() >= min_fraction else None
