@@ -28,7 +28,7 @@ distance (mm, to first order) from each landmark to the surface along
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import lru_cache
 from typing import Callable
 
 import numpy as np
@@ -83,12 +83,8 @@ class SampledSurface:
 
     def __init__(self, system: CoordinateSystem, pose: Pose, grid: HermiteGrid, order: int = 8):
         self.system, self.pose, self.grid, self.order = system, pose, grid, order
-        self.v1, self.v2, self.weights = grid.quadrature(order)
-        a = grid.constraints
-        self.constraints = a
-        self.b_f = (grid.basis_matrix(self.v1, self.v2) @ a).tocsr()
-        self.b_1 = (grid.basis_matrix(self.v1, self.v2, 1, 0) @ a).tocsr()
-        self.b_2 = (grid.basis_matrix(self.v1, self.v2, 0, 1) @ a).tocsr()
+        (self.v1, self.v2, self.weights, self.constraints, self.b_f, self.b_1, self.b_2,
+         self.mass_matrix) = _grid_matrices(grid, order)
 
     @property
     def n_parameters(self) -> int:
@@ -97,12 +93,6 @@ class SampledSurface:
     @property
     def n_samples(self) -> int:
         return len(self.weights)
-
-    @cached_property
-    def mass_matrix(self) -> np.ndarray:
-        """``M = B^T W B`` in the parameters (dense): the Gram matrix of the
-        basis, whose diagonal is paper eq. 10's normalisation."""
-        return (self.b_f.T @ self.b_f.multiply(self.weights[:, None])).toarray()
 
     def parameters(self, coefficients) -> np.ndarray:
         return self.grid.parameters(coefficients)
@@ -135,6 +125,24 @@ class SampledSurface:
             area=area,
             volume=h0 * h1 * h2,
         )
+
+
+@lru_cache(maxsize=16)
+def _grid_matrices(grid: HermiteGrid, order: int):
+    """What depends on the grid alone (not on the pose, the system or the
+    image), built once per grid: sample points and weights, the constraint
+    map ``A``, the sparse matrices giving ``f``, ``df/dv1``, ``df/dv2`` at the
+    samples from the parameters, and the mass matrix ``M = B^T W B`` (dense;
+    its diagonal is paper eq. 10's normalisation).  Read-only."""
+    v1, v2, w = grid.quadrature(order)
+    a = grid.constraints
+    b_f = (grid.basis_matrix(v1, v2) @ a).tocsr()
+    b_1 = (grid.basis_matrix(v1, v2, 1, 0) @ a).tocsr()
+    b_2 = (grid.basis_matrix(v1, v2, 0, 1) @ a).tocsr()
+    mass = (b_f.T @ b_f.multiply(w[:, None])).toarray()
+    for array in (v1, v2, w, mass):
+        array.flags.writeable = False
+    return v1, v2, w, a, b_f, b_1, b_2, mass
 
 
 def region_force(u, c_in, c_out) -> np.ndarray:

@@ -22,7 +22,7 @@ constraints are the linear map ``coefficients = constraints @ parameters``
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 import scipy.sparse as sp
@@ -263,6 +263,7 @@ class HermiteGrid:
         """Nearest well-formed coefficients (exact for well-formed input)."""
         return (self.constraints @ self.parameters(coefficients)).reshape(self.shape)
 
+    @lru_cache(maxsize=16)
     def roughness_matrix(self, order: int = 4) -> sp.csr_matrix:
         """Thin-plate energy in the parameters: ``p^T T p = int f_11^2 +
         2 f_12^2 + f_22^2 dv1 dv2 / area``, zero for constant ``f``."""
