@@ -225,8 +225,26 @@ def cmd_segment(args) -> int:
     return 0
 
 
+def _write_tracking_outputs(out: Path, volumes, result, suffix: str, stl: bool, title: str | None,
+                            truth_mask=None) -> None:
+    """Per-frame masks and surfaces, and the report (unless title is None)."""
+    from .io import save_mask
+
+    (out / "masks").mkdir(exist_ok=True)
+    (out / "meshes").mkdir(exist_ok=True)
+    for t, (frame, volume) in enumerate(zip(result.frames, volumes)):
+        save_mask(out / "masks" / f"frame_{t:03d}{suffix}", frame.mask(volume), volume)
+        _write_surface_outputs(out / "meshes", f"frame_{t:03d}", f"frame_{t:03d}_surface.json", frame, stl)
+    if title is not None:
+        from .report import save_report
+
+        ed = result.ed_frame
+        save_report(out / "report.png", volumes[ed], result.frames[ed].surface, volumes_ml=result.volumes_ml,
+                    ed_frame=ed, es_frame=result.es_frame, title=title, truth_mask=truth_mask)
+
+
 def cmd_track(args) -> int:
-    from .io import load_sequence, save_mask
+    from .io import load_sequence
     from .segment import track
 
     source = Path(args.sequence)
@@ -250,18 +268,8 @@ def cmd_track(args) -> int:
     finally:
         if bar is not None:
             bar.close()
-    (out / "masks").mkdir(exist_ok=True)
-    (out / "meshes").mkdir(exist_ok=True)
-    for t, (frame, volume) in enumerate(zip(result.frames, volumes)):
-        save_mask(out / "masks" / f"frame_{t:03d}{suffix}", frame.mask(volume), volume)
-        _write_surface_outputs(out / "meshes", f"frame_{t:03d}", f"frame_{t:03d}_surface.json", frame, args.stl)
-    if not args.no_report:
-        from .report import save_report
-
-        ed = result.ed_frame
-        save_report(out / "report.png", volumes[ed], result.frames[ed].surface, volumes_ml=result.volumes_ml,
-                    ed_frame=ed, es_frame=result.es_frame,
-                    title=f"{source.name}: EDV {result.edv_ml:.1f} mL, ESV {result.esv_ml:.1f} mL, EF {result.ef:.1f} %")
+    _write_tracking_outputs(out, volumes, result, suffix, args.stl, None if args.no_report else
+                            f"{source.name}: EDV {result.edv_ml:.1f} mL, ESV {result.esv_ml:.1f} mL, EF {result.ef:.1f} %")
     results = {
         "input": str(source), "frames": len(volumes), "volumes_ml": result.volumes_ml, "edv_ml": result.edv_ml,
         "esv_ml": result.esv_ml, "ef_percent": result.ef, "ed_frame": result.ed_frame, "es_frame": result.es_frame,
@@ -288,12 +296,10 @@ def _fresh_demo_folder() -> Path:
 def cmd_demo(args) -> int:
     from .metrics import dice, surface_distances
     from .phantom import make_sequence
-    from .report import save_report
     from .segment import track
-    from .surface_io import write_mesh
 
     out = Path(args.out) if args.out else _fresh_demo_folder()
-    _prepare_out(out, ["results.json", "report.png", "mesh_ed.vtk", "mesh_ed.ply"], args.force, [])
+    _prepare_out(out, ["results.json", "report.png", "masks", "meshes"], args.force, [])
     _say(args, "spheroseg demo: a synthetic apical 3D+t echo sequence (10 frames, 1.25 mm voxels, speckle), tracked "
                "from its apex and base points and compared with its exact truth")
     t0 = time.perf_counter()
@@ -308,12 +314,9 @@ def cmd_demo(args) -> int:
         rows.append({"frame": t, "volume_ml": frame.volume_ml, "truth_ml": truth.truth_volume_ml, "dice": d,
                      "iterations": frame.iterations, "ms": 1000 * frame.seconds})
     sd = surface_distances(result.frames[ed].mesh(closed=False), seq.frames[ed].truth_mesh)
-    points, faces = result.frames[ed].mesh()
-    write_mesh(out / "mesh_ed.vtk", points, faces)
-    write_mesh(out / "mesh_ed.ply", points, faces)
-    save_report(out / "report.png", seq.volumes[ed], result.frames[ed].surface, volumes_ml=result.volumes_ml,
-                ed_frame=ed, es_frame=es, truth_mask=seq.frames[ed].truth_mask,
-                title=f"demo: EF {result.ef:.1f} % (truth {seq.truth_ef:.1f} %); yellow spheroseg, red truth")
+    _write_tracking_outputs(out, seq.volumes, result, ".nii.gz", False,
+                            f"demo: EF {result.ef:.1f} % (truth {seq.truth_ef:.1f} %); yellow spheroseg, red truth",
+                            truth_mask=seq.frames[ed].truth_mask)
     seg_ms = 1000 * sum(f.seconds for f in result.frames)
     summary = {
         "frames": rows, "edv_ml": result.edv_ml, "esv_ml": result.esv_ml, "ef_percent": result.ef,
@@ -331,7 +334,7 @@ def cmd_demo(args) -> int:
          f"ESV {result.esv_ml:.1f} mL (truth {seq.truth_volumes_ml.min():.1f})",
          f"  EF {result.ef:.1f} % (truth {seq.truth_ef:.1f} %)",
          f"  segmentation of all {len(rows)} frames: {seg_ms:.0f} ms",
-         f"  outputs in {out}/ (results.json, report.png, mesh_ed.vtk, mesh_ed.ply)")
+         f"  outputs in {out}/: results.json, report.png, masks/ (NIfTI), meshes/ (.vtk, .ply, JSON, CMISS)")
     return 0
 
 
