@@ -3,19 +3,24 @@ parameters, initialised from apex and base points.
 
 One iteration:
 
-1. the surface at the fixed sample points (three sparse mat-vecs, one
-   coordinate transform);
-2. the image along the outward normal at each sample point (trilinear):
-   the grey level at the surface ``u`` averaged over +-1 mm to tame speckle,
-   and the region means ``c_in``, ``c_out``;
+1. the surface at the fixed sample points (the Hermite basis there is
+   precomputed) and one coordinate transform;
+2. the image at each surface point (trilinear), and the region means
+   ``c_in``, ``c_out`` from samples along the outward normals;
 3. the region force ``r = (u - c_in)^2 - (u - c_out)^2`` (paper eq. 22),
    made dimensionless by the contrast and clipped to ``[-1, 1]``, gives a
    normal displacement of at most ``step`` mm;
 4. that displacement, converted to ``v0`` units, is projected onto the
    Hermite space (least squares with the mass matrix ``M``: the exact form
    of eq. 10's normalisation, so the update is ``dH = -dt M^-1 dF/dH``
-   with the force per unit area instead of per unit ``v1 v2``);
-   landmarks add rows to that least-squares problem.
+   with the force per unit area instead of per unit ``v1 v2``); an
+   implicit thin-plate step towards the initial shape (``smoothness``) and
+   landmark rows (the clicked apex, the user's points) join that
+   least-squares problem.
+
+Steps 1-2 run in one compiled loop when numba is installed
+(:mod:`spheroseg._kernels`, prolate system); the numpy code here is the
+reference it is tested against.
 
 Data terms (``mode``):
 
@@ -33,7 +38,8 @@ Data terms (``mode``):
     BEAS, Barbosa et al. 2012).  Where the local contrast is low (dropout,
     or both bands in the blood pool) the force fades instead of leaking.
     The coarse levels of the coarse-to-fine schedule use the global means,
-    which bring the surface to the walls from afar.
+    which bring the surface to the walls from afar.  Means are taken on a
+    quarter of the sample points (they are smoothed over the surface).
 
 All image access is at points set by the model; no step touches every voxel.
 """
