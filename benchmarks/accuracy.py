@@ -55,6 +55,16 @@ def run_case(ph, peers: bool) -> dict:
     return out
 
 
+def run_cases(seeds, peers: bool) -> list:
+    cases = []
+    for family, seed in itertools.product(FAMILIES, seeds):
+        ph = make_phantom(seed=seed, **FAMILIES[family])
+        res = run_case(ph, peers)
+        cases.append({"family": family, "seed": seed, "truth_ml": ph.truth_volume_ml, "results": res})
+        print(family, seed, {k: round(v["dice"], 3) for k, v in res.items()}, flush=True)
+    return cases
+
+
 def sweep() -> dict:
     ph = make_phantom(seed=100, **FAMILIES["speckle"])
     results = {"skimage": [], "sitk": []}
@@ -106,6 +116,10 @@ def sequences(seeds, peers: bool) -> list:
         row = {"seed": seed, "truth_ef": seq.truth_ef,
                "spheroseg local (tracking)": {"ef": tr.ef, "seconds_per_frame": (time.perf_counter() - t0) / len(seq.frames)}}
         ed, es = int(np.argmax(seq.truth_volumes_ml)), int(np.argmin(seq.truth_volumes_ml))
+        # the same question as the peers get: ED and ES segmented on their own
+        # from the first frame's apex/base half-ellipsoid
+        v = [segment(seq.frames[k].volume, first.apex, first.base).volume_ml for k in (ed, es)]
+        row["spheroseg local (ED and ES frames)"] = {"ef": 100 * (v[0] - v[1]) / v[0]}
         if peers:
             for name, fn in PEERS.items():
                 v = [mask_volume_ml(fn(seq.frames[k].volume, first.apex, first.base, **PEER_PARAMS[PEER_KEY[name]])[0],
@@ -120,19 +134,31 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sweep", action="store_true", help="run the peers' parameter sweep on one case")
     ap.add_argument("--quick", action="store_true", help="2 seeds and no peers")
+    ap.add_argument("--only", choices=["cases", "sequences", "cetus"],
+                    help="recompute one part and keep the rest of docs/accuracy.json")
     args = ap.parse_args(argv)
+    if args.only:
+        data = json.loads((DOCS / "accuracy.json").read_text())
+        peers = bool(data.get("peer_params"))
+        seeds = sorted({c["seed"] for c in data["cases"]})
+        if args.only == "cases":
+            data["cases"] = run_cases(seeds, peers)
+        elif args.only == "sequences":
+            data["sequences"] = sequences(seeds, peers)
+        else:
+            data["cetus_patient7"] = cetus(peers)
+        data["machine"] = machine()
+        data["command"] = "python benchmarks/accuracy.py, then --only " + args.only
+        print("wrote", write_json("accuracy.json", data))
+        print("wrote", write_markdown())
+        return
     if args.sweep:
         write_json("peer_sweep.json", {"machine": machine(), "case": "speckle seed 100", "results": sweep()})
         return
     seeds = (0, 1) if args.quick else (0, 1, 2, 3, 4)
     peers = not args.quick
     t0 = time.perf_counter()
-    cases = []
-    for family, seed in itertools.product(FAMILIES, seeds):
-        ph = make_phantom(seed=seed, **FAMILIES[family])
-        res = run_case(ph, peers)
-        cases.append({"family": family, "seed": seed, "truth_ml": ph.truth_volume_ml, "results": res})
-        print(family, seed, {k: round(v["dice"], 3) for k, v in res.items()}, flush=True)
+    cases = run_cases(seeds, peers)
     data = {
         "command": "python benchmarks/accuracy.py" + (" --quick" if args.quick else ""),
         "machine": machine(), "peer_params": PEER_PARAMS, "cases": cases,

@@ -106,7 +106,8 @@ def mask_wall_mesh(mask, volume, apex, base):
     world = volume.index_to_world(verts[:, ::-1])
     axis = (apex - base) / np.linalg.norm(apex - base)
     height = (world - base) @ axis
-    cap = np.all(height[faces] < 0.75 * volume.spacing.min(), axis=1)
+    # marching cubes puts the cap up to 1.5 voxels from the plane's last layer
+    cap = np.all(height[faces] < 1.5 * volume.spacing.max(), axis=1)
     return world, faces[~cap]
 
 

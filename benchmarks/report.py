@@ -67,8 +67,11 @@ def _accuracy(acc) -> list[str]:
     seqs = acc.get("sequences") or []
     if seqs:
         out += ["", "## Ejection fraction on phantom sequences", "",
-                "10 frames per cycle from end-diastole; spheroseg tracks every frame (each starts from the previous "
-                "one); the peers segment the true ED and ES frames only. EF error in points (median, worst absolute).", "",
+                "10 frames per cycle from end-diastole. 'tracking': spheroseg follows every frame, each starting from "
+                "the previous one. 'ED and ES frames': the true ED and ES frames segmented on their own from the same "
+                "half-ellipsoid (the first frame's apex and base, base radius 0.3 of their distance), which at "
+                "end-systole lies across the wall: a test of robustness to a poor start that global level sets fail "
+                "by leaking outwards. EF error in points (median, worst absolute).", "",
                 "| method | median abs EF error | worst abs EF error |", "| --- | --- | --- |"]
         names = [k for k in seqs[0] if k not in ("seed", "truth_ef")]
         for name in names:

@@ -37,3 +37,9 @@ def test_ejection_fraction_and_volume():
     with pytest.raises(ValueError):
         ejection_fraction(0.0, 1.0)
     assert mask_volume_ml(np.ones((10, 10, 10), bool), (2.0, 1.0, 0.5)) == pytest.approx(1.0)
+
+
+def test_vertices_no_face_uses_are_ignored():
+    points, faces = hemisphere(20.0)
+    stray = np.concatenate([points, [[500.0, 500.0, 500.0]]])
+    assert surface_distances((stray, faces), hemisphere(20.0))["hausdorff"] < 0.2

@@ -93,8 +93,9 @@ def apex_base_of_open_mesh(points, faces) -> tuple[np.ndarray, np.ndarray]:
 
 def surface_sample(points, faces, spacing: float = 0.5, seed: int = 0) -> np.ndarray:
     """Points on a triangle mesh, about one per ``spacing**2`` mm^2 of area
-    (area-weighted, seeded), together with the vertices."""
-    p = np.asarray(points, dtype=float)[np.asarray(faces)]
+    (area-weighted, seeded), together with the vertices the faces use."""
+    faces = np.asarray(faces)
+    p = np.asarray(points, dtype=float)[faces]
     area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
     n = int(np.ceil(area.sum() / spacing**2))
     rng = np.random.default_rng(seed)
@@ -103,7 +104,7 @@ def surface_sample(points, faces, spacing: float = 0.5, seed: int = 0) -> np.nda
     flip = r1 + r2 > 1
     r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
     samples = p[tri, 0] + r1[:, None] * (p[tri, 1] - p[tri, 0]) + r2[:, None] * (p[tri, 2] - p[tri, 0])
-    return np.concatenate([np.asarray(points, float), samples])
+    return np.concatenate([np.asarray(points, float)[np.unique(faces)], samples])
 
 
 def point_to_surface_distance(points, surface: Surface, *, n_v1: int = 512, n_v2: int = 256) -> np.ndarray:
