@@ -118,13 +118,15 @@ def main():
 
     seq = make_sequence(seed=0, n_frames=10)
     first = seq.frames[0]
-    start = segment(seq.volumes[0], first.apex, first.base)
+    state = {}  # as spheroseg.track keeps it: the model and statistics of the first frame
+    start = segment(seq.volumes[0], first.apex, first.base, _state=state)
     tracking = {}
     for ipf in (5, 20):
         def follow():
             prev = start.surface
             for vol in seq.volumes[1:]:
-                prev = segment(vol, first.apex, first.base, init=prev, max_iterations=ipf, coarse_to_fine=False).surface
+                prev = segment(vol, first.apex, first.base, init=prev, max_iterations=ipf, coarse_to_fine=False,
+                               _state=state).surface
         seconds = median_time(follow, 5)
         tracking[ipf] = (len(seq.volumes) - 1) / seconds
     full = median_time(lambda: track(seq.volumes, first.apex, first.base), 3)
