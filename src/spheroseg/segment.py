@@ -227,6 +227,7 @@ class _Descent:
         self._b_band_t = self.model.b_f[self.band_rows].T.tocsr()
         self._w_band = self.model.weights[self.band_rows] * (self.model.weights.sum() / self.model.weights[self.band_rows].sum())
         self._h0_floor = None
+        self._total_weight = float(self.model.weights.sum())
         self.kernel = _kernels.AVAILABLE and compiled and isinstance(surface.system, ProlateSpheroidal)
         if self.kernel:
             self._prepare_kernel()
@@ -312,7 +313,7 @@ class _Descent:
         if not ok[:, 0].any() or not ok[:, 1].any():
             return None
         fields = np.where(ok, fields, np.nanmean(fields, axis=0))
-        smooth = scipy.linalg.cho_solve(self.projector, self._b_band_t @ (self._w_band[:, None] * fields))
+        smooth = scipy.linalg.cho_solve(self.projector, self._b_band_t @ (self._w_band[:, None] * fields), check_finite=False)
         return self._at_samples(smooth[:, 0]), self._at_samples(smooth[:, 1])
 
     # the step ---------------------------------------------------------------
@@ -341,10 +342,10 @@ class _Descent:
             f = lm.basis @ self.p
             res = np.clip((lm.v0 - f) * lm.h0, -self.step, self.step) / lm.h0
             rhs += lm.basis.T @ (self.omega * (f + res))
-        p_new = scipy.linalg.cho_solve(self.solver, self.mass @ self.p + self.prior + rhs)
+        p_new = scipy.linalg.cho_solve(self.solver, self.mass @ self.p + self.prior + rhs, check_finite=False)
         dp = p_new - self.p
         self.p = p_new
-        return np.sqrt(np.average((h0 * self._at_samples(dp)) ** 2, weights=m.weights))
+        return np.sqrt(np.dot(m.weights, (h0 * self._at_samples(dp)) ** 2) / self._total_weight)
 
     def surface(self, like: Surface) -> Surface:
         return like.with_coefficients(self.model.coefficients(self.p))
