@@ -242,9 +242,10 @@ class _Descent:
         pts = geometry.world[rows, None, :] + offsets[None, :, None] * geometry.normal[rows, None, :]
         return self.volume.sample(pts)
 
-    def observe(self, bands: bool) -> _Observation:
-        """The surface at the sample points and the image along its normals."""
-        if self.kernel:
+    def observe(self, bands: bool, geometry: bool = False) -> _Observation:
+        """The surface at the sample points and the image along its normals
+        (with ``geometry``, also the full :class:`Geometry`: numpy path)."""
+        if self.kernel and not geometry:
             return self._observe_compiled(bands)
         m = self.model
         g = m.geometry(self.p)
@@ -378,12 +379,12 @@ def _run_level(descent: _Descent, mode, stats, *, max_iterations, tol, callback,
     c_in = c_out = np.nan
     global_means = mode == "chan-vese" or stats.get("global_level")
     for it in range(max_iterations):
-        obs = descent.observe(bands=mode == "local" and not global_means)
+        obs = descent.observe(bands=mode == "local" and not global_means, geometry=global_means)
         if mode == "fast":
             c_in, c_out = stats["c_in"], stats["c_out"]
             scale = (c_out - c_in) ** 2
         elif global_means:
-            c_in, c_out = descent.global_means(obs.geometry or descent.model.geometry(descent.p))
+            c_in, c_out = descent.global_means(obs.geometry)
             scale = max((c_out - c_in) ** 2, stats["min_scale"])
         else:
             means = descent.local_means(obs)
