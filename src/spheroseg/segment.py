@@ -227,6 +227,7 @@ class _Descent:
         self._b_band_t = self.model.b_f[self.band_rows].T.tocsr()
         self._w_band = self.model.weights[self.band_rows] * (self.model.weights.sum() / self.model.weights[self.band_rows].sum())
         self._h0_floor = None
+        self._radius = None
         self._total_weight = float(self.model.weights.sum())
         self.kernel = _kernels.AVAILABLE and compiled and isinstance(surface.system, ProlateSpheroidal)
         if self.kernel:
@@ -329,13 +330,11 @@ class _Descent:
         if self._h0_floor is None:  # fixed per level: a median per iteration costs more than the rest
             self._h0_floor = 0.3 * float(np.median(h0))
         # (h0 is bounded below too: near a focal point v0 barely moves the surface)
-        dv0 = self.step * speed / np.maximum(h0 * np.maximum(obs.cos, _MIN_COS), self._h0_floor)
-        rhs = self._transpose(m.weights * dv0)
+        normal_to_v0 = np.maximum(h0 * np.maximum(obs.cos, _MIN_COS), self._h0_floor)  # mm of wall per unit v0
         if self.nu:
-            # area term: gradient scaled to mm of motion per unit of nu
-            g = obs.geometry or m.geometry(self.p)
-            grad = area_gradient(m, self.p, g)
-            rhs -= self.nu * self.step * grad / (self._h0_floor / 0.3 * max(g.area.mean(), 1e-12))
+            speed = speed + self.nu * self._area_speed(obs.geometry, normal_to_v0)
+        dv0 = self.step * speed / normal_to_v0
+        rhs = self._transpose(m.weights * dv0)
         if self.landmarks is not None:
             # rows omega |L p_new - (L p + res)|^2: move towards each landmark
             # by at most a step
@@ -347,6 +346,21 @@ class _Descent:
         dp = p_new - self.p
         self.p = p_new
         return np.sqrt(np.dot(m.weights, (h0 * self._at_samples(dp)) ** 2) / self._total_weight)
+
+    def _area_speed(self, g, normal_to_v0) -> np.ndarray:
+        """Normal speed (steps, outward) of the area term: minus the mean
+        curvature from the gradient of paper eq. 23, made dimensionless by
+        the typical radius so that ``nu = 1`` moves a sphere by a step.
+
+        ``dA/dp = int G f_i`` where ``G = 2H h0 cos A_K`` (``2H`` the sum of
+        the principal curvatures); ``B M^-1 dA/dp`` is ``G`` projected on the
+        Hermite space."""
+        m = self.model
+        field = self._at_samples(scipy.linalg.cho_solve(self.projector, area_gradient(m, self.p, g), check_finite=False))
+        two_h = field / (np.maximum(g.area, 1e-12) * normal_to_v0)
+        if self._radius is None:
+            self._radius = float(np.median(np.linalg.norm(g.local, axis=1)))
+        return -np.clip(0.5 * two_h * self._radius, -1.0, 1.0)
 
     def surface(self, like: Surface) -> Surface:
         return like.with_coefficients(self.model.coefficients(self.p))
@@ -379,7 +393,7 @@ def _run_level(descent: _Descent, mode, stats, *, max_iterations, tol, callback,
     c_in = c_out = np.nan
     global_means = mode == "chan-vese" or stats.get("global_level")
     for it in range(max_iterations):
-        obs = descent.observe(bands=mode == "local" and not global_means, geometry=global_means)
+        obs = descent.observe(bands=mode == "local" and not global_means, geometry=global_means or descent.nu > 0)
         if mode == "fast":
             c_in, c_out = stats["c_in"], stats["c_out"]
             scale = (c_out - c_in) ** 2
@@ -463,7 +477,9 @@ def segment(
         Grey level of the interface for ``mode="fast"`` (default: Otsu's
         threshold of the samples around the initial surface).
     nu : float
-        Weight of the area term (paper eqs. 16-17, 23-24), 0 as in the paper.
+        Weight of the area term (paper eqs. 16-17, 23-24), 0 as in the paper:
+        a normal speed of ``nu`` times the mean curvature times the typical
+        radius, in steps (1 moves a sphere inwards by a step).
     smoothness : float
         Weight of a thin-plate regularisation of the surface's departure
         from its initial shape (the half-ellipsoid, or ``init``), applied as
