@@ -69,10 +69,9 @@ def memory_bytes(d) -> int:
             total += sum(v.nbytes for v in value if isinstance(v, np.ndarray))
         elif hasattr(value, "data") and hasattr(value, "indices"):
             total += value.data.nbytes + value.indices.nbytes + value.indptr.nbytes
-    m = d.model
+    m = d.model  # its dense mass matrix is d.mass, counted above
     for mat in (m.b_f, m.b_1, m.b_2, m.constraints):
         total += mat.data.nbytes + mat.indices.nbytes + mat.indptr.nbytes
-    total += m.mass_matrix.nbytes + d.solver[0].nbytes + d.projector[0].nbytes
     return int(total)
 
 
