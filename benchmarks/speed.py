@@ -69,6 +69,7 @@ def memory_bytes(d) -> int:
             total += sum(v.nbytes for v in value if isinstance(v, np.ndarray))
         elif hasattr(value, "data") and hasattr(value, "indices"):
             total += value.data.nbytes + value.indices.nbytes + value.indptr.nbytes
+    total += d.solver[0].nbytes + d.projector[0].nbytes  # Cholesky factors
     m = d.model  # its dense mass matrix is d.mass, counted above
     for mat in (m.b_f, m.b_1, m.b_2, m.constraints):
         total += mat.data.nbytes + mat.indices.nbytes + mat.indptr.nbytes
