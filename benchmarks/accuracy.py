@@ -99,7 +99,7 @@ def cetus(peers: bool) -> dict | None:
             for name, fn in PEERS.items():
                 mask, seconds = fn(vol, apex, base, **PEER_PARAMS[PEER_KEY[name]])
                 out.setdefault(name, {})[phase] = {"volume_ml": mask_volume_ml(mask, vol.spacing), "seconds": seconds}
-    for method, phases in out.items():
+    for phases in out.values():
         if isinstance(phases, dict) and "ED" in phases:
             ed, es = phases["ED"]["volume_ml"], phases["ES"]["volume_ml"]
             phases["ef_percent"] = 100 * (ed - es) / ed if ed > 0 else float("nan")

@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-from spheroseg.coords import Pose
 from spheroseg.energy import (
     Landmarks,
     SampledSurface,

@@ -2,7 +2,6 @@ import numpy as np
 import pytest
 
 from conftest import cetus_file
-from spheroseg.coords import Pose
 from spheroseg.fit import apex_base_of_open_mesh, fit_surface, point_to_surface_distance, surface_sample
 from spheroseg.surface import Surface
 from spheroseg.surface_io import read_mesh

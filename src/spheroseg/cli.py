@@ -307,7 +307,7 @@ def cmd_demo(args) -> int:
     t_make = time.perf_counter() - t0
     first = seq.frames[0]
     result = track(seq.volumes, first.apex, first.base)
-    ed, es = result.ed_frame, result.es_frame
+    ed = result.ed_frame
     rows = []
     for t, (frame, truth) in enumerate(zip(result.frames, seq.frames)):
         d = dice(frame.mask(truth.volume), truth.truth_mask)

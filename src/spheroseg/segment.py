@@ -196,16 +196,17 @@ class _Descent:
         self.volume = volume
         self.model = SampledSurface(surface.system, surface.pose, surface.grid, order)
         self.p = self.model.parameters(surface.coefficients)
-        self.step, self.band, self.band_out, self.nu = step, band, band_out, nu
+        self.step, self.nu = step, nu
         m = self.model.mass_matrix
+        total = float(self.model.weights.sum())  # the area of the (v1, v2) domain
         self.projector = scipy.linalg.cho_factor(m)
         # the update solves (M + a T + w L^T L) p_new = M p + B^T W dv0 + a T p_ref + w L^T res:
         # least squares on the displacement, an implicit (unconditionally
         # stable) thin-plate smoothing step of the departure from the
         # reference (initial) shape, and the landmark rows
         self.mass = m
-        area = self.model.weights.sum()  # T is per unit area, M is not
-        self.smoothing = smoothness * area / _ROUGHNESS_SCALE * surface.grid.roughness_matrix().toarray()
+        # T is per unit area, M is not
+        self.smoothing = smoothness * total / _ROUGHNESS_SCALE * surface.grid.roughness_matrix().toarray()
         self.set_reference(reference)
         system = m + self.smoothing
         self.landmarks = None
@@ -213,7 +214,7 @@ class _Descent:
             self.landmarks = Landmarks.from_world(self.model, landmarks)
             # weight 1: a landmark outweighs the data over 5 % of the (v1, v2)
             # domain, about one patch at 4 x 4
-            self.omega = np.asarray(landmark_weights, float) * 0.05 * self.model.weights.sum()
+            self.omega = np.asarray(landmark_weights, float) * 0.05 * total
             b = self.landmarks.basis.toarray()
             system = system + b.T @ (self.omega[:, None] * b)
         self.solver = scipy.linalg.cho_factor(system)
@@ -226,10 +227,10 @@ class _Descent:
         q = np.arange(self.model.n_samples)
         self.band_rows = ((q % n_row) % _BAND_STRIDE == 0) & ((q // n_row) % _BAND_STRIDE == 0)
         self._b_band_t = self.model.b_f[self.band_rows].T.tocsr()
-        self._w_band = self.model.weights[self.band_rows] * (self.model.weights.sum() / self.model.weights[self.band_rows].sum())
+        self._w_band = self.model.weights[self.band_rows] * (total / self.model.weights[self.band_rows].sum())
         self._h0_floor = None
         self._radius = None
-        self._total_weight = float(self.model.weights.sum())
+        self._total_weight = total
         self.kernel = _kernels.AVAILABLE and compiled and isinstance(surface.system, ProlateSpheroidal)
         if self.kernel:
             self._prepare_kernel()
