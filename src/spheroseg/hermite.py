@@ -22,7 +22,7 @@ constraints are the linear map ``coefficients = constraints @ parameters``
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from functools import lru_cache
 
 import numpy as np
 import scipy.sparse as sp
@@ -220,7 +220,12 @@ class HermiteGrid:
 
     # -- pole constraints -------------------------------------------------
 
-    @cached_property
+    # the matrices below depend on the grid's values only: cached by value
+    # (a grid is frozen and hashable), so equal grids built anew (every
+    # segmentation, every refinement) share them.  They are read-only.
+
+    @property
+    @lru_cache(maxsize=16)
     def constraints(self) -> sp.csr_matrix:
         """Matrix ``A`` (coefficients x parameters) with
         ``coefficients = A @ parameters`` for every well-formed surface.
@@ -248,7 +253,8 @@ class HermiteGrid:
                 n_param += k.size
         return sp.csr_matrix((vals, (rows, cols)), shape=(self.n_coefficients, n_param))
 
-    @cached_property
+    @property
+    @lru_cache(maxsize=16)
     def _constraint_pinv(self) -> sp.csr_matrix:
         # the columns of A are mutually orthogonal, so pinv(A) = diag(1/|a_j|^2) A^T
         a = self.constraints
@@ -286,8 +292,17 @@ class HermiteGrid:
         surface at the new nodes define the same function.
         """
         fine = self.refined()
+        c = self._refinement_matrix @ np.asarray(coefficients, dtype=float).reshape(-1)
+        return fine, c.reshape(fine.shape)
+
+    @property
+    @lru_cache(maxsize=16)
+    def _refinement_matrix(self) -> sp.csr_matrix:
+        # row (node, k) of the fine grid: the k-th derivative of the coarse basis there
+        fine = self.refined()
         v2, v1 = np.meshgrid(fine.node_v2, fine.node_v1, indexing="ij")
-        c = np.empty(fine.shape)
-        for k, (d1, d2) in enumerate(((0, 0), (1, 0), (0, 1), (1, 1))):
-            c[:, :, k] = self.evaluate(coefficients, v1, v2, d1, d2)
-        return fine, c
+        parts = [self.basis_matrix(v1, v2, d1, d2) for d1, d2 in ((0, 0), (1, 0), (0, 1), (1, 1))]
+        rows = sp.vstack(parts).tocsr()
+        n = v1.size
+        order = (np.arange(n)[:, None] + n * np.arange(4)[None, :]).ravel()  # node-major, k fastest
+        return rows[order]
