@@ -181,6 +181,32 @@ def test_compiled_path_matches_numpy_reference(phantoms):
     np.testing.assert_allclose(fast.p, ref.p, atol=1e-6)
 
 
+@pytest.mark.parametrize("mode", ["local", "chan-vese"])
+def test_compiled_segmentation_matches_numpy_reference(phantoms, monkeypatch, mode):
+    """A whole segmentation (all levels: global means, local means, the
+    landmark rows) gives the same surface on both paths."""
+    from spheroseg import _kernels
+
+    if not _kernels.AVAILABLE:
+        pytest.skip("numba not installed")
+    ph = phantoms[1]
+    # a landmark on the wall half-way down, where the truth has it
+    axis = (ph.apex - ph.base) / np.linalg.norm(ph.apex - ph.base)
+    side = np.cross(axis, [1.0, 0.0, 0.0])
+    middle = (ph.apex + ph.base) / 2
+    depth = np.linspace(0, 40, 400)
+    inside = ph.volume.grid.world_to_index(middle + depth[:, None] * side / np.linalg.norm(side))
+    ijk = np.round(inside).astype(int)[:, ::-1]
+    wall = middle + depth[np.argmin(ph.truth_mask[tuple(ijk.T)])] * side / np.linalg.norm(side)
+    fast = segment(ph.volume, ph.apex, ph.base, mode=mode, landmarks=[wall])
+    monkeypatch.setattr(_kernels, "AVAILABLE", False)
+    for name in ("prolate_surface", "sample_along", "cavity_sums", "gather", "scatter", "normal_displacement"):
+        monkeypatch.setattr(_kernels, name, None)  # the reference path must not call them
+    ref = segment(ph.volume, ph.apex, ph.base, mode=mode, landmarks=[wall])
+    assert fast.iterations == ref.iterations
+    np.testing.assert_allclose(fast.surface.coefficients, ref.surface.coefficients, atol=1e-6)
+
+
 def test_area_term_shrinks_the_surface_area(phantoms):
     from spheroseg.energy import SampledSurface, area_energy
 

@@ -1,15 +1,28 @@
 """Compiled hot path of an iteration (optional: numba).
 
-What one iteration reads from the image is set by the model: at each of the
-4096 sample points of an 8 x 8-patch surface, the surface point, its normal
-and a few trilinear samples along the normal.  In numpy that is some hundred
-array operations on 4096-long arrays plus the gathers, about 2 ms; fused in
-one compiled loop it is a few hundred microseconds.  numba compiles the loop
-from Python source, so the readable numpy path in :mod:`spheroseg.segment`
-stays the reference and the tests check that both agree to 1e-6.  Without
-numba installed the numpy path runs.
+An iteration touches only what the model sets: the 4096 sample points of an
+8 x 8-patch surface (8 x 8 Gauss-Legendre points a patch), their normals and
+a few trilinear samples along each normal.  In numpy that is some hundred
+array operations and sparse products on 4096-long arrays, about 2 ms; as
+plain loops compiled by numba it is a few hundred microseconds.  numba
+compiles the loops from this Python source, so the readable numpy path in
+:mod:`spheroseg.segment` stays the reference, and the tests check that both
+give the same segmentation to 1e-6.  Without numba the numpy path runs.
 
-Only the prolate spheroidal system (the default) has a kernel.
+Each kernel does one job and writes into arrays the caller allocated once
+per level:
+
+- :func:`prolate_surface`: the surface at the sample points (``f``, the
+  scale factor ``h0``, the unit normal in world space, ``A_K``, ...);
+- :func:`sample_along`: the mean of trilinear samples along normals;
+- :func:`cavity_sums`: samples along the rays inside the cavity, weighted by
+  the volume element (the global Chan-Vese mean);
+- :func:`gather`, :func:`scatter`: ``B H`` and ``B^T v`` for the Hermite
+  basis ``B`` at the sample points, from two small tables (the points are a
+  tensor product of ``order`` positions per patch);
+- :func:`normal_displacement`: the region force as a ``v0`` displacement.
+
+Only the prolate spheroidal system (the default) has a surface kernel.
 """
 
 from __future__ import annotations
@@ -23,177 +36,259 @@ try:  # pragma: no cover - exercised when numba is installed
 except ImportError:  # pragma: no cover
     njit = None
 
-__all__ = ["AVAILABLE", "prolate_observe", "scatter", "gather", "basis_tables"]
+__all__ = ["AVAILABLE", "prolate_surface", "sample_along", "cavity_sums", "gather", "scatter",
+           "normal_displacement", "basis_tables"]
 
 AVAILABLE = njit is not None
 _EDGE = 1e-6  # as spheroseg.volume._EDGE
+_ZERO = np.zeros(3)
 
 
-def _trilinear(image, to_index, img_origin, upper, px, py, pz):
-    """Trilinear sample at world (px, py, pz); NaN outside the image (and,
-    through the image's NaN voxels, on no-data)."""
-    dx, dy, dz = px - img_origin[0], py - img_origin[1], pz - img_origin[2]
-    fi = to_index[0, 0] * dx + to_index[0, 1] * dy + to_index[0, 2] * dz
-    fj = to_index[1, 0] * dx + to_index[1, 1] * dy + to_index[1, 2] * dz
-    fk = to_index[2, 0] * dx + to_index[2, 1] * dy + to_index[2, 2] * dz
-    if not (-_EDGE <= fi <= upper[0] + _EDGE and -_EDGE <= fj <= upper[1] + _EDGE and -_EDGE <= fk <= upper[2] + _EDGE):
+def _sample(image, strides, upper, fi, fj, fk):
+    """Trilinear sample of the flat image at the continuous voxel index
+    ``(fi, fj, fk)`` (x, y, z), as :meth:`spheroseg.Volume.sample`: NaN
+    outside the image and, through the image's NaN voxels, on no-data."""
+    # (plain comparisons: numba compiles a chained a <= x <= b to slower code)
+    if not (fi >= -_EDGE and fj >= -_EDGE and fk >= -_EDGE
+            and fi <= upper[0] + _EDGE and fj <= upper[1] + _EDGE and fk <= upper[2] + _EDGE):
         return np.nan
     fi = min(max(fi, 0.0), upper[0])
     fj = min(max(fj, 0.0), upper[1])
     fk = min(max(fk, 0.0), upper[2])
-    i0 = min(int(fi), max(int(upper[0]) - 1, 0))
-    j0 = min(int(fj), max(int(upper[1]) - 1, 0))
-    k0 = min(int(fk), max(int(upper[2]) - 1, 0))
+    # the cell's lower corner; the last voxel belongs to the cell before it
+    i0 = min(int(fi), int(upper[0]) - 1)
+    j0 = min(int(fj), int(upper[1]) - 1)
+    k0 = min(int(fk), int(upper[2]) - 1)
     ti, tj, tk = fi - i0, fj - j0, fk - k0
-    c00 = image[k0, j0, i0] * (1.0 - ti) + image[k0, j0, i0 + 1] * ti
-    c01 = image[k0, j0 + 1, i0] * (1.0 - ti) + image[k0, j0 + 1, i0 + 1] * ti
-    c10 = image[k0 + 1, j0, i0] * (1.0 - ti) + image[k0 + 1, j0, i0 + 1] * ti
-    c11 = image[k0 + 1, j0 + 1, i0] * (1.0 - ti) + image[k0 + 1, j0 + 1, i0 + 1] * ti
+    c = i0 + j0 * strides[1] + k0 * strides[2]
+    sy, sz = strides[1], strides[2]
+    # weights times float32 values: the products are double, as in numpy
+    c00 = image[c] * (1.0 - ti) + image[c + 1] * ti
+    c01 = image[c + sy] * (1.0 - ti) + image[c + sy + 1] * ti
+    c10 = image[c + sz] * (1.0 - ti) + image[c + sz + 1] * ti
+    c11 = image[c + sy + sz] * (1.0 - ti) + image[c + sy + sz + 1] * ti
     return (c00 * (1.0 - tj) + c01 * tj) * (1.0 - tk) + (c10 * (1.0 - tj) + c11 * tj) * tk
 
 
-def _evaluate(coefficients, n1, basis1, basis2, i1, a, i2, b):
-    """f, df/dv1, df/dv2 at the sample point at local position (a, b) of
-    patch (i1, i2), from the coefficients (n2+1, n1, 4).
+def _index(matrix, offset, x, y, z):
+    """``matrix @ ((x, y, z) - offset)``: a world point (or, with a zero
+    offset, a direction) to voxel index, with the image's ``to_index`` and
+    origin."""
+    x, y, z = x - offset[0], y - offset[1], z - offset[2]
+    return (matrix[0, 0] * x + matrix[0, 1] * y + matrix[0, 2] * z,
+            matrix[1, 0] * x + matrix[1, 1] * y + matrix[1, 2] * z,
+            matrix[2, 0] * x + matrix[2, 1] * y + matrix[2, 2] * z)
 
-    The sample points are a tensor product of ``order`` local positions per
-    patch, so the basis values come from two small tables (local position x
-    [value dofs | slope dofs]) instead of a 16-entry sparse row per point."""
-    f = 0.0
-    f1 = 0.0
-    f2 = 0.0
+
+def _patch(coefficients, i1, i2, out):
+    """The 16 coefficients of patch ``(i1, i2)`` from ``(n2+1, n1, 4)`` as
+    ``out[2 a1 + e1, 2 a2 + e2]`` (node ``a`` and derivative ``e`` along v1,
+    v2), so that ``f = sum_jm basis1[a, j] out[j, m] basis2[b, m]``."""
+    n1 = coefficients.shape[1]
     for a1 in range(2):
-        node1 = i1 + a1
-        if node1 == n1:  # theta is periodic
-            node1 = 0
-        for a2 in range(2):
-            for e1 in range(2):
-                v1 = basis1[0, a, 2 * a1 + e1]
-                d1 = basis1[1, a, 2 * a1 + e1]
+        node1 = i1 + a1 if i1 + a1 < n1 else 0  # theta is periodic
+        for e1 in range(2):
+            for a2 in range(2):
                 for e2 in range(2):
-                    c = coefficients[i2 + a2, node1, e1 + 2 * e2]
-                    v2 = basis2[0, b, 2 * a2 + e2]
-                    f += c * v1 * v2
-                    f1 += c * d1 * v2
-                    f2 += c * v1 * basis2[1, b, 2 * a2 + e2]
-    return f, f1, f2
+                    out[2 * a1 + e1, 2 * a2 + e2] = coefficients[i2 + a2, node1, e1 + 2 * e2]
 
 
-def _scatter(values, n1, order, basis1, basis2, out):
-    """out = B^T values, with B the map from coefficients (n2+1, n1, 4) to f
-    at the sample points (ordered v2-major, as HermiteGrid.quadrature)."""
+def _contract(patch, basis, out):
+    """``out[j] = sum_m patch[j, m] basis[m]``: the patch on one line of v2."""
+    for j in range(4):
+        out[j] = patch[j, 0] * basis[0] + patch[j, 1] * basis[1] + patch[j, 2] * basis[2] + patch[j, 3] * basis[3]
+
+
+def _dot4(basis, line):
+    return basis[0] * line[0] + basis[1] * line[1] + basis[2] * line[2] + basis[3] * line[3]
+
+
+# The sample points are a tensor product of ``order`` positions a patch in
+# each direction, so the kernels below walk patch by patch, contract the
+# 4 x 4 coefficients with the v2 table once per line of points and with the
+# v1 table at each point (4 multiply-adds a point instead of 16).  The
+# sample at local position (a, b) of patch (i1, i2) is number
+# ((i2 order + b) n1 + i1) order + a (v2-major, as HermiteGrid.quadrature).
+
+
+def gather(coefficients, order, basis1, basis2, out):
+    """``out[k] = B coefficients[k]``: each field (coefficients
+    ``(fields, n2+1, n1, 4)``) at every sample point."""
+    n2, n1 = coefficients.shape[1] - 1, coefficients.shape[2]
+    patch, line = np.empty((4, 4)), np.empty(4)
+    for k in range(out.shape[0]):
+        for i2 in range(n2):
+            for i1 in range(n1):
+                _patch(coefficients[k], i1, i2, patch)
+                for b in range(order):
+                    _contract(patch, basis2[0, b], line)
+                    q = ((i2 * order + b) * n1 + i1) * order
+                    for a in range(order):
+                        out[k, q + a] = _dot4(basis1[0, a], line)
+
+
+def scatter(values, order, basis1, basis2, out):
+    """``out[k] = B^T values[k]`` on coefficients ``(fields, n2+1, n1, 4)``."""
+    n2, n1 = out.shape[1] - 1, out.shape[2]
+    patch, line = np.empty((4, 4)), np.empty(4)
     out[:] = 0.0
-    q = 0
-    for i2 in range(out.shape[0] - 1):
-        for b in range(order):
+    for k in range(values.shape[0]):
+        for i2 in range(n2):
             for i1 in range(n1):
-                for a in range(order):
-                    value = values[q]
-                    q += 1
-                    for a1 in range(2):
-                        node1 = i1 + a1
-                        if node1 == n1:
-                            node1 = 0
+                patch[:] = 0.0
+                for b in range(order):
+                    q = ((i2 * order + b) * n1 + i1) * order
+                    line[:] = 0.0
+                    for a in range(order):
+                        for j in range(4):
+                            line[j] += basis1[0, a, j] * values[k, q + a]
+                    for j in range(4):
+                        for m in range(4):
+                            patch[j, m] += line[j] * basis2[0, b, m]
+                for a1 in range(2):
+                    node1 = i1 + a1 if i1 + a1 < n1 else 0
+                    for e1 in range(2):
                         for a2 in range(2):
-                            for e1 in range(2):
-                                for e2 in range(2):
-                                    out[i2 + a2, node1, e1 + 2 * e2] += (
-                                        value * basis1[0, a, 2 * a1 + e1] * basis2[0, b, 2 * a2 + e2])
+                            for e2 in range(2):
+                                out[k, i2 + a2, node1, e1 + 2 * e2] += patch[2 * a1 + e1, 2 * a2 + e2]
 
 
-def _gather(coefficients, n1, order, basis1, basis2, out):
-    """out = B coefficients: f at every sample point."""
-    q = 0
-    for i2 in range(coefficients.shape[0] - 1):
-        for b in range(order):
-            for i1 in range(n1):
+def prolate_surface(coefficients, order, basis1, basis2, cos_th, sin_th, cos_mu, sin_mu, d, rotation, origin,
+                    out_f, out_h0, out_cos, out_area, out_world, out_normal):
+    """The surface ``lambda = f(theta, mu)`` at every sample point: ``f``, the
+    scale factor ``h0`` (mm per unit lambda), the cosine between the outward
+    normal and ``dx/dlambda``, ``A_K = |x_theta x x_mu|``, the world point
+    and the unit outward normal (world), both ``(3, n)``, as
+    :meth:`SampledSurface.geometry`."""
+    n2, n1 = coefficients.shape[0] - 1, coefficients.shape[1]
+    patch, line, line_mu = np.empty((4, 4)), np.empty(4), np.empty(4)
+    for i2 in range(n2):
+        for i1 in range(n1):
+            _patch(coefficients, i1, i2, patch)
+            for b in range(order):
+                _contract(patch, basis2[0, b], line)
+                _contract(patch, basis2[1, b], line_mu)
+                q = ((i2 * order + b) * n1 + i1) * order
                 for a in range(order):
-                    out[q] = _evaluate(coefficients, n1, basis1, basis2, i1, a, i2, b)[0]
-                    q += 1
-
-
-def _prolate_observe(coefficients, n1, order, basis1, basis2, cos_th, sin_th, cos_mu, sin_mu, d, rotation, origin,
-                     image, to_index, img_origin, upper, surface_offsets, band_offsets,
-                     band_rows, out_f, out_h0, out_cos, out_u, out_in, out_out):
-    """Fill, for every sample point: f, h0, cos(normal, dx/dlambda), the grey
-    level u averaged over ``surface_offsets`` mm along the normal, and on the
-    ``band_rows`` points the means over ``band_offsets`` mm inside and outside.
-    Means skip missing samples (NaN when none)."""
-    band_k = 0
-    i1 = a = i2 = b = 0  # patch and local position of q, walked without divisions
+                    out_f[q + a] = _dot4(basis1[0, a], line)
+                    out_h0[q + a] = _dot4(basis1[1, a], line)  # df/dtheta until the loop below
+                    out_cos[q + a] = _dot4(basis1[0, a], line_mu)  # df/dmu until the loop below
     for q in range(out_f.shape[0]):
-        f, f1, f2 = _evaluate(coefficients, n1, basis1, basis2, i1, a, i2, b)
-        a += 1
-        if a == order:
-            a = 0
-            i1 += 1
-            if i1 == n1:
-                i1 = 0
-                b += 1
-                if b == order:
-                    b = 0
-                    i2 += 1
-        e = math.exp(f)
+        out_area[q] = math.exp(out_f[q])  # e^lambda until the loop below
+    # this loop calls no function and writes contiguous arrays: it runs on
+    # SIMD lanes (with the world points and normals as (3, n) it does,
+    # as (n, 3) or with exp inside it does not: four times slower)
+    r00, r01, r02 = rotation[0, 0], rotation[0, 1], rotation[0, 2]
+    r10, r11, r12 = rotation[1, 0], rotation[1, 1], rotation[1, 2]
+    r20, r21, r22 = rotation[2, 0], rotation[2, 1], rotation[2, 2]
+    for q in range(out_f.shape[0]):
+        e, f1, f2 = out_area[q], out_h0[q], out_cos[q]
         ch, sh = 0.5 * (e + 1.0 / e), 0.5 * (e - 1.0 / e)
         ct, st, cm, sm = cos_th[q], sin_th[q], cos_mu[q], sin_mu[q]
         x0, rho = d * ch * cm, d * sh * sm
         x1, x2 = rho * ct, rho * st
+        # columns of the Jacobian: dx/dlambda, dx/dtheta, dx/dmu
         j00, j01, j02 = d * sh * cm, d * ch * sm * ct, d * ch * sm * st
         j10, j11, j12 = 0.0, -d * sh * sm * st, d * sh * sm * ct
         j20, j21, j22 = -d * ch * sm, d * sh * cm * ct, d * sh * cm * st
+        # tangents x_theta = f1 J0 + J1, x_mu = f2 J0 + J2 and their cross product
         a0, a1, a2 = f1 * j00 + j10, f1 * j01 + j11, f1 * j02 + j12
         b0, b1, b2 = f2 * j00 + j20, f2 * j01 + j21, f2 * j02 + j22
         m0, m1, m2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
         area = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+        # outwards: along +dx/dlambda
         along = m0 * j00 + m1 * j01 + m2 * j02
-        scale = 0.0
-        if area > 0:
-            scale = (1.0 if along > 0 else (-1.0 if along < 0 else 0.0)) / area
+        sign = (1.0 if along > 0 else 0.0) - (1.0 if along < 0 else 0.0)
+        scale = sign / area if area > 0 else 0.0
         m0, m1, m2 = m0 * scale, m1 * scale, m2 * scale
         h0 = d * math.sqrt(sh * sh + sm * sm)
-        out_f[q] = f
         out_h0[q] = h0
         out_cos[q] = (m0 * j00 + m1 * j01 + m2 * j02) / h0
-        wx = rotation[0, 0] * x0 + rotation[0, 1] * x1 + rotation[0, 2] * x2 + origin[0]
-        wy = rotation[1, 0] * x0 + rotation[1, 1] * x1 + rotation[1, 2] * x2 + origin[1]
-        wz = rotation[2, 0] * x0 + rotation[2, 1] * x1 + rotation[2, 2] * x2 + origin[2]
-        nx = rotation[0, 0] * m0 + rotation[0, 1] * m1 + rotation[0, 2] * m2
-        ny = rotation[1, 0] * m0 + rotation[1, 1] * m1 + rotation[1, 2] * m2
-        nz = rotation[2, 0] * m0 + rotation[2, 1] * m1 + rotation[2, 2] * m2
+        out_area[q] = area
+        out_world[0, q] = r00 * x0 + r01 * x1 + r02 * x2 + origin[0]
+        out_world[1, q] = r10 * x0 + r11 * x1 + r12 * x2 + origin[1]
+        out_world[2, q] = r20 * x0 + r21 * x1 + r22 * x2 + origin[2]
+        out_normal[0, q] = r00 * m0 + r01 * m1 + r02 * m2
+        out_normal[1, q] = r10 * m0 + r11 * m1 + r12 * m2
+        out_normal[2, q] = r20 * m0 + r21 * m1 + r22 * m2
+
+
+def sample_along(image, strides, upper, to_index, image_origin, world, normal, rows, offsets, out_mean, out_count):
+    """For each ``q`` in ``rows``: the mean (NaN if none) and the number of the
+    finite samples at ``world[:, q] + s normal[:, q]`` for ``s`` in
+    ``offsets`` (mm)."""
+    for r in range(rows.shape[0]):
+        q = rows[r]
+        # the point and the normal in voxel index: the samples are a line there
+        pi, pj, pk = _index(to_index, image_origin, world[0, q], world[1, q], world[2, q])
+        ni, nj, nk = _index(to_index, _ZERO, normal[0, q], normal[1, q], normal[2, q])
         total, count = 0.0, 0
-        for s in surface_offsets:
-            v = _trilinear(image, to_index, img_origin, upper, wx + s * nx, wy + s * ny, wz + s * nz)
+        for s in offsets:
+            v = _sample(image, strides, upper, pi + s * ni, pj + s * nj, pk + s * nk)
             if not math.isnan(v):
                 total += v
                 count += 1
-        out_u[q] = total / count if count else np.nan
-        if band_rows[q]:
-            out_in[band_k] = _band_mean(image, to_index, img_origin, upper, band_offsets, -1.0,
-                                        wx, wy, wz, nx, ny, nz)
-            out_out[band_k] = _band_mean(image, to_index, img_origin, upper, band_offsets, 1.0,
-                                         wx, wy, wz, nx, ny, nz)
-            band_k += 1
+        out_mean[r] = total / count if count else np.nan
+        out_count[r] = count
 
 
-def _band_mean(image, to_index, img_origin, upper, offsets, sign, wx, wy, wz, nx, ny, nz):
-    total, count = 0.0, 0
-    for s in offsets:
-        t = sign * s
-        v = _trilinear(image, to_index, img_origin, upper, wx + t * nx, wy + t * ny, wz + t * nz)
-        if not math.isnan(v):
-            total += v
-            count += 1
-    return total / count if count else np.nan
+def cavity_sums(image, strides, upper, to_index, image_origin, f, cos_th, sin_th, cos_mu, sin_mu, d, rotation, origin,
+                rows, fractions, out_sum, out_weight):
+    """For each ``q`` in ``rows``, samples at ``lambda = t f[q]`` for ``t`` in
+    ``fractions``, weighted by the volume element ``V = h0 h1 h2``: the sums
+    of ``V u`` and of ``V`` over the finite samples."""
+    for r in range(rows.shape[0]):
+        q = rows[r]
+        ct, st, cm, sm = cos_th[q], sin_th[q], cos_mu[q], sin_mu[q]
+        total = weight = 0.0
+        for t in fractions:
+            lam = t * f[q]
+            sh, ch = math.sinh(lam), math.cosh(lam)
+            x0, rho = d * ch * cm, d * sh * sm
+            x1, x2 = rho * ct, rho * st
+            wx = rotation[0, 0] * x0 + rotation[0, 1] * x1 + rotation[0, 2] * x2 + origin[0]
+            wy = rotation[1, 0] * x0 + rotation[1, 1] * x1 + rotation[1, 2] * x2 + origin[1]
+            wz = rotation[2, 0] * x0 + rotation[2, 1] * x1 + rotation[2, 2] * x2 + origin[2]
+            fi, fj, fk = _index(to_index, image_origin, wx, wy, wz)
+            v = _sample(image, strides, upper, fi, fj, fk)
+            if not math.isnan(v):
+                volume = d**3 * (sh * sh + sm * sm) * sh * sm
+                total += volume * v
+                weight += volume
+        out_sum[r] = total
+        out_weight[r] = weight
+
+
+def normal_displacement(u, c_in, c_out, scale, h0, cos, h0_floor, min_cos, step, weights, out):
+    """``out = weights * dv0``, the region force of
+    :meth:`spheroseg.segment._Descent.iterate` (the reference) as a
+    displacement in ``v0``, per sample point."""
+    for q in range(u.shape[0]):
+        r = (c_out[q] - c_in[q]) * (2.0 * u[q] - c_in[q] - c_out[q]) / scale
+        if math.isfinite(r):
+            speed = -min(max(r, -1.0), 1.0)
+        elif math.isfinite(u[q]):
+            speed = 0.0
+        else:  # off the data: pulled back in
+            speed = -1.0
+        normal_to_v0 = max(h0[q] * max(cos[q], min_cos), h0_floor)
+        out[q] = weights[q] * step * speed / normal_to_v0
+
 
 if AVAILABLE:
-    _trilinear = njit(cache=True, inline="always")(_trilinear)
-    _band_mean = njit(cache=True)(_band_mean)
-    _evaluate = njit(cache=True, inline="always")(_evaluate)
-    prolate_observe = njit(cache=True)(_prolate_observe)
-    scatter = njit(cache=True)(_scatter)
-    gather = njit(cache=True)(_gather)
-else:  # pragma: no cover
-    prolate_observe = scatter = gather = None
+    _compile = njit(cache=True, error_model="numpy")
+    _inline = njit(cache=True, error_model="numpy", inline="always")
+    _sample = _inline(_sample)
+    _index = _inline(_index)
+    _patch = _inline(_patch)
+    _contract = _inline(_contract)
+    _dot4 = _inline(_dot4)
+    gather = _compile(gather)
+    scatter = _compile(scatter)
+    prolate_surface = _compile(prolate_surface)
+    sample_along = _compile(sample_along)
+    cavity_sums = _compile(cavity_sums)
+    normal_displacement = _compile(normal_displacement)
 
 
 def basis_tables(grid, order: int) -> tuple[np.ndarray, np.ndarray]:

@@ -47,16 +47,16 @@ All image access is at points set by the model; no step touches every voxel.
 from __future__ import annotations
 
 import time
+from functools import lru_cache
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
 import scipy.linalg
-import scipy.linalg.lapack
 
 from . import _kernels
 from .coords import ProlateSpheroidal
-from .energy import Landmarks, SampledSurface, area_gradient, region_force
+from .energy import Landmarks, SampledSurface, _grid_matrices, area_gradient, region_force
 from .surface import DEFAULT_RADIUS_RATIO, Surface
 from .volume import Volume
 
@@ -177,15 +177,73 @@ def _otsu(values: np.ndarray) -> float:
 
 @dataclass
 class _Observation:
-    """What an iteration reads at the sample points."""
+    """What an iteration reads at the sample points (the compiled path's
+    arrays are reused: valid until the next observation)."""
 
     f: np.ndarray
     h0: np.ndarray  # scale factor of v0 at the surface (mm per unit v0)
     cos: np.ndarray  # cosine between the outward normal and dx/dv0
+    area: np.ndarray  # A_K, the area element of (v1, v2)
+    world: np.ndarray  # surface points (world mm), (3, n)
+    normal: np.ndarray  # unit outward normals (world), (3, n)
     u: np.ndarray  # grey level at the surface, averaged along the normal
     inside: np.ndarray | None = None  # band means on the band rows
     outside: np.ndarray | None = None
     geometry: object = None  # the full Geometry (numpy path only)
+
+
+@dataclass(frozen=True)
+class _Level:
+    """What a level precomputes from the grid alone: shared, read-only, by
+    every segmentation at this resolution (:func:`_level_matrices`)."""
+
+    mass: np.ndarray
+    mass_inverse: np.ndarray
+    constraints_t: object  # A^T (sparse), from coefficients to parameters
+    smoothing: np.ndarray
+    system_inverse: np.ndarray  # (M + smoothing)^-1
+    band_rows: np.ndarray  # indices of the sample points of the band means
+    band_transpose: object  # B^T on the band rows (sparse)
+    band_weights: np.ndarray
+    tables: tuple  # the compiled path's basis tables at all and at the band points
+    band_tables: tuple
+    trig: tuple  # cos, sin of v1 and v2 at the sample points
+
+
+def _spd_inverse(matrix: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive definite matrix (through Cholesky).
+
+    An iteration applies the inverses as mat-vecs: at 259 unknowns that is
+    5 us against 23 for a triangular solve."""
+    factor = scipy.linalg.cho_factor(matrix)
+    inverse = scipy.linalg.cho_solve(factor, np.eye(len(matrix)))
+    return (inverse + inverse.T) / 2
+
+
+@lru_cache(maxsize=16)
+def _level_matrices(grid, order: int, smoothness: float) -> _Level:
+    v1, v2, weights, _, b_f, _, _, mass = _grid_matrices(grid, order)
+    total = float(weights.sum())  # the area of the (v1, v2) domain
+    # the thin-plate matrix T is per unit area, M is not
+    smoothing = smoothness * total / _ROUGHNESS_SCALE * grid.roughness_matrix().toarray()
+    # band means on every other sample position of a patch in each direction
+    # (a quarter of the points): they are smoothed over the surface anyway
+    local = np.arange(order) % _BAND_STRIDE == 0
+    n_row = grid.n1 * order
+    q = np.arange(len(weights))
+    band_rows = np.flatnonzero(local[(q % n_row) % order] & local[(q // n_row) % order])
+    band_weights = weights[band_rows] * (total / weights[band_rows].sum())
+    tables = _kernels.basis_tables(grid, order)
+    level = _Level(
+        mass=mass, mass_inverse=_spd_inverse(mass), constraints_t=grid.constraints.T.tocsr(), smoothing=smoothing,
+        system_inverse=_spd_inverse(mass + smoothing), band_rows=band_rows, band_transpose=b_f[band_rows].T.tocsr(), band_weights=band_weights, tables=tables,
+        band_tables=tuple(np.ascontiguousarray(t[:, local]) for t in tables),
+        trig=(np.cos(v1), np.sin(v1), np.cos(v2), np.sin(v2)))
+    for value in vars(level).values():
+        for array in value if isinstance(value, tuple) else (value,):
+            if isinstance(array, np.ndarray):
+                array.flags.writeable = False
+    return level
 
 
 class _Descent:
@@ -197,52 +255,78 @@ class _Descent:
         self.model = SampledSurface(surface.system, surface.pose, surface.grid, order)
         self.p = self.model.parameters(surface.coefficients)
         self.step, self.nu = step, nu
-        m = self.model.mass_matrix
-        total = float(self.model.weights.sum())  # the area of the (v1, v2) domain
-        self.projector = scipy.linalg.cho_factor(m)
+        level = self.level = _level_matrices(surface.grid, order, float(smoothness))
+        self._total_weight = total = float(self.model.weights.sum())
         # the update solves (M + a T + w L^T L) p_new = M p + B^T W dv0 + a T p_ref + w L^T res:
         # least squares on the displacement, an implicit (unconditionally
         # stable) thin-plate smoothing step of the departure from the
         # reference (initial) shape, and the landmark rows
-        self.mass = m
-        # T is per unit area, M is not
-        self.smoothing = smoothness * total / _ROUGHNESS_SCALE * surface.grid.roughness_matrix().toarray()
+        self.mass = level.mass
         self.set_reference(reference)
-        system = m + self.smoothing
+        self.system_inverse = level.system_inverse
         self.landmarks = None
         if landmarks is not None and len(landmarks):
             self.landmarks = Landmarks.from_world(self.model, landmarks)
             # weight 1: a landmark outweighs the data over 5 % of the (v1, v2)
             # domain, about one patch at 4 x 4
             self.omega = np.asarray(landmark_weights, float) * 0.05 * total
-            b = self.landmarks.basis.toarray()
-            system = system + b.T @ (self.omega[:, None] * b)
-        self.solver = scipy.linalg.cho_factor(system)
+            self._landmark_basis = self.landmarks.basis.toarray()
+            self.system_inverse = _add_rows(level.system_inverse, self._landmark_basis, self.omega)
         self._inside_t = np.array([0.15, 0.35, 0.55, 0.75, 0.95])
         self._shell = np.linspace(0, band_out, 6)[1:]
         self._band = np.linspace(0, band, 5)[1:]
-        # local means on a quarter of the sample points: they are smoothed
-        # over the surface anyway
-        n_row = self.model.grid.n1 * order
-        q = np.arange(self.model.n_samples)
-        self.band_rows = ((q % n_row) % _BAND_STRIDE == 0) & ((q // n_row) % _BAND_STRIDE == 0)
-        self._b_band_t = self.model.b_f[self.band_rows].T.tocsr()
-        self._w_band = self.model.weights[self.band_rows] * (total / self.model.weights[self.band_rows].sum())
+        self.band_rows = level.band_rows
         self._h0_floor = None
         self._radius = None
-        self._total_weight = total
         self.kernel = _kernels.AVAILABLE and compiled and isinstance(surface.system, ProlateSpheroidal)
         if self.kernel:
-            self._prepare_kernel()
+            n, nb = self.model.n_samples, len(self.band_rows)
+            self._all_rows = np.arange(n)
+            self._buffers = dict(
+                f=np.empty(n), h0=np.empty(n), cos=np.empty(n), area=np.empty(n), world=np.empty((3, n)),
+                normal=np.empty((3, n)), u=np.empty(n), inside=np.empty(nb), outside=np.empty(nb))
+            self._counts = np.empty(n, np.int64)
+            self._displacement = np.empty(n)
 
     def set_reference(self, reference: Surface) -> None:
         """The shape the thin-plate prior pulls towards."""
-        self.prior = self.smoothing @ self.model.parameters(reference.coefficients)
+        self.prior = self.level.smoothing @ self.model.parameters(reference.coefficients)
+
+    # the Hermite basis at the sample points ----------------------------------
+
+    def _at_samples(self, p, *, rows: str = "all") -> np.ndarray:
+        """``B p``: the function(s) of parameters ``p`` (``(n,)`` or ``(n, k)``)
+        at every sample point (``(samples,)`` or ``(k, samples)``)."""
+        m = self.model
+        if not self.kernel:
+            return (m.b_f @ p).T
+        fields = p.reshape(len(p), -1)
+        coefficients = np.ascontiguousarray((m.constraints @ fields).T).reshape((-1,) + m.grid.shape)
+        out = np.empty((len(coefficients), m.n_samples))
+        _kernels.gather(coefficients, m.order, *self.level.tables, out)
+        return out[0] if p.ndim == 1 else out
+
+    def _transpose(self, values, *, band: bool = False) -> np.ndarray:
+        """``B^T values`` in the parameters, for values ``(samples,)`` or
+        ``(k, samples)`` at every sample point, or at the band rows."""
+        m = self.model
+        if not self.kernel:
+            return (self.level.band_transpose if band else m.b_f.T) @ values.T
+        fields = values.reshape(-1, values.shape[-1])
+        coefficients = np.empty((len(fields),) + m.grid.shape)
+        tables = self.level.band_tables if band else self.level.tables
+        _kernels.scatter(fields, tables[0].shape[1], *tables, coefficients)
+        out = self.level.constraints_t @ coefficients.reshape(len(fields), -1).T
+        return out[:, 0] if values.ndim == 1 else out
 
     # image samples -------------------------------------------------------
 
-    def _along_normal(self, geometry, offsets, rows=slice(None)):
-        pts = geometry.world[rows, None, :] + offsets[None, :, None] * geometry.normal[rows, None, :]
+    def _image(self):
+        vol = self.volume
+        return vol._flat, vol._strides, vol._upper, vol._to_index, vol.grid.origin
+
+    def _along_normal(self, obs, offsets, rows=slice(None)):
+        pts = obs.world.T[rows, None, :] + offsets[None, :, None] * obs.normal.T[rows, None, :]
         return self.volume.sample(pts)
 
     def observe(self, bands: bool, geometry: bool = False) -> _Observation:
@@ -254,100 +338,106 @@ class _Descent:
         g = m.geometry(self.p)
         h0 = m.system.scale_factors(g.f, m.v1, m.v2)[0]
         cos = np.einsum("ij,ij->i", g.normal @ m.pose.rotation, g.jacobian[:, :, 0]) / h0
-        obs = _Observation(g.f, h0, cos, _row_nanmean(self._along_normal(g, _SURFACE_OFFSETS)), geometry=g)
+        obs = _Observation(g.f, h0, cos, g.area, g.world.T, g.normal.T, geometry=g, u=None)
+        obs.u = _row_nanmean(self._along_normal(obs, _SURFACE_OFFSETS))
         if bands:
-            obs.inside = _row_nanmean(self._along_normal(g, -self._band, self.band_rows))
-            obs.outside = _row_nanmean(self._along_normal(g, self._band, self.band_rows))
+            obs.inside = _row_nanmean(self._along_normal(obs, -self._band, self.band_rows))
+            obs.outside = _row_nanmean(self._along_normal(obs, self._band, self.band_rows))
         return obs
 
-    def _prepare_kernel(self):
-        m = self.model
-        self._tables = _kernels.basis_tables(m.grid, m.order)
-        self._trig = (np.cos(m.v1), np.sin(m.v1), np.cos(m.v2), np.sin(m.v2))
-        self._coefficients = np.empty(m.grid.shape)
-        n, nb = m.n_samples, int(self.band_rows.sum())
-        self._out = [np.empty(n) for _ in range(4)] + [np.empty(nb), np.empty(nb)]
-        self._no_bands = np.zeros(n, bool)
-
     def _observe_compiled(self, bands: bool) -> _Observation:
-        m, vol = self.model, self.volume
-        f, h0, cos, u, inside, outside = self._out
-        _kernels.prolate_observe(
-            (m.constraints @ self.p).reshape(m.grid.shape), m.grid.n1, m.order, *self._tables, *self._trig,
-            m.system.focal_length, m.pose.rotation, m.pose.origin, vol._samples, vol._to_index, vol.grid.origin,
-            vol._upper, _SURFACE_OFFSETS, self._band, self.band_rows if bands else self._no_bands,
-            f, h0, cos, u, inside, outside)
-        return _Observation(f, h0, cos, u, inside if bands else None, outside if bands else None)
+        m, b = self.model, self._buffers
+        coefficients = (m.constraints @ self.p).reshape(m.grid.shape)
+        _kernels.prolate_surface(coefficients, m.order, *self.level.tables, *self.level.trig, m.system.focal_length,
+                                 m.pose.rotation, m.pose.origin, b["f"], b["h0"], b["cos"], b["area"], b["world"],
+                                 b["normal"])
+        image = self._image()
+        _kernels.sample_along(*image, b["world"], b["normal"], self._all_rows, _SURFACE_OFFSETS, b["u"], self._counts)
+        obs = _Observation(**b)
+        if bands:
+            counts = self._counts[:len(self.band_rows)]
+            _kernels.sample_along(*image, b["world"], b["normal"], self.band_rows, -self._band, b["inside"], counts)
+            _kernels.sample_along(*image, b["world"], b["normal"], self.band_rows, self._band, b["outside"], counts)
+        else:
+            obs.inside = obs.outside = None
+        return obs
 
-    def _at_samples(self, p) -> np.ndarray:
-        """``B p``: the function of parameters ``p`` at every sample point."""
-        m = self.model
-        if not self.kernel:
-            return m.b_f @ p
-        out = np.empty(m.n_samples)
-        _kernels.gather((m.constraints @ p).reshape(m.grid.shape), m.grid.n1, m.order, *self._tables, out)
-        return out
+    # region statistics ----------------------------------------------------
 
-    def _transpose(self, values) -> np.ndarray:
-        """``B^T values``, in the parameters."""
-        m = self.model
-        if not self.kernel:
-            return m.b_f.T @ values
-        _kernels.scatter(values, m.grid.n1, m.order, *self._tables, self._coefficients)
-        return m.constraints.T @ self._coefficients.ravel()
-
-    def global_means(self, g):
+    def global_means(self, obs: _Observation):
         """Volume-weighted cavity mean and area-weighted shell mean, from the
         rays of the band rows (a quarter of the sample points)."""
         m, rows = self.model, self.band_rows
-        v0 = g.f[rows, None] * self._inside_t[None, :]
-        v1 = np.broadcast_to(m.v1[rows, None], v0.shape)
-        v2 = np.broadcast_to(m.v2[rows, None], v0.shape)
-        u_in = self.volume.sample(m.pose.to_world(m.system.to_cartesian(v0, v1, v2)))
-        w_in = (m.weights[rows] * g.f[rows])[:, None] * m.system.volume_element(v0, v1, v2)
-        u_out = self._along_normal(g, self._shell, rows)
-        w_out = np.broadcast_to((m.weights[rows] * g.area[rows])[:, None], u_out.shape)
-        return _weighted_nanmean(u_in, w_in), _weighted_nanmean(u_out, w_out)
+        if self.kernel:
+            image = self._image()
+            cavity, volume = np.empty(len(rows)), np.empty(len(rows))
+            _kernels.cavity_sums(*image, obs.f, *self.level.trig, m.system.focal_length, m.pose.rotation,
+                                 m.pose.origin, rows, self._inside_t, cavity, volume)
+            shell, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
+            _kernels.sample_along(*image, obs.world, obs.normal, rows, self._shell, shell, count)
+        else:
+            v0 = obs.f[rows, None] * self._inside_t[None, :]
+            v1 = np.broadcast_to(m.v1[rows, None], v0.shape)
+            v2 = np.broadcast_to(m.v2[rows, None], v0.shape)
+            u_in = self.volume.sample(m.pose.to_world(m.system.to_cartesian(v0, v1, v2)))
+            element = np.where(np.isfinite(u_in), m.system.volume_element(v0, v1, v2), 0.0)
+            cavity, volume = (element * np.nan_to_num(u_in)).sum(axis=1), element.sum(axis=1)
+            u_out = self._along_normal(obs, self._shell, rows)
+            shell, count = _row_nanmean(u_out), np.isfinite(u_out).sum(axis=1)
+        # per ray: cavity = sum of V u, volume = sum of V over the finite samples
+        w_in = m.weights[rows] * obs.f[rows]
+        w_out = m.weights[rows] * obs.area[rows] * count
+        return _ratio(w_in @ cavity, w_in @ volume), _ratio(w_out @ np.nan_to_num(shell), w_out.sum())
 
     def local_means(self, obs: _Observation):
         """Band means smoothed over the surface: the L2 projection onto the
-        Hermite space (the band rows' quadrature), evaluated everywhere."""
-        fields = np.stack([obs.inside, obs.outside], axis=1)
+        Hermite space (the band rows' quadrature), evaluated everywhere;
+        ``(c_in, c_out)``, or ``None`` with no data in a band."""
+        fields = np.stack([obs.inside, obs.outside])
         ok = np.isfinite(fields)
-        if not ok[:, 0].any() or not ok[:, 1].any():
+        if not ok[0].any() or not ok[1].any():
             return None
-        fields = np.where(ok, fields, np.nanmean(fields, axis=0))
-        smooth = _solve(self.projector, self._b_band_t @ (self._w_band[:, None] * fields))
-        return self._at_samples(smooth[:, 0]), self._at_samples(smooth[:, 1])
+        if not ok.all():
+            fields = np.where(ok, fields, np.nanmean(fields, axis=1)[:, None])
+        rhs = self._transpose(self.level.band_weights * fields, band=True)
+        # one mat-vec a field: BLAS multiplies a 259 x 2 block slower than that
+        smooth = np.stack([self.level.mass_inverse @ column for column in rhs.T], axis=1)
+        return self._at_samples(smooth)
 
     # the step ---------------------------------------------------------------
 
     def iterate(self, obs: _Observation, c_in, c_out, scale):
         m = self.model
-        r = region_force(obs.u, c_in, c_out) / scale
-        # mm per step, outward; a surface point off the image's data (out of
-        # the sector) is pulled back: the cavity is where the data are
-        speed = np.where(np.isfinite(r), -np.clip(r, -1.0, 1.0), np.where(np.isfinite(obs.u), 0.0, -1.0))
-        h0 = obs.h0
         if self._h0_floor is None:  # fixed per level: a median per iteration costs more than the rest
-            self._h0_floor = 0.3 * float(np.median(h0))
-        # (h0 is bounded below too: near a focal point v0 barely moves the surface)
-        normal_to_v0 = np.maximum(h0 * np.maximum(obs.cos, _MIN_COS), self._h0_floor)  # mm of wall per unit v0
-        if self.nu:
-            speed = speed + self.nu * self._area_speed(obs.geometry, normal_to_v0)
-        dv0 = self.step * speed / normal_to_v0
-        rhs = self._transpose(m.weights * dv0)
+            self._h0_floor = 0.3 * float(np.median(obs.h0))
+        if self.kernel and not self.nu:
+            wdv0 = self._displacement
+            c_in, c_out = (np.full(m.n_samples, c) if np.ndim(c) == 0 else c for c in (c_in, c_out))
+            _kernels.normal_displacement(obs.u, c_in, c_out, scale, obs.h0, obs.cos, self._h0_floor, _MIN_COS,
+                                         self.step, m.weights, wdv0)
+        else:
+            r = region_force(obs.u, c_in, c_out) / scale
+            # mm per step, outward; a surface point off the image's data (out of
+            # the sector) is pulled back: the cavity is where the data are
+            speed = np.where(np.isfinite(r), -np.clip(r, -1.0, 1.0), np.where(np.isfinite(obs.u), 0.0, -1.0))
+            # mm of wall per unit v0 (h0 is bounded below too: near a focal
+            # point v0 barely moves the surface)
+            normal_to_v0 = np.maximum(obs.h0 * np.maximum(obs.cos, _MIN_COS), self._h0_floor)
+            if self.nu:
+                speed = speed + self.nu * self._area_speed(obs.geometry, normal_to_v0)
+            wdv0 = m.weights * self.step * speed / normal_to_v0
+        rhs = self._transpose(wdv0)
         if self.landmarks is not None:
             # rows omega |L p_new - (L p + res)|^2: move towards each landmark
             # by at most a step
             lm = self.landmarks
-            f = lm.basis @ self.p
+            f = self._landmark_basis @ self.p
             res = np.clip((lm.v0 - f) * lm.h0, -self.step, self.step) / lm.h0
-            rhs += lm.basis.T @ (self.omega * (f + res))
-        p_new = _solve(self.solver, self.mass @ self.p + self.prior + rhs)
+            rhs += self._landmark_basis.T @ (self.omega * (f + res))
+        p_new = self.system_inverse @ (self.mass @ self.p + self.prior + rhs)
         dp = p_new - self.p
         self.p = p_new
-        return np.sqrt(np.dot(m.weights, (h0 * self._at_samples(dp)) ** 2) / self._total_weight)
+        return np.sqrt(np.dot(m.weights, (obs.h0 * self._at_samples(dp)) ** 2) / self._total_weight)
 
     def _area_speed(self, g, normal_to_v0) -> np.ndarray:
         """Normal speed (steps, outward) of the area term: minus the mean
@@ -358,7 +448,7 @@ class _Descent:
         the principal curvatures); ``B M^-1 dA/dp`` is ``G`` projected on the
         Hermite space."""
         m = self.model
-        field = self._at_samples(_solve(self.projector, area_gradient(m, self.p, g)))
+        field = self._at_samples(self.level.mass_inverse @ area_gradient(m, self.p, g))
         two_h = field / (np.maximum(g.area, 1e-12) * normal_to_v0)
         if self._radius is None:
             self._radius = float(np.median(np.linalg.norm(g.local, axis=1)))
@@ -368,14 +458,16 @@ class _Descent:
         return like.with_coefficients(self.model.coefficients(self.p))
 
 
-def _solve(factor, rhs: np.ndarray) -> np.ndarray:
-    """Solve with a Cholesky factor from ``scipy.linalg.cho_factor``, through
-    LAPACK's potrs directly: scipy's ``cho_solve`` wrapper costs more than
-    the solve itself at this size (259 unknowns)."""
-    x, info = scipy.linalg.lapack.dpotrs(factor[0], rhs, lower=factor[1])
-    if info != 0:
-        raise ValueError(f"Cholesky solve failed (LAPACK info {info})")
-    return x
+def _add_rows(inverse: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """``(K + L^T diag(w) L)^-1`` from ``K^-1`` (Woodbury: a few landmark
+    rows need no new factorisation)."""
+    u = inverse @ rows.T
+    core = np.eye(len(rows)) + weights[:, None] * (rows @ u)
+    return inverse - u @ np.linalg.solve(core, weights[:, None] * u.T)
+
+
+def _ratio(numerator: float, denominator: float) -> float:
+    return float(numerator / denominator) if denominator > 0 else np.nan
 
 
 def _row_nanmean(values: np.ndarray) -> np.ndarray:
@@ -384,13 +476,6 @@ def _row_nanmean(values: np.ndarray) -> np.ndarray:
     n = ok.sum(axis=1)
     total = np.where(ok, values, 0.0).sum(axis=1)
     return np.where(n > 0, total / np.maximum(n, 1), np.nan)
-
-
-def _weighted_nanmean(values, weights) -> float:
-    ok = np.isfinite(values)
-    w = np.where(ok, weights, 0.0)
-    total = w.sum()
-    return float(np.where(ok, values, 0.0).ravel() @ w.ravel() / total) if total > 0 else np.nan
 
 
 def _levels(patches: tuple[int, int], coarse_to_fine: bool) -> list[tuple[int, int]]:
@@ -405,18 +490,18 @@ def _run_level(descent: _Descent, mode, stats, *, max_iterations, tol, callback,
     c_in = c_out = np.nan
     global_means = mode == "chan-vese" or stats.get("global_level")
     for it in range(max_iterations):
-        obs = descent.observe(bands=mode == "local" and not global_means, geometry=global_means or descent.nu > 0)
+        obs = descent.observe(bands=mode == "local" and not global_means, geometry=descent.nu > 0)
         if mode == "fast":
             c_in, c_out = stats["c_in"], stats["c_out"]
             scale = (c_out - c_in) ** 2
         elif global_means:
-            c_in, c_out = descent.global_means(obs.geometry)
+            c_in, c_out = descent.global_means(obs)
             scale = max((c_out - c_in) ** 2, stats["min_scale"])
         else:
             means = descent.local_means(obs)
             if means is None:
                 raise ValueError("no image data around the surface (is it inside the image's sector?)")
-            c_in, c_out = means
+            c_in, c_out = means[0], means[1]
             contrast = np.maximum(c_out - c_in, 0.0)
             c_out = c_in + contrast  # wrong polarity (inside brighter): no force
             scale = max(np.median(contrast) ** 2, stats["min_scale"])
@@ -565,11 +650,11 @@ def segment(
         return _follow(volume, init, _state, mode, max_iterations, tol, iter_callback, started)
     reference = surface
     probe = _Descent(volume, surface, reference, **settings)
-    g = probe.model.geometry(probe.p)
-    c_in0, c_out0 = probe.global_means(g)
+    obs = probe.observe(bands=False)
+    c_in0, c_out0 = probe.global_means(obs)
     rows = probe.band_rows
-    samples = np.concatenate([probe._along_normal(g, -probe._band, rows).ravel(),
-                              probe._along_normal(g, probe._shell, rows).ravel()])
+    samples = np.concatenate([probe._along_normal(obs, -probe._band, rows).ravel(),
+                              probe._along_normal(obs, probe._shell, rows).ravel()])
     samples = samples[np.isfinite(samples)]
     if samples.size < 10 or np.ptp(samples) <= 1e-6 * max(np.abs(samples).max(), 1.0):
         raise ValueError("the image is constant (or empty) around the initial surface: nothing to segment")
