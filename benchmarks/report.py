@@ -103,8 +103,11 @@ def _speed(sp) -> list[str]:
         out.append(f"| {row['shape']} | {row['voxels']} | {_fmt(row['load_ms'], 1)} | {_fmt(row.get('load_auto_ms'), 1)} | "
                    f"{_fmt(row['iteration_us'], 0)} | {_fmt(row['segment_ms'], 1)} ({row['iterations']}) | "
                    f"{_fmt(row.get('skimage_ms'), 0)} | {_fmt(row.get('sitk_ms'), 0)} |")
-    out += ["", f"Tracking: {_fmt(sp['tracking']['volumes_per_second'], 0)} volumes per second at "
-            f"{sp['tracking']['iterations_per_frame']} iterations per frame (excluding file reading).", ""]
+    tr = sp["tracking"]
+    out += ["", f"Tracking: {_fmt(tr['volumes_per_second'], 0)} volumes per second at "
+            f"{tr['iterations_per_frame']} iterations per frame"
+            + (f", {_fmt(tr['volumes_per_second_3'], 0)} at 3" if "volumes_per_second_3" in tr else "")
+            + " (excluding file reading).", ""]
     if sp.get("profile"):
         out += ["Profile of one local-mode iteration at each patch count (8 x 8 sample points per patch, 1 mm "
                 "phantom): the compiled surface evaluation and image samples, the projection (band means smoothed "
@@ -119,23 +122,37 @@ def _speed(sp) -> list[str]:
     if sp.get("notes"):
         out += [""] + sp["notes"]
     prof = next((r for r in sp.get("profile", []) if r["patches"] == "8 x 8"), None)
-    if prof:
+    if prof and "surface_us" in prof:
+        sampling = prof["surface_samples_us"] + prof["band_samples_us"]
+        update = prof["projection_us"] - prof["local_means_us"]
+        mid = sp["sizes"][len(sp["sizes"]) // 2]
         out += ["", "### Where the time goes, and what it would take", "",
-                f"At 8 x 8 patches one iteration takes {prof['iteration_us']:.0f} us on one thread. The compiled loop "
-                f"({prof['sampling_us']:.0f} us) spends roughly a quarter on the surface itself (4096 points: Hermite "
-                "basis, exp, normal, scale factor; compute-bound, about 40 ns a point) and the rest on about 12,000 "
-                "trilinear samples (one at each point, eight along the normal at a quarter of the points for the band "
-                "means), each a scattered read of a float32 image of several MB: bound by memory latency, about 35 ns "
-                f"a sample. The projection ({prof['projection_us']:.0f} us) is numpy calls on 4096-long arrays and "
-                "dense 259 x 259 solves, mostly call overhead. To reach 200 us: fuse the force, the smoothing of the "
-                "band means and the scatter into the compiled loop; refresh the band means every few iterations (they "
-                "move slowly); sample a uint8 copy of the image (a quarter of the memory traffic, and at 256^3 the "
-                "float32 image and its sampling copy, 2 x 34 MB, no longer fit the caches, which is why the "
-                "iteration slows there; repeated runs vary by about 10 %); split the loop over the cores. A whole segmentation also pays about 5 ms of set-up (model, factorisations, first "
-                "statistics) and 14-17 iterations over three levels, so the 10 ms target needs both. Reading a "
-                "file from the page cache takes about 1 ms per million voxels, so 'faster than reading the data' "
-                "needs a segmentation under a millisecond: within reach when tracking (a few iterations from the "
-                "previous frame), not from an ellipsoid."]
+                f"At 8 x 8 patches one iteration takes {prof['iteration_us']:.0f} us on one thread: the surface at "
+                f"the {prof['samples']} sample points {prof['surface_us']:.0f} us (the Hermite basis patch by patch, "
+                "then exp, normal and scale factor in a loop that runs on SIMD lanes); the grey level at each point "
+                f"{prof['surface_samples_us']:.0f} us and the band means (4 samples on each side of a quarter of the "
+                f"points) {prof['band_samples_us']:.0f} us, so {prof['image_samples']} trilinear samples at "
+                f"{1000 * sampling / prof['image_samples']:.0f} ns each; the projection of the band means onto the "
+                f"surface {prof['local_means_us']:.0f} us and the update {update:.0f} us (B H and B^T v about 10 us "
+                "each, mat-vecs with the precomputed 259 x 259 inverses 5 us each, the rest numpy call overhead). "
+                "The samples are mostly compute-bound: a sample costs about 12 ns on an image small enough for the "
+                "L1 cache and 14-17 ns at 256^3 (the iteration grows by under 20 % from 64^3 to 256^3 above), about "
+                "40 cycles of index arithmetic, bounds checks, 8 reads and 7 interpolations, in scalar code because "
+                "its reads are scattered. What is left to reach 200 us is "
+                "fewer samples or wider instructions: refreshing the band means every other iteration (they move "
+                "slowly; but that changes the results, so it needs the accuracy benchmark rerun and was not done), "
+                "explicit SIMD gathers for the trilinear samples (beyond what numba generates), or the second core "
+                "(the target is one core).",
+                "",
+                f"A whole segmentation ({mid['shape']}) takes {mid['segment_ms']:.1f} ms: {mid['iterations']} "
+                "iterations over three levels (those at 2 x 2 and 4 x 4 patches cost 70 and 150 us) and about 0.5 ms "
+                "of set-up per level. What depends only on the resolution (the inverses of the mass and smoothing "
+                "systems, the basis tables, refinement matrices) is computed once per process and shared; the first "
+                f"segmentation in a process takes {sp.get('first_segmentation_ms', float('nan')):.0f} ms, mostly "
+                "loading the compiled kernels from numba's cache. Reading a file from the page cache takes about "
+                "1 ms per million voxels: a segmentation from apex and base now takes about as long as reading "
+                "the 8.6-million-voxel volume (table above), and a tracked frame at 5 iterations about twice as "
+                "long as reading one million voxels, so 'faster than reading' is met nowhere yet."]
     return out
 
 

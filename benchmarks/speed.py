@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,7 @@ from report import write_markdown  # noqa: E402
 import spheroseg  # noqa: E402
 from spheroseg import _kernels  # noqa: E402
 from spheroseg.phantom import make_phantom, make_sequence  # noqa: E402
-from spheroseg.segment import _Descent, segment, track  # noqa: E402
+from spheroseg.segment import _SURFACE_OFFSETS, _Descent, segment, track  # noqa: E402
 from spheroseg.surface import Surface  # noqa: E402
 
 
@@ -54,28 +55,50 @@ def iteration_parts(d, repeats=300) -> dict:
            "projection_us": 1e6 * median_time(project, repeats),
            "iteration_us": 1e6 * median_time(whole, repeats)}
     out["geometry_us"] = 1e6 * median_time(lambda: d.model.geometry(d.p), repeats) if not d.kernel else np.nan
+    if d.kernel:  # the compiled parts of the observation
+        m, b = d.model, d._buffers
+        coefficients = (m.constraints @ d.p).reshape(m.grid.shape)
+        out["surface_us"] = 1e6 * median_time(lambda: _kernels.prolate_surface(
+            coefficients, m.order, *d.level.tables, *d.level.trig, m.system.focal_length, m.pose.rotation,
+            m.pose.origin, b["f"], b["h0"], b["cos"], b["area"], b["world"], b["normal"]), repeats)
+        counts = np.empty(m.n_samples, np.int64)
+        out["surface_samples_us"] = 1e6 * median_time(lambda: _kernels.sample_along(
+            *d._image(), b["world"], b["normal"], d._all_rows, _SURFACE_OFFSETS, b["u"], counts), repeats)
+        out["band_samples_us"] = 2e6 * median_time(lambda: _kernels.sample_along(
+            *d._image(), b["world"], b["normal"], d.band_rows, d._band, b["inside"], counts), repeats)
+        out["local_means_us"] = 1e6 * median_time(lambda: d.local_means(obs), repeats)
+        out["image_samples"] = m.n_samples + 2 * len(d.band_rows) * len(d._band)
     d.p = p0
     return out
 
 
+def _nbytes(value) -> int:
+    if isinstance(value, np.ndarray):
+        return value.nbytes
+    if hasattr(value, "data") and hasattr(value, "indices"):  # sparse
+        return value.data.nbytes + value.indices.nbytes + value.indptr.nbytes
+    if isinstance(value, (list, tuple)):
+        return sum(_nbytes(v) for v in value)
+    if isinstance(value, dict):
+        return sum(_nbytes(v) for v in value.values())
+    return 0
+
+
 def memory_bytes(d) -> int:
-    """Bytes of what a level precomputes beyond the image."""
-    total = 0
-    for value in vars(d).values():
-        if isinstance(value, np.ndarray):
-            total += value.nbytes
-        elif isinstance(value, (list, tuple)):
-            total += sum(v.nbytes for v in value if isinstance(v, np.ndarray))
-        elif hasattr(value, "data") and hasattr(value, "indices"):
-            total += value.data.nbytes + value.indices.nbytes + value.indptr.nbytes
-    total += d.solver[0].nbytes + d.projector[0].nbytes  # Cholesky factors
-    m = d.model  # its dense mass matrix is d.mass, counted above
-    for mat in (m.b_f, m.b_1, m.b_2, m.constraints):
-        total += mat.data.nbytes + mat.indices.nbytes + mat.indptr.nbytes
-    return int(total)
+    """Bytes of what a level holds beyond the image: its buffers, and the
+    matrices it shares with every level of the same resolution."""
+    m = d.model  # its dense mass matrix is the level's, counted once
+    shared = [m.b_f, m.b_1, m.b_2, m.constraints, m.v1, m.v2, m.weights]
+    return int(_nbytes(vars(d)) - _nbytes(d.mass) + _nbytes(vars(d.level)) + _nbytes(shared))
 
 
 def main():
+    # the first segmentation in a process pays for loading the compiled
+    # kernels from numba's cache and for the per-resolution matrices
+    ph = make_phantom(seed=0)
+    started = time.perf_counter()
+    segment(ph.volume, ph.apex, ph.base)
+    first_ms = 1000 * (time.perf_counter() - started)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         import SimpleITK as sitk
@@ -120,7 +143,7 @@ def main():
     state = {}  # as spheroseg.track keeps it: the model and statistics of the first frame
     start = segment(seq.volumes[0], first.apex, first.base, _state=state)
     tracking = {}
-    for ipf in (5, 20):
+    for ipf in (3, 5, 20):
         def follow():
             prev = start.surface
             for vol in seq.volumes[1:]:
@@ -139,7 +162,8 @@ def main():
     ]
     data = {"command": "python benchmarks/speed.py", "machine": machine(), "sizes": rows, "profile": profile,
             "tracking": {"iterations_per_frame": 5, "volumes_per_second": tracking[5],
-                         "volumes_per_second_20": tracking[20]},
+                         "volumes_per_second_3": tracking[3], "volumes_per_second_20": tracking[20]},
+            "first_segmentation_ms": first_ms,
             "notes": notes}
     print("wrote", write_json("speed.json", data))
     print("wrote", write_markdown())
