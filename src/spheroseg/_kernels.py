@@ -60,8 +60,8 @@ def _sample(image, strides, upper, fi, fj, fk):
     j0 = min(int(fj), int(upper[1]) - 1)
     k0 = min(int(fk), int(upper[2]) - 1)
     ti, tj, tk = fi - i0, fj - j0, fk - k0
-    c = i0 + j0 * strides[1] + k0 * strides[2]
     sy, sz = strides[1], strides[2]
+    c = i0 + j0 * sy + k0 * sz
     # weights times float32 values: the products are double, as in numpy
     c00 = image[c] * (1.0 - ti) + image[c + 1] * ti
     c01 = image[c + sy] * (1.0 - ti) + image[c + sy + 1] * ti

@@ -1,0 +1,98 @@
+"""The compiled kernels against the numpy code they replace."""
+
+import numpy as np
+import pytest
+
+from spheroseg import _kernels
+from spheroseg.energy import SampledSurface
+from spheroseg.phantom import make_phantom
+from spheroseg.segment import _level_matrices
+from spheroseg.surface import Surface
+
+pytestmark = pytest.mark.skipif(not _kernels.AVAILABLE, reason="numba not installed")
+
+
+@pytest.fixture(scope="module")
+def case():
+    ph = make_phantom(seed=5, spacing=1.5)
+    s = Surface.from_apex_base(ph.apex, ph.base, patches=(4, 6))
+    model = SampledSurface(s.system, s.pose, s.grid, 6)
+    rng = np.random.default_rng(0)
+    p = model.parameters(s.coefficients) + 0.02 * rng.standard_normal(model.n_parameters)
+    return ph, model, p, _level_matrices(s.grid, 6, 1.0)
+
+
+def test_gather_and_scatter_are_the_basis_matrix_and_its_transpose(case):
+    _, model, p, level = case
+    rng = np.random.default_rng(1)
+    fields = np.stack([p, rng.standard_normal(len(p))])
+    coefficients = np.stack([(model.constraints @ f).reshape(model.grid.shape) for f in fields])
+    out = np.empty((2, model.n_samples))
+    _kernels.gather(coefficients, model.order, *level.tables, out)
+    np.testing.assert_allclose(out, (model.b_f @ fields.T).T, atol=1e-12)
+
+    values = rng.standard_normal((2, model.n_samples))
+    back = np.empty((2,) + model.grid.shape)
+    _kernels.scatter(values, model.order, *level.tables, back)
+    expected = model.grid.basis_matrix(model.v1, model.v2).T @ values.T
+    np.testing.assert_allclose(back.reshape(2, -1).T, expected, atol=1e-12)
+    # on the band rows: every other position of a patch, with the band tables
+    rows = level.band_rows
+    band = values[:, rows]
+    _kernels.scatter(band, level.band_tables[0].shape[1], *level.band_tables, back)
+    expected = model.grid.basis_matrix(model.v1[rows], model.v2[rows]).T @ band.T
+    np.testing.assert_allclose(back.reshape(2, -1).T, expected, atol=1e-12)
+
+
+def test_surface_kernel_matches_geometry(case):
+    _, model, p, level = case
+    n = model.n_samples
+    out = [np.empty(n) for _ in range(4)] + [np.empty((3, n)), np.empty((3, n))]
+    _kernels.prolate_surface((model.constraints @ p).reshape(model.grid.shape), model.order, *level.tables,
+                             *level.trig, model.system.focal_length, model.pose.rotation, model.pose.origin, *out)
+    f, h0, cos, area, world, normal = out
+    g = model.geometry(p)
+    np.testing.assert_allclose(f, g.f, atol=1e-12)
+    np.testing.assert_allclose(h0, model.system.scale_factors(g.f, model.v1, model.v2)[0], rtol=1e-12)
+    np.testing.assert_allclose(area, g.area, rtol=1e-10)
+    np.testing.assert_allclose(world, g.world.T, atol=1e-9)
+    np.testing.assert_allclose(normal, g.normal.T, atol=1e-10)
+    expected_cos = np.einsum("ij,ij->i", g.normal @ model.pose.rotation, g.jacobian[:, :, 0]) / h0
+    np.testing.assert_allclose(cos, expected_cos, atol=1e-10)
+
+
+def test_samples_match_volume_sample_including_no_data(case):
+    ph, model, p, level = case
+    vol = ph.volume
+    g = model.geometry(p)
+    rng = np.random.default_rng(2)
+    # points on and far off the surface: some out of the sector and out of the image
+    world = (g.world + rng.normal(0, 30, g.world.shape)).T.copy()
+    normal = g.normal.T.copy()
+    offsets = np.array([-4.0, 0.0, 3.0])
+    rows = np.arange(model.n_samples)
+    mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
+    _kernels.sample_along(vol._flat, vol._strides, vol._upper, vol._to_index, vol.grid.origin, world, normal, rows,
+                          offsets, mean, count)
+    samples = vol.sample(world.T[:, None, :] + offsets[None, :, None] * normal.T[:, None, :])
+    ok = np.isfinite(samples)
+    assert 0 < (count == 0).sum() and (count == 3).sum() > 0  # the test reaches both cases
+    np.testing.assert_array_equal(count, ok.sum(axis=1))
+    with np.errstate(invalid="ignore"):
+        expected = np.nansum(samples, axis=1) / ok.sum(axis=1)
+    np.testing.assert_allclose(mean, expected, rtol=1e-9, atol=1e-9)
+
+
+def test_normal_displacement_matches_reference_formula():
+    rng = np.random.default_rng(3)
+    n = 200
+    u = rng.uniform(0, 100, n)
+    u[:10] = np.nan  # off the data
+    c_in, c_out = rng.uniform(0, 40, n), rng.uniform(40, 100, n)
+    h0, cos, w = rng.uniform(5, 50, n), rng.uniform(-1, 1, n), rng.uniform(0.1, 1, n)
+    out = np.empty(n)
+    _kernels.normal_displacement(u, c_in, c_out, 300.0, h0, cos, 8.0, 0.3, 1.5, w, out)
+    r = (c_out - c_in) * (2 * u - c_in - c_out) / 300.0
+    speed = np.where(np.isfinite(r), -np.clip(r, -1, 1), -1.0)
+    expected = w * 1.5 * speed / np.maximum(h0 * np.maximum(cos, 0.3), 8.0)
+    np.testing.assert_allclose(out, expected, rtol=1e-12)
