@@ -60,13 +60,14 @@ def _sample(image, strides, upper, fi, fj, fk):
     j0 = min(int(fj), int(upper[1]) - 1)
     k0 = min(int(fk), int(upper[2]) - 1)
     ti, tj, tk = fi - i0, fj - j0, fk - k0
-    sy, sz = strides[1], strides[2]
-    c = i0 + j0 * sy + k0 * sz
+    # unsigned offsets: numba then skips its negative-index wraparound
+    sy, sz, one = np.uint64(strides[1]), np.uint64(strides[2]), np.uint64(1)
+    c = np.uint64(i0) + np.uint64(j0) * sy + np.uint64(k0) * sz
     # weights times float32 values: the products are double, as in numpy
-    c00 = image[c] * (1.0 - ti) + image[c + 1] * ti
-    c01 = image[c + sy] * (1.0 - ti) + image[c + sy + 1] * ti
-    c10 = image[c + sz] * (1.0 - ti) + image[c + sz + 1] * ti
-    c11 = image[c + sy + sz] * (1.0 - ti) + image[c + sy + sz + 1] * ti
+    c00 = image[c] * (1.0 - ti) + image[c + one] * ti
+    c01 = image[c + sy] * (1.0 - ti) + image[c + sy + one] * ti
+    c10 = image[c + sz] * (1.0 - ti) + image[c + sz + one] * ti
+    c11 = image[c + sy + sz] * (1.0 - ti) + image[c + sy + sz + one] * ti
     return (c00 * (1.0 - tj) + c01 * tj) * (1.0 - tk) + (c10 * (1.0 - tj) + c11 * tj) * tk
 
 
