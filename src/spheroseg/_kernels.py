@@ -243,8 +243,8 @@ def cavity_sums(image, strides, upper, to_index, image_origin, f, cos_th, sin_th
         ct, st, cm, sm = cos_th[q], sin_th[q], cos_mu[q], sin_mu[q]
         total = weight = 0.0
         for t in fractions:
-            lam = t * f[q]
-            sh, ch = math.sinh(lam), math.cosh(lam)
+            e = math.exp(t * f[q])
+            sh, ch = 0.5 * (e - 1.0 / e), 0.5 * (e + 1.0 / e)
             x0, rho = d * ch * cm, d * sh * sm
             x1, x2 = rho * ct, rho * st
             wx = rotation[0, 0] * x0 + rotation[0, 1] * x1 + rotation[0, 2] * x2 + origin[0]
