@@ -222,6 +222,7 @@ def _spd_inverse(matrix: np.ndarray) -> np.ndarray:
 
 @lru_cache(maxsize=16)
 def _level_matrices(grid, order: int, smoothness: float) -> _Level:
+    """The :class:`_Level` of a grid, sample order and smoothness (cached)."""
     v1, v2, weights, _, b_f, _, _, mass = _grid_matrices(grid, order)
     total = float(weights.sum())  # the area of the (v1, v2) domain
     # the thin-plate matrix T is per unit area, M is not
@@ -236,7 +237,8 @@ def _level_matrices(grid, order: int, smoothness: float) -> _Level:
     tables = _kernels.basis_tables(grid, order)
     level = _Level(
         mass=mass, mass_inverse=_spd_inverse(mass), constraints_t=grid.constraints.T.tocsr(), smoothing=smoothing,
-        system_inverse=_spd_inverse(mass + smoothing), band_rows=band_rows, band_transpose=b_f[band_rows].T.tocsr(), band_weights=band_weights, tables=tables,
+        system_inverse=_spd_inverse(mass + smoothing), band_rows=band_rows,
+        band_transpose=b_f[band_rows].T.tocsr(), band_weights=band_weights, tables=tables,
         band_tables=tuple(np.ascontiguousarray(t[:, local]) for t in tables),
         trig=(np.cos(v1), np.sin(v1), np.cos(v2), np.sin(v2)))
     for value in vars(level).values():
@@ -294,7 +296,7 @@ class _Descent:
 
     # the Hermite basis at the sample points ----------------------------------
 
-    def _at_samples(self, p, *, rows: str = "all") -> np.ndarray:
+    def _at_samples(self, p) -> np.ndarray:
         """``B p``: the function(s) of parameters ``p`` (``(n,)`` or ``(n, k)``)
         at every sample point (``(samples,)`` or ``(k, samples)``)."""
         m = self.model
