@@ -87,9 +87,9 @@ def _nbytes(value) -> int:
 def memory_bytes(d) -> int:
     """Bytes of what a level holds beyond the image: its buffers, and the
     matrices it shares with every level of the same resolution."""
-    m = d.model  # its dense mass matrix is the level's, counted once
+    m = d.model  # its dense mass matrix is the level's
     shared = [m.b_f, m.b_1, m.b_2, m.constraints, m.v1, m.v2, m.weights]
-    return int(_nbytes(vars(d)) - _nbytes(d.mass) + _nbytes(vars(d.level)) + _nbytes(shared))
+    return int(_nbytes(vars(d)) + _nbytes(vars(d.level)) + _nbytes(shared))
 
 
 def main():

@@ -205,8 +205,8 @@ class _Level:
     band_rows: np.ndarray  # indices of the sample points of the band means
     band_transpose: object  # B^T on the band rows (sparse)
     band_weights: np.ndarray
-    tables: tuple  # the compiled path's basis tables at all and at the band points
-    band_tables: tuple
+    tables: tuple  # the compiled path's basis tables (v1, v2) at every sample position
+    band_tables: tuple  # the same at the band rows' positions
     trig: tuple  # cos, sin of v1 and v2 at the sample points
 
 
@@ -263,7 +263,6 @@ class _Descent:
         # least squares on the displacement, an implicit (unconditionally
         # stable) thin-plate smoothing step of the departure from the
         # reference (initial) shape, and the landmark rows
-        self.mass = level.mass
         self.set_reference(reference)
         self.system_inverse = level.system_inverse
         self.landmarks = None
@@ -436,7 +435,7 @@ class _Descent:
             f = self._landmark_basis @ self.p
             res = np.clip((lm.v0 - f) * lm.h0, -self.step, self.step) / lm.h0
             rhs += self._landmark_basis.T @ (self.omega * (f + res))
-        p_new = self.system_inverse @ (self.mass @ self.p + self.prior + rhs)
+        p_new = self.system_inverse @ (self.level.mass @ self.p + self.prior + rhs)
         dp = p_new - self.p
         self.p = p_new
         return np.sqrt(np.dot(m.weights, (obs.h0 * self._at_samples(dp)) ** 2) / self._total_weight)
