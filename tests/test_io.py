@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from spheroseg.io import image_format, load, load_sequence, read_markups, save_mask
+from spheroseg.io import ImageFileError, image_format, load, load_sequence, read_markups, save_mask
 from spheroseg.volume import Volume
 
 DIRECTION = (0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
@@ -94,11 +94,20 @@ def test_npy_needs_spacing(tmp_path):
 
 
 def test_bad_files(tmp_path):
-    with pytest.raises(ValueError, match="no such file"):
-        load(tmp_path / "missing.mha")
+    """Errors by cause, as nibabel: a missing file is FileNotFoundError, an
+    unreadable one ImageFileError (a ValueError); the message starts with the path."""
+    for missing in ("missing.mha", "missing.npy", "missing.mrk.json"):
+        with pytest.raises(FileNotFoundError, match=f"^{tmp_path / missing}: no such file$"):
+            (read_markups if missing.endswith(".json") else load)(tmp_path / missing)
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        load_sequence(tmp_path / "missing.npy", spacing=(1, 1, 1))
     (tmp_path / "junk.mha").write_text("not an image")
-    with pytest.raises(ValueError, match="cannot read"):
+    with pytest.raises(ImageFileError, match=f"^{tmp_path / 'junk.mha'}: cannot read image") as err:
         load(tmp_path / "junk.mha")
+    assert isinstance(err.value, ValueError)
+    (tmp_path / "junk.npy").write_text("not an array")
+    with pytest.raises(ImageFileError, match="cannot read numpy array"):
+        load(tmp_path / "junk.npy", spacing=(1, 1, 1))
     write_3d(tmp_path / "flat.mha", np.zeros((5, 6), np.uint8), spacing=(1, 1), origin=(0, 0))
     with pytest.raises(ValueError, match="3D"):
         load(tmp_path / "flat.mha")

@@ -18,9 +18,21 @@ import numpy as np
 
 from .volume import Volume, outside_sector
 
-__all__ = ["load", "load_sequence", "save_mask", "read_markups", "image_format", "IMAGE_SUFFIXES", "write_atomically"]
+__all__ = ["load", "load_sequence", "save_mask", "read_markups", "image_format", "IMAGE_SUFFIXES", "MASK_SUFFIXES",
+           "write_atomically", "ImageFileError"]
 
 IMAGE_SUFFIXES = (".mhd", ".mha", ".nii", ".nii.gz", ".nrrd", ".nhdr", ".npy")
+#: what a mask can be written as
+MASK_SUFFIXES = (".mhd", ".mha", ".nii", ".nii.gz", ".nrrd", ".npy")
+
+
+class ImageFileError(ValueError):
+    """A file that exists but cannot be read as an image (as nibabel's
+    ``ImageFileError``; a ``ValueError``, so ``except ValueError`` catches it)."""
+
+
+def _missing(path) -> FileNotFoundError:
+    return FileNotFoundError(f"{path}: no such file")
 
 
 def image_format(path: str | os.PathLike) -> str:
@@ -44,17 +56,17 @@ def _read_image(path: Path):
         reader = sitk.ImageSeriesReader()
         series = reader.GetGDCMSeriesIDs(str(path))
         if not series:
-            raise ValueError(f"{path}: a folder with no DICOM series (for a folder of 3D frames use load_sequence)")
+            raise ImageFileError(f"{path}: a folder with no DICOM series (for a folder of 3D frames use load_sequence)")
         reader.SetFileNames(reader.GetGDCMSeriesFileNames(str(path), series[0]))
         return reader.Execute()
     if not path.is_file():
-        raise ValueError(f"{path}: no such file")
+        raise _missing(path)
     try:
         return sitk.ReadImage(str(path))
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()
         detail = next((line for line in first if "ERROR" in line or "Unable" in line), first[-1] if first else "")
-        raise ValueError(f"{path}: cannot read image ({detail.strip()[:200]})") from None
+        raise ImageFileError(f"{path}: cannot read image ({detail.strip()[:200]})") from None
 
 
 def _make_volume(array, no_data_value, **geometry) -> Volume:
@@ -100,11 +112,11 @@ def load(path: str | os.PathLike, *, spacing=None, no_data_value: float | str | 
     path = Path(path)
     if image_format(path) == ".npy":
         if not path.is_file():
-            raise ValueError(f"{path}: no such file")
+            raise _missing(path)
         try:
             array = np.load(path, allow_pickle=False)
         except (ValueError, OSError) as exc:
-            raise ValueError(f"{path}: cannot read numpy array ({exc})") from None
+            raise ImageFileError(f"{path}: cannot read numpy array ({exc})") from None
         if spacing is None:
             raise ValueError(f"{path}: a .npy array has no geometry; give its voxel spacing")
         return _make_volume(array, no_data_value, spacing=spacing)
@@ -142,8 +154,11 @@ def load_sequence(path: str | os.PathLike, *, spacing=None, no_data_value: float
             return [load(f, spacing=spacing, no_data_value=no_data_value) for f in frames]
     if image_format(path) == ".npy":
         if not path.is_file():
-            raise ValueError(f"{path}: no such file")
-        array = np.load(path, allow_pickle=False)
+            raise _missing(path)
+        try:
+            array = np.load(path, allow_pickle=False)
+        except (ValueError, OSError) as exc:
+            raise ImageFileError(f"{path}: cannot read numpy array ({exc})") from None
         if array.ndim != 4:
             raise ValueError(f"{path}: expected a 4D array [t, z, y, x], got {array.ndim}D")
         if spacing is None:
@@ -207,6 +222,8 @@ def read_markups(path: str | os.PathLike) -> dict:
     import json
 
     path = Path(path)
+    if not path.is_file():
+        raise _missing(path)
     try:
         doc = json.loads(path.read_text())
         out = {"apex": None, "base": None, "landmarks": []}

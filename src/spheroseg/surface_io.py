@@ -13,28 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .io import write_atomically
 from .surface import Surface
 
-__all__ = ["read_mesh", "write_mesh", "write_surface_json", "read_surface_json", "write_cmiss", "atomic_path"]
-
-
-def atomic_path(path: str | os.PathLike):
-    """Context manager giving a temporary path beside ``path`` that is
-    renamed onto ``path`` when the block ends without error."""
-    from contextlib import contextmanager
-
-    @contextmanager
-    def _ctx():
-        target = Path(path)
-        tmp = target.with_name(f".{target.stem}.tmp{os.getpid()}{''.join(target.suffixes)}")
-        try:
-            yield tmp
-            os.replace(tmp, target)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
-
-    return _ctx()
+__all__ = ["read_mesh", "write_mesh", "write_surface_json", "read_surface_json", "write_cmiss"]
 
 
 def _read_legacy_vtk_polydata(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +76,8 @@ def write_mesh(path: str | os.PathLike, points: np.ndarray, faces: np.ndarray) -
     if suffix not in (".vtk", ".ply", ".stl", ".obj"):
         raise ValueError(f"{path}: mesh format must be .vtk, .ply, .stl or .obj")
     mesh = meshio.Mesh(np.asarray(points, float), [("triangle", np.asarray(faces, np.int32))])
-    with atomic_path(path) as tmp:
+
+    def write(tmp: Path) -> None:
         if suffix == ".obj":
             meshio.write(tmp, mesh)
         else:
@@ -104,11 +87,13 @@ def write_mesh(path: str | os.PathLike, points: np.ndarray, faces: np.ndarray) -
             _, rest = rest.split(b"\n", 1)
             tmp.write_bytes(head + b"\nspheroseg cavity mesh, SPACE=LPS, units mm\n" + rest)
 
+    write_atomically(path, write)
+
 
 def write_surface_json(path: str | os.PathLike, surface: Surface, **extra) -> None:
     """The surface model (system, pose, Hermite coefficients) as JSON."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps({**surface.to_dict(), **extra}, indent=1))
+    text = json.dumps({**surface.to_dict(), **extra}, indent=1)
+    write_atomically(path, lambda tmp: tmp.write_text(text))
 
 
 def read_surface_json(path: str | os.PathLike) -> Surface:
@@ -187,6 +172,5 @@ def write_cmiss(stem: str | os.PathLike, surface: Surface, *, group: str = "sphe
 
     paths = (stem.with_suffix(".exnode"), stem.with_suffix(".exelem"))
     for path, text in zip(paths, (exnode, exelem)):
-        with atomic_path(path) as tmp:
-            tmp.write_text(text)
+        write_atomically(path, lambda tmp, text=text: tmp.write_text(text))
     return paths
