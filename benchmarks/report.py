@@ -122,17 +122,18 @@ def _speed(sp) -> list[str]:
     if sp.get("notes"):
         out += [""] + sp["notes"]
     prof = next((r for r in sp.get("profile", []) if r["patches"] == "8 x 8"), None)
-    if prof and "surface_us" in prof:
-        sampling = prof["surface_samples_us"] + prof["band_samples_us"]
+    if prof and "surface_and_samples_us" in prof:
+        sampling = prof["band_samples_us"]
         update = prof["projection_us"] - prof["local_means_us"]
         mid = sp["sizes"][len(sp["sizes"]) // 2]
         out += ["", "### Where the time goes, and what it would take", "",
                 f"At 8 x 8 patches one iteration takes {prof['iteration_us']:.0f} us on one thread: the surface at "
-                f"the {prof['samples']} sample points {prof['surface_us']:.0f} us (the Hermite basis patch by patch, "
-                "then exp, normal and scale factor in a loop that runs on SIMD lanes); the grey level at each point "
-                f"{prof['surface_samples_us']:.0f} us and the band means (4 samples on each side of a quarter of the "
-                f"points) {prof['band_samples_us']:.0f} us, so {prof['image_samples']} trilinear samples at "
-                f"{1000 * sampling / prof['image_samples']:.0f} ns each; the projection of the band means onto the "
+                f"the {prof['samples']} sample points and the grey level there {prof['surface_and_samples_us']:.0f} us "
+                "(the Hermite basis patch by patch, then exp, normal and scale factor in a loop that runs on SIMD "
+                "lanes, then one trilinear sample a point); the band means (4 samples on each side of a quarter of "
+                f"the points) {prof['band_samples_us']:.0f} us, "
+                f"{1000 * sampling / (prof['image_samples'] - prof['samples']):.0f} ns a trilinear sample; the "
+                "projection of the band means onto the "
                 f"surface {prof['local_means_us']:.0f} us and the update {update:.0f} us (B H and B^T v about 10 us "
                 "each, mat-vecs with the precomputed 259 x 259 inverses 5 us each, the rest numpy call overhead). "
                 "The samples are mostly compute-bound: a sample costs about 12 ns on an image small enough for the "

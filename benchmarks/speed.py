@@ -22,52 +22,49 @@ from common import PEER_PARAMS, machine, median_time, run_sitk, run_skimage, wri
 from report import write_markdown  # noqa: E402
 
 import spheroseg  # noqa: E402
-from spheroseg import _kernels  # noqa: E402
+from spheroseg.backends import compiled_available  # noqa: E402
+from spheroseg.dataterms import LocalMeans  # noqa: E402
+from spheroseg.descent import Descent  # noqa: E402
 from spheroseg.phantom import make_phantom, make_sequence  # noqa: E402
-from spheroseg.segment import _SURFACE_OFFSETS, _Descent, segment, track  # noqa: E402
+from spheroseg.segment import segment, track  # noqa: E402
 from spheroseg.surface import Surface  # noqa: E402
+from spheroseg.tracker import Tracker  # noqa: E402
 
 
-def descent(volume, apex, base, patches=(8, 8), compiled=True):
+def descent(apex, base, patches=(8, 8), backend="auto"):
     s = Surface.from_apex_base(apex, base, patches=patches)
-    return _Descent(volume, s, s, order=8, step=1.0, band=8.0, band_out=15.0, landmarks=apex[None],
-                    landmark_weights=[1.0], nu=0.0, smoothness=1.0, compiled=compiled)
+    return Descent(s, s, order=8, step=1.0, landmarks=apex[None], landmark_weights=[1.0], nu=0.0, smoothness=1.0,
+                   backend=backend)
 
 
-def iteration_parts(d, repeats=300) -> dict:
+def iteration_parts(d, volume, repeats=300) -> dict:
     """Median times (us) of the parts of one local-mode iteration."""
     p0 = d.p.copy()
-    obs = d.observe(True)
-    c_in, c_out = d.local_means(obs)
+    term = LocalMeans(np.array([0.0, 100.0]))
+    obs = d.observe(volume, term)
 
     def project():
         d.p = p0.copy()
-        cin, cout = d.local_means(obs)
-        d.iterate(obs, cin, cout, 100.0)
+        c_in, c_out, _ = term.means(d.backend, volume, obs)
+        d.iterate(obs, c_in, c_out, 100.0)
 
     def whole():
         d.p = p0.copy()
-        o = d.observe(True)
-        cin, cout = d.local_means(o)
-        d.iterate(o, cin, cout, 100.0)
+        o = d.observe(volume, term)
+        c_in, c_out, _ = term.means(d.backend, volume, o)
+        d.iterate(o, c_in, c_out, 100.0)
 
-    out = {"sampling_us": 1e6 * median_time(lambda: d.observe(True), repeats),
+    backend, rows = d.backend, d.discretisation.band_rows
+    out = {"sampling_us": 1e6 * median_time(lambda: d.observe(volume, term), repeats),
            "projection_us": 1e6 * median_time(project, repeats),
            "iteration_us": 1e6 * median_time(whole, repeats)}
-    out["geometry_us"] = 1e6 * median_time(lambda: d.model.geometry(d.p), repeats) if not d.kernel else np.nan
-    if d.kernel:  # the compiled parts of the observation
-        m, b = d.model, d._buffers
-        coefficients = (m.constraints @ d.p).reshape(m.grid.shape)
-        out["surface_us"] = 1e6 * median_time(lambda: _kernels.prolate_surface(
-            coefficients, m.order, *d.level.tables, *d.level.trig, m.system.focal_length, m.pose.rotation,
-            m.pose.origin, b["f"], b["h0"], b["cos"], b["area"], b["world"], b["normal"]), repeats)
-        counts = np.empty(m.n_samples, np.int64)
-        out["surface_samples_us"] = 1e6 * median_time(lambda: _kernels.sample_along(
-            *d._image(), b["world"], b["normal"], d._all_rows, _SURFACE_OFFSETS, b["u"], counts), repeats)
-        out["band_samples_us"] = 2e6 * median_time(lambda: _kernels.sample_along(
-            *d._image(), b["world"], b["normal"], d.band_rows, d._band, b["inside"], counts), repeats)
-        out["local_means_us"] = 1e6 * median_time(lambda: d.local_means(obs), repeats)
-        out["image_samples"] = m.n_samples + 2 * len(d.band_rows) * len(d._band)
+    out["geometry_us"] = 1e6 * median_time(lambda: d.model.geometry(d.p), repeats) if backend.name == "numpy" else np.nan
+    if backend.name == "compiled":  # the parts of the observation
+        out["surface_and_samples_us"] = 1e6 * median_time(lambda: backend.observe(d.p, volume), repeats)
+        out["band_samples_us"] = 2e6 * median_time(lambda: backend.mean_along(volume, obs, term.band_offsets, rows),
+                                                   repeats)
+        out["local_means_us"] = 1e6 * median_time(lambda: term.means(backend, volume, obs), repeats)
+        out["image_samples"] = d.model.n_samples + 2 * len(rows) * len(term.band_offsets)
     d.p = p0
     return out
 
@@ -85,11 +82,11 @@ def _nbytes(value) -> int:
 
 
 def memory_bytes(d) -> int:
-    """Bytes of what a level holds beyond the image: its buffers, and the
-    matrices it shares with every level of the same resolution."""
-    m = d.model  # its dense mass matrix is the level's
-    shared = [m.b_f, m.b_1, m.b_2, m.constraints, m.v1, m.v2, m.weights]
-    return int(_nbytes(vars(d)) + _nbytes(vars(d.level)) + _nbytes(shared))
+    """Bytes of what a level holds beyond the image: its own arrays and its
+    backend's buffers, and the discretisation it shares with every level of
+    the same resolution (with one smoothing's inverse)."""
+    shared = _nbytes(vars(d.discretisation)) + _nbytes(d.discretisation.system_inverse(1.0))
+    return int(_nbytes(vars(d)) + _nbytes(vars(d.backend)) + shared)
 
 
 def main():
@@ -114,8 +111,8 @@ def main():
             # default load also finds the sector padding, which costs more)
             load_s = median_time(lambda: spheroseg.load(path, no_data_value=None), 5)
             load_auto_s = median_time(lambda: spheroseg.load(path), 3)
-            d = descent(vol, ph.apex, ph.base)
-            parts = iteration_parts(d)
+            d = descent(ph.apex, ph.base)
+            parts = iteration_parts(d, vol)
             seg_s = median_time(lambda: segment(vol, ph.apex, ph.base), 10)
             res = segment(vol, ph.apex, ph.base)
             row = {"spacing_mm": spacing, "shape": "x".join(map(str, vol.shape)), "voxels": int(np.prod(vol.shape)),
@@ -130,9 +127,9 @@ def main():
     ph = make_phantom(seed=0)
     profile = []
     for patches in ((4, 4), (8, 8), (16, 16)):
-        d = descent(ph.volume, ph.apex, ph.base, patches)
-        parts = iteration_parts(d)
-        ref = iteration_parts(descent(ph.volume, ph.apex, ph.base, patches, compiled=False), repeats=50)
+        d = descent(ph.apex, ph.base, patches)
+        parts = iteration_parts(d, ph.volume)
+        ref = iteration_parts(descent(ph.apex, ph.base, patches, backend="numpy"), ph.volume, repeats=50)
         profile.append({"patches": f"{patches[0]} x {patches[1]}", "samples": d.model.n_samples, **parts,
                         "numpy_iteration_us": ref["iteration_us"], "numpy_geometry_us": ref["geometry_us"],
                         "memory_kb": memory_bytes(d) / 1024})
@@ -140,22 +137,22 @@ def main():
 
     seq = make_sequence(seed=0, n_frames=10)
     first = seq.frames[0]
-    state = {}  # as spheroseg.track keeps it: the model and statistics of the first frame
-    start = segment(seq.volumes[0], first.apex, first.base, _state=state)
+    tracker = Tracker(seq.volumes[0], first.apex, first.base)
+    tracker.run()
     tracking = {}
     for ipf in (3, 5, 20):
+        # frames after the first, as track() steps them (the cycle again and
+        # again: each repeat continues from where the last one ended)
         def follow():
-            prev = start.surface
             for vol in seq.volumes[1:]:
-                prev = segment(vol, first.apex, first.base, init=prev, max_iterations=ipf, coarse_to_fine=False,
-                               _state=state).surface
+                tracker.step(vol, max_iterations=ipf)
         seconds = median_time(follow, 5)
         tracking[ipf] = (len(seq.volumes) - 1) / seconds
     full = median_time(lambda: track(seq.volumes, first.apex, first.base), 3)
 
     notes = [
-        f"numba {'is' if _kernels.AVAILABLE else 'is NOT'} installed: the compiled path "
-        f"{'ran' if _kernels.AVAILABLE else 'did not run'} (the numpy path is the reference; tests check both agree "
+        f"numba {'is' if compiled_available() else 'is NOT'} installed: the compiled backend "
+        f"{'ran' if compiled_available() else 'did not run'} (the numpy backend is the reference; tests check both agree "
         "to 1e-6).",
         f"Whole tracking of the 10-frame sequence (first frame from apex and base, then up to 20 iterations per "
         f"frame): {1000 * full:.0f} ms, {len(seq.volumes) / full:.0f} volumes per second.",

@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 
 from spheroseg import _kernels
+from spheroseg.backends import MIN_COS, NumpyBackend, Observation
+from spheroseg.discretisation import discretise
 from spheroseg.energy import SampledSurface
 from spheroseg.phantom import make_phantom
-from spheroseg.segment import _level_matrices
 from spheroseg.surface import Surface
 
 pytestmark = pytest.mark.skipif(not _kernels.AVAILABLE, reason="numba not installed")
@@ -19,7 +20,7 @@ def case():
     model = SampledSurface(s.system, s.pose, s.grid, 6)
     rng = np.random.default_rng(0)
     p = model.parameters(s.coefficients) + 0.02 * rng.standard_normal(model.n_parameters)
-    return ph, model, p, _level_matrices(s.grid, 6, 1.0)
+    return ph, model, p, discretise(s.grid, 6)
 
 
 def test_gather_and_scatter_are_the_basis_matrix_and_its_transpose(case):
@@ -72,8 +73,7 @@ def test_samples_match_volume_sample_including_no_data(case):
     offsets = np.array([-4.0, 0.0, 3.0])
     rows = np.arange(model.n_samples)
     mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
-    _kernels.sample_along(vol._flat, vol._strides, vol._upper, vol._to_index, vol.grid.origin, world, normal, rows,
-                          offsets, mean, count)
+    _kernels.sample_along(*vol.sampling_view(), world, normal, rows, offsets, mean, count)
     samples = vol.sample(world.T[:, None, :] + offsets[None, :, None] * normal.T[:, None, :])
     ok = np.isfinite(samples)
     assert 0 < (count == 0).sum() and (count == 3).sum() > 0  # the test reaches both cases
@@ -83,16 +83,22 @@ def test_samples_match_volume_sample_including_no_data(case):
     np.testing.assert_allclose(mean, expected, rtol=1e-9, atol=1e-9)
 
 
-def test_normal_displacement_matches_reference_formula():
+def test_normal_displacement_matches_the_numpy_backend(case):
+    """The kernel against NumpyBackend.displacement (through energy.normal_speed)."""
+    _, model, _, _ = case
     rng = np.random.default_rng(3)
-    n = 200
+    n = model.n_samples
     u = rng.uniform(0, 100, n)
     u[:10] = np.nan  # off the data
     c_in, c_out = rng.uniform(0, 40, n), rng.uniform(40, 100, n)
-    h0, cos, w = rng.uniform(5, 50, n), rng.uniform(-1, 1, n), rng.uniform(0.1, 1, n)
+    h0, cos = rng.uniform(5, 50, n), rng.uniform(-1, 1, n)
+    obs = Observation(f=None, h0=h0, cos=cos, area=None, world=None, normal=None, u=u)
     out = np.empty(n)
-    _kernels.normal_displacement(u, c_in, c_out, 300.0, h0, cos, 8.0, 0.3, 1.5, w, out)
+    _kernels.normal_displacement(u, c_in, c_out, 300.0, h0, cos, 8.0, MIN_COS, 1.5, model.weights, out)
+    expected = NumpyBackend(model).displacement(obs, c_in, c_out, 300.0, step=1.5, h0_floor=8.0)
+    np.testing.assert_allclose(out, expected, rtol=1e-12)
+    # and by hand: off the data pulled in by a whole step, the rest clipped
     r = (c_out - c_in) * (2 * u - c_in - c_out) / 300.0
     speed = np.where(np.isfinite(r), -np.clip(r, -1, 1), -1.0)
-    expected = w * 1.5 * speed / np.maximum(h0 * np.maximum(cos, 0.3), 8.0)
-    np.testing.assert_allclose(out, expected, rtol=1e-12)
+    np.testing.assert_allclose(out, model.weights * 1.5 * speed / np.maximum(h0 * np.maximum(cos, 0.3), 8.0),
+                               rtol=1e-12)

@@ -69,9 +69,29 @@ def test_cavity_is_closed_at_the_base_plane(phantoms):
 def test_callback_sees_every_iteration(phantoms):
     ph = phantoms[0]
     seen = []
-    r = segment(ph.volume, ph.apex, ph.base, iter_callback=lambda s, i: seen.append((i, s.volume_ml())))
-    assert [i for i, _ in seen] == list(range(r.iterations))
+    r = segment(ph.volume, ph.apex, ph.base, iter_callback=lambda it: seen.append((it.iteration, it.surface.volume_ml(),
+                                                                                  it.patches)))
+    assert [i for i, _, _ in seen] == list(range(1, r.iterations + 1))
     assert seen[-1][1] == pytest.approx(r.volume_ml)
+    assert [p for _, _, p in seen][0] == (2, 2) and seen[-1][2] == (8, 8)  # coarse to fine
+    assert r.status == 0 and r.converged and "stopped moving" in r.message
+
+
+def test_callback_can_stop_the_run(phantoms):
+    ph = phantoms[0]
+
+    def stop_after_five(intermediate):
+        if intermediate.iteration == 5:
+            raise StopIteration
+
+    r = segment(ph.volume, ph.apex, ph.base, iter_callback=stop_after_five)
+    assert r.iterations == 5 and r.status == 2 and not r.converged and "StopIteration" in r.message
+
+
+def test_iteration_cap_is_reported(phantoms):
+    ph = phantoms[0]
+    r = segment(ph.volume, ph.apex, ph.base, max_iterations=2, tol=1e-6)
+    assert r.iterations == 6 and r.status == 1 and not r.converged and "cap" in r.message
 
 
 def test_landmark_pulls_surface_through_it(phantoms):
@@ -112,7 +132,10 @@ def test_tracking_recovers_ejection_fraction():
         (dict(apex=(np.nan, 0, 0)), "apex must be 3 finite numbers"),
         (dict(mode="levelset"), "mode"),
         (dict(step=0), "step"),
-        (dict(patches=(1, 8)), "number of patches"),
+        (dict(patches=(1, 8)), "patches must be two integers"),
+        (dict(max_iterations=2.5), "max_iterations must be a non-negative integer"),
+        (dict(backend="gpu"), "backend must be one of"),
+        (dict(landmarks=[(0.0, 0.0, -50.0)]), r"landmark 0 \(0.00, 0.00, -50.00\) lies outside"),
     ],
 )
 def test_bad_arguments(phantoms, kwargs, message):
@@ -123,6 +146,15 @@ def test_bad_arguments(phantoms, kwargs, message):
         args["apex"] = ph.base
     with pytest.raises(ValueError, match=message):
         segment(ph.volume, **args)
+
+
+def test_messages_print_numbers_as_numbers(phantoms):
+    ph = phantoms[0]
+    with pytest.raises(ValueError) as err:
+        segment(ph.volume, (500.0, 0.0, 0.0), ph.base)
+    message = str(err.value)
+    assert message.startswith("apex (500.00, 0.00, 0.00) lies outside the image (x, y, z from (")
+    assert "np." not in message and "float64" not in message
 
 
 @pytest.mark.parametrize("value", [0.0, 80.0])
@@ -158,25 +190,27 @@ def test_cetus_patient7_ed_larger_than_es():
 
 
 def test_compiled_path_matches_numpy_reference(phantoms):
-    """The numba kernel and the readable numpy path give the same surface."""
-    from spheroseg import _kernels
-    from spheroseg.segment import _Descent
+    """The compiled backend and the numpy reference give the same surface,
+    iteration by iteration (local means, the apex landmark)."""
+    from spheroseg.backends import compiled_available
+    from spheroseg.dataterms import LocalMeans
+    from spheroseg.descent import Descent
     from spheroseg.surface import Surface
 
-    if not _kernels.AVAILABLE:
+    if not compiled_available():
         pytest.skip("numba not installed")
     ph = phantoms[0]
     s = Surface.from_apex_base(ph.apex, ph.base)
-    kw = dict(order=8, step=1.0, band=8.0, band_out=15.0, landmarks=ph.apex[None], landmark_weights=[1.0], nu=0.0,
-              smoothness=1.0)
-    fast, ref = _Descent(ph.volume, s, s, compiled=True, **kw), _Descent(ph.volume, s, s, compiled=False, **kw)
-    assert fast.kernel and not ref.kernel
+    kw = dict(order=8, step=1.0, landmarks=ph.apex[None], landmark_weights=[1.0], nu=0.0, smoothness=1.0)
+    fast, ref = Descent(s, s, backend="compiled", **kw), Descent(s, s, backend="numpy", **kw)
+    assert fast.backend.name == "compiled" and ref.backend.name == "numpy"
+    term = LocalMeans(np.linspace(0, 100, 50))
     for _ in range(10):
-        o_fast, o_ref = fast.observe(True), ref.observe(True)
+        o_fast, o_ref = fast.observe(ph.volume, term), ref.observe(ph.volume, term)
         for name in ("f", "h0", "cos", "u", "inside", "outside"):
             np.testing.assert_allclose(getattr(o_fast, name), getattr(o_ref, name), rtol=1e-9, atol=1e-9)
         for d, o in ((fast, o_fast), (ref, o_ref)):
-            c_in, c_out = d.local_means(o)
+            c_in, c_out, _ = term.means(d.backend, ph.volume, o)
             d.iterate(o, c_in, c_out, 400.0)
     np.testing.assert_allclose(fast.p, ref.p, atol=1e-6)
 
@@ -199,10 +233,10 @@ def test_compiled_segmentation_matches_numpy_reference(phantoms, monkeypatch, mo
     ijk = np.round(inside).astype(int)[:, ::-1]
     wall = middle + depth[np.argmin(ph.truth_mask[tuple(ijk.T)])] * side / np.linalg.norm(side)
     fast = segment(ph.volume, ph.apex, ph.base, mode=mode, landmarks=[wall])
-    monkeypatch.setattr(_kernels, "AVAILABLE", False)
+    assert fast.parameters["backend"] == "auto"
     for name in ("prolate_surface", "sample_along", "cavity_sums", "gather", "scatter", "normal_displacement"):
         monkeypatch.setattr(_kernels, name, None)  # the reference path must not call them
-    ref = segment(ph.volume, ph.apex, ph.base, mode=mode, landmarks=[wall])
+    ref = segment(ph.volume, ph.apex, ph.base, mode=mode, landmarks=[wall], backend="numpy")
     assert fast.iterations == ref.iterations
     np.testing.assert_allclose(fast.surface.coefficients, ref.surface.coefficients, atol=1e-6)
 

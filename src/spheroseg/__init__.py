@@ -11,12 +11,16 @@ __version__ = "0.1.0"
 
 from .coords import Cylindrical, Pose, ProlateSpheroidal, Spherical
 from .hermite import HermiteGrid
-from .io import load, load_sequence, save_mask
-from .segment import SegmentationResult, TrackingResult, segment, track
-from .surface import ImageGrid, Surface
-from .volume import Volume
+from .io import ImageFileError, load, load_sequence, save_mask
+from .options import SegmentOptions
+from .results import Intermediate, SegmentationResult, TrackingResult
+from .segment import segment, track
+from .surface import Surface
+from .tracker import Tracker
+from .volume import ImageGrid, Volume
 
 __all__ = [
-    "load", "load_sequence", "save_mask", "segment", "track", "Volume", "Surface", "ImageGrid", "Pose",
-    "ProlateSpheroidal", "Spherical", "Cylindrical", "HermiteGrid", "SegmentationResult", "TrackingResult",
+    "load", "load_sequence", "save_mask", "segment", "track", "Tracker", "SegmentOptions", "Intermediate",
+    "Volume", "Surface", "ImageGrid", "Pose", "ProlateSpheroidal", "Spherical", "Cylindrical", "HermiteGrid",
+    "SegmentationResult", "TrackingResult", "ImageFileError",
 ]

@@ -5,22 +5,27 @@ An iteration touches only what the model sets: the 4096 sample points of an
 a few trilinear samples along each normal.  In numpy that is some hundred
 array operations and sparse products on 4096-long arrays, about 2 ms; as
 plain loops compiled by numba it is a few hundred microseconds.  numba
-compiles the loops from this Python source, so the readable numpy path in
-:mod:`spheroseg.segment` stays the reference, and the tests check that both
-give the same segmentation to 1e-6.  Without numba the numpy path runs.
+compiles the loops from this Python source, so the readable numpy backend
+(:class:`spheroseg.backends.NumpyBackend`) stays the reference, and the tests
+check each kernel against it and whole segmentations on both to 1e-6.
+Without numba the numpy backend runs.
 
 Each kernel does one job and writes into arrays the caller allocated once
 per level:
 
 - :func:`prolate_surface`: the surface at the sample points (``f``, the
-  scale factor ``h0``, the unit normal in world space, ``A_K``, ...);
+  scale factor ``h0``, the unit normal in world space, ``A_K``, ...):
+  paper eq. 1 (the coordinates) and eqs. 16-17 (tangents, ``A_K``);
 - :func:`sample_along`: the mean of trilinear samples along normals;
 - :func:`cavity_sums`: samples along the rays inside the cavity, weighted by
-  the volume element (the global Chan-Vese mean);
+  the volume element ``V = h0 h1 h2`` of eq. 19 (the global Chan-Vese mean);
 - :func:`gather`, :func:`scatter`: ``B H`` and ``B^T v`` for the Hermite
   basis ``B`` at the sample points, from two small tables (the points are a
   tensor product of ``order`` positions per patch);
-- :func:`normal_displacement`: the region force as a ``v0`` displacement.
+- :func:`normal_displacement`: the region force of eq. 22 as a ``v0``
+  displacement.
+
+Equation numbers are those of Duan et al., Proc. SPIE 6144, 61444A (2006).
 
 Only the prolate spheroidal system (the default) has a surface kernel.
 """
@@ -36,17 +41,19 @@ try:  # pragma: no cover - exercised when numba is installed
 except ImportError:  # pragma: no cover
     njit = None
 
+from .volume import INDEX_TOLERANCE as _EDGE
+
 __all__ = ["AVAILABLE", "prolate_surface", "sample_along", "cavity_sums", "gather", "scatter",
-           "normal_displacement", "basis_tables"]
+           "normal_displacement"]
 
 AVAILABLE = njit is not None
-_EDGE = 1e-6  # as spheroseg.volume._EDGE
 _ZERO = np.zeros(3)
 
 
 def _sample(image, strides, upper, fi, fj, fk):
     """Trilinear sample of the flat image at the continuous voxel index
-    ``(fi, fj, fk)`` (x, y, z), as :meth:`spheroseg.Volume.sample`: NaN
+    ``(fi, fj, fk)`` (x, y, z), as :meth:`spheroseg.Volume.sample` (the
+    reference; the arrays are those of :meth:`~spheroseg.Volume.sampling_view`): NaN
     outside the image and, through the image's NaN voxels, on no-data."""
     # (plain comparisons: numba compiles a chained a <= x <= b to slower code)
     if not (fi >= -_EDGE and fj >= -_EDGE and fk >= -_EDGE
@@ -156,7 +163,8 @@ def scatter(values, order, basis1, basis2, out):
 
 def prolate_surface(coefficients, order, basis1, basis2, cos_th, sin_th, cos_mu, sin_mu, d, rotation, origin,
                     out_f, out_h0, out_cos, out_area, out_world, out_normal):
-    """The surface ``lambda = f(theta, mu)`` at every sample point: ``f``, the
+    """The surface ``lambda = f(theta, mu)`` at every sample point (eq. 1 for
+    the point, eqs. 16-17 for the tangents and ``A_K``): ``f``, the
     scale factor ``h0`` (mm per unit lambda), the cosine between the outward
     normal and ``dx/dlambda``, ``A_K = |x_theta x x_mu|``, the world point
     and the unit outward normal (world), both ``(3, n)``, as
@@ -261,9 +269,9 @@ def cavity_sums(image, strides, upper, to_index, image_origin, f, cos_th, sin_th
 
 
 def normal_displacement(u, c_in, c_out, scale, h0, cos, h0_floor, min_cos, step, weights, out):
-    """``out = weights * dv0``, the region force of
-    :meth:`spheroseg.segment._Descent.iterate` (the reference) as a
-    displacement in ``v0``, per sample point."""
+    """``out = weights * dv0``: the region force of eq. 22 as a displacement
+    in ``v0`` per sample point, as :meth:`spheroseg.backends.NumpyBackend.displacement`
+    (the reference, through :func:`spheroseg.energy.normal_speed`)."""
     for q in range(u.shape[0]):
         r = (c_out[q] - c_in[q]) * (2.0 * u[q] - c_in[q] - c_out[q]) / scale
         if math.isfinite(r):
@@ -290,18 +298,3 @@ if AVAILABLE:
     sample_along = _compile(sample_along)
     cavity_sums = _compile(cavity_sums)
     normal_displacement = _compile(normal_displacement)
-
-
-def basis_tables(grid, order: int) -> tuple[np.ndarray, np.ndarray]:
-    """Hermite basis values and first derivatives, in global units, at the
-    ``order`` Gauss-Legendre positions of a patch: two arrays
-    ``(2, order, 4)`` for v1 and v2 (as :meth:`HermiteGrid._factors`)."""
-    from .hermite import hermite_basis
-
-    x, _ = np.polynomial.legendre.leggauss(order)
-    t = (x + 1) / 2
-    out = []
-    for width in (2 * np.pi / grid.n1, (grid.v2_range[1] - grid.v2_range[0]) / grid.n2):
-        scale = np.array([1.0, width, 1.0, width])
-        out.append(np.stack([hermite_basis(t, 0).T * scale, hermite_basis(t, 1).T * scale / width]))
-    return out[0], out[1]

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .options import MODES, SYSTEMS
 
 EXIT_ERROR = 2
 
@@ -50,9 +51,9 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="a point the surface must pass through (repeatable)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs in DIR")
-    p.add_argument("--system", default="prolate", choices=["prolate", "spherical", "cylindrical"])
+    p.add_argument("--system", default="prolate", choices=SYSTEMS)
     p.add_argument("--patches", nargs=2, type=int, default=(8, 8), metavar=("N_THETA", "N_MU"))
-    p.add_argument("--mode", default="local", choices=["local", "chan-vese", "fast"], help="data term")
+    p.add_argument("--mode", default="local", choices=MODES, help="data term")
     p.add_argument("--step", type=float, default=1.0, help="largest surface motion per iteration, mm")
     p.add_argument("--max-iterations", type=int, default=60, help="per coarse-to-fine level")
     p.add_argument("--smoothness", type=float, default=1.0, help="thin-plate prior weight (0: the paper's method)")
@@ -137,16 +138,15 @@ def _segment_kwargs(args) -> dict:
 
 
 def _mask_suffix(args, source: Path) -> str:
-    from .io import image_format
+    from .io import MASK_SUFFIXES, image_format
 
     if args.mask_format:
         suffix = args.mask_format if args.mask_format.startswith(".") else "." + args.mask_format
-        allowed = (".mhd", ".mha", ".nii", ".nii.gz", ".nrrd", ".npy")
-        if suffix.lower() not in allowed:
-            raise CliError(f"--mask-format must be one of {', '.join(allowed)}, got {args.mask_format}")
+        if suffix.lower() not in MASK_SUFFIXES:
+            raise CliError(f"--mask-format must be one of {', '.join(MASK_SUFFIXES)}, got {args.mask_format}")
         return suffix.lower()
     fmt = image_format(source) if source.is_file() else ".nii.gz"
-    return {".seq.nrrd": ".nrrd", ".nhdr": ".nrrd"}.get(fmt, fmt if fmt in (".mhd", ".mha", ".nii", ".nii.gz", ".nrrd", ".npy") else ".nii.gz")
+    return {".seq.nrrd": ".nrrd", ".nhdr": ".nrrd"}.get(fmt, fmt if fmt in MASK_SUFFIXES else ".nii.gz")
 
 
 def _versions() -> dict:
@@ -215,7 +215,8 @@ def cmd_segment(args) -> int:
         files["report"] = "report.png"
     results = {
         "input": str(source), "volume_ml": result.volume_ml, "iterations": result.iterations,
-        "converged": result.converged, "c_in": result.c_in, "c_out": result.c_out,
+        "converged": result.converged, "status": result.status, "message": result.message,
+        "c_in": result.c_in, "c_out": result.c_out,
         "seconds": {"load": t_load, "segment": result.seconds}, "apex": apex, "base": base,
         "landmarks": landmarks if landmarks is not None else [], "parameters": result.parameters,
         "units": {"points": "mm, LPS (ITK physical space)", "volume": "mL"}, "files": files, "versions": _versions(),

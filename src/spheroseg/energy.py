@@ -23,24 +23,31 @@ Area term (eqs. 16-17, 23-24): ``F = int A_K dv1 dv2``.
 Landmarks: ``F = sum_k (h0_k (v0_k - f(v1_k, v2_k)))^2``, the squared
 distance (mm, to first order) from each landmark to the surface along
 ``v0``, with ``h0_k`` taken at the landmark.
+
+References
+----------
+.. [1] Duan Q, Angelini ED, Laine AF et al. Variational segmentation
+   framework in prolate spheroidal coordinates for 3D real-time
+   echocardiography. Proc. SPIE 6144, 61444A (2006). doi:10.1117/12.653692
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
 
 from .coords import CoordinateSystem, Pose
+from .discretisation import discretise
 from .hermite import HermiteGrid
 
 __all__ = [
     "SampledSurface",
     "Geometry",
     "region_force",
+    "normal_speed",
     "data_energy",
     "data_gradient",
     "area_energy",
@@ -83,8 +90,9 @@ class SampledSurface:
 
     def __init__(self, system: CoordinateSystem, pose: Pose, grid: HermiteGrid, order: int = 8):
         self.system, self.pose, self.grid, self.order = system, pose, grid, order
-        (self.v1, self.v2, self.weights, self.constraints, self.b_f, self.b_1, self.b_2,
-         self.mass_matrix) = _grid_matrices(grid, order)
+        self.discretisation = d = discretise(grid, order)
+        self.v1, self.v2, self.weights, self.constraints = d.v1, d.v2, d.weights, d.constraints
+        self.b_f, self.b_1, self.b_2, self.mass_matrix = d.b_f, d.b_1, d.b_2, d.mass
 
     @property
     def n_parameters(self) -> int:
@@ -127,29 +135,28 @@ class SampledSurface:
         )
 
 
-@lru_cache(maxsize=16)
-def _grid_matrices(grid: HermiteGrid, order: int):
-    """What depends on the grid alone (not on the pose, the system or the
-    image), built once per grid: sample points and weights, the constraint
-    map ``A``, the sparse matrices giving ``f``, ``df/dv1``, ``df/dv2`` at the
-    samples from the parameters, and the mass matrix ``M = B^T W B`` (dense;
-    its diagonal is paper eq. 10's normalisation).  Read-only."""
-    v1, v2, w = grid.quadrature(order)
-    a = grid.constraints
-    b_f = (grid.basis_matrix(v1, v2) @ a).tocsr()
-    b_1 = (grid.basis_matrix(v1, v2, 1, 0) @ a).tocsr()
-    b_2 = (grid.basis_matrix(v1, v2, 0, 1) @ a).tocsr()
-    mass = (b_f.T @ b_f.multiply(w[:, None])).toarray()
-    for array in (v1, v2, w, mass):
-        array.flags.writeable = False
-    return v1, v2, w, a, b_f, b_1, b_2, mass
-
-
 def region_force(u, c_in, c_out) -> np.ndarray:
     """``r = (u - c_in)^2 - (u - c_out)^2 = 2 (c_out - c_in)(u - (c_in + c_out)/2)``:
     the change of the two-region energy per unit volume moved from outside
     to inside (paper eq. 22's integrand without ``f_i V_K``)."""
     return (c_out - c_in) * (2.0 * u - c_in - c_out)
+
+
+def normal_speed(u, c_in, c_out, scale) -> np.ndarray:
+    """Outward normal speed of the surface, in steps (``[-1, 1]``), from the
+    region force: ``-clip(r / scale, -1, 1)`` with ``r`` of :func:`region_force`.
+
+    This is the descent direction of paper eq. 22 per unit area of surface:
+    ``dF/dp_i = int f_i r V_K``, and moving the surface outwards by ``dn``
+    where ``r > 0`` raises ``F`` by ``r dn dA``, so the surface moves against
+    ``r``.  Dividing by ``scale`` (the squared contrast) makes it
+    dimensionless; the clip bounds a step in mm whatever the image's units.
+    A point with no finite grey level does not move, except a point off the
+    image's data (``u`` not finite): it is pulled back in (speed -1), since
+    the cavity is where the data are.
+    """
+    r = region_force(u, c_in, c_out) / scale
+    return np.where(np.isfinite(r), -np.clip(r, -1.0, 1.0), np.where(np.isfinite(u), 0.0, -1.0))
 
 
 def data_energy(model: SampledSurface, p, sampler: Sampler, c_in, c_out, n_radial: int = 24) -> float:

@@ -17,6 +17,12 @@ one value ``c`` for the whole row, ``df/dv1 = 0`` and
 tilted tangent plane), with the matching cross derivative.  These
 constraints are the linear map ``coefficients = constraints @ parameters``
 (:meth:`HermiteGrid.constraints`); optimisers work on the parameters.
+
+References
+----------
+.. [1] Duan Q, Angelini ED, Laine AF et al. Variational segmentation
+   framework in prolate spheroidal coordinates for 3D real-time
+   echocardiography. Proc. SPIE 6144, 61444A (2006). doi:10.1117/12.653692
 """
 
 from __future__ import annotations
@@ -217,6 +223,23 @@ class HermiteGrid:
         wq2 = np.tile(w, self.n2) * w2
         v2, v1 = np.meshgrid(q2, q1, indexing="ij")
         return v1.ravel(), v2.ravel(), np.outer(wq2, wq1).ravel()
+
+    def patch_tables(self, order: int = 8) -> tuple[np.ndarray, np.ndarray]:
+        """Hermite basis values and first derivatives, in global units, at the
+        ``order`` Gauss-Legendre positions of a patch: ``(2, order, 4)`` for
+        v1 and for v2 (``[derivative, position, 2 node + dof]``).
+
+        The sample points of :meth:`quadrature` are their tensor product, so
+        the compiled kernels evaluate ``f`` patch by patch from these two
+        small tables instead of a sparse matrix."""
+        x, _ = np.polynomial.legendre.leggauss(order)
+        t = (x + 1) / 2
+        lo, hi = self.v2_range
+        tables = []
+        for width in (2 * np.pi / self.n1, (hi - lo) / self.n2):
+            scale = np.array([1.0, width, 1.0, width])  # as _factors
+            tables.append(np.stack([hermite_basis(t, 0).T * scale, hermite_basis(t, 1).T * scale / width]))
+        return tables[0], tables[1]
 
     # -- pole constraints -------------------------------------------------
 

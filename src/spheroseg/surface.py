@@ -11,50 +11,19 @@ which, with the pose's origin at the base point, is closed by the base
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
 from .coords import CoordinateSystem, Pose, coordinate_system
 from .hermite import HermiteGrid
+from .volume import ImageGrid
 
 __all__ = ["Surface", "ImageGrid", "signed_volume"]
 
 #: base radius / apex-to-base distance of the initial surface
 DEFAULT_RADIUS_RATIO = 0.3
-
-
-@dataclass(frozen=True)
-class ImageGrid:
-    """Geometry of an image in ITK physical space (what a mask is drawn on).
-
-    ``world = origin + direction @ (spacing * index_xyz)``; arrays are
-    indexed ``[z, y, x]``, so ``shape`` is ``(nz, ny, nx)`` while
-    ``spacing`` and ``origin`` are ``(x, y, z)``.
-    """
-
-    shape: tuple[int, int, int]
-    spacing: np.ndarray = field(default_factory=lambda: np.ones(3))
-    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    direction: np.ndarray = field(default_factory=lambda: np.eye(3))
-
-    def __post_init__(self):
-        object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
-        object.__setattr__(self, "spacing", np.asarray(self.spacing, dtype=float).reshape(3))
-        object.__setattr__(self, "origin", np.asarray(self.origin, dtype=float).reshape(3))
-        object.__setattr__(self, "direction", np.asarray(self.direction, dtype=float).reshape(3, 3))
-        if len(self.shape) != 3:
-            raise ValueError(f"an image grid must be 3D, got shape {self.shape}")
-        if not np.all(self.spacing > 0):
-            raise ValueError(f"spacing must be positive, got {self.spacing}")
-
-    def index_to_world(self, index_xyz) -> np.ndarray:
-        return (np.asarray(index_xyz, dtype=float) * self.spacing) @ self.direction.T + self.origin
-
-    def world_to_index(self, world) -> np.ndarray:
-        """Continuous index ``(i, j, k)`` (x, y, z order) of world points."""
-        return np.linalg.solve(self.direction, (np.asarray(world, dtype=float) - self.origin).T).T / self.spacing
 
 
 def signed_volume(points: np.ndarray, faces: np.ndarray) -> float:
@@ -169,7 +138,7 @@ class Surface:
         """Volume of the closed cavity in mL.
 
         ``V = int int R(f(v1, v2), v2) dv1 dv2`` where ``R`` is the radial
-        integral of the volume element (ARCHITECTURE.md section 2), by
+        integral of the volume element (:meth:`CoordinateSystem.radial_volume`), by
         Gauss-Legendre quadrature on every patch.
         """
         v1, v2, w = self.grid.quadrature(order)

@@ -2,15 +2,59 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
 import numpy as np
 
-from .surface import ImageGrid
+__all__ = ["Volume", "ImageGrid", "SamplingView", "INDEX_TOLERANCE", "outside_sector"]
 
-__all__ = ["Volume", "outside_sector"]
+#: points this close (in voxels) outside the first or last voxel centre count
+#: as on it: world -> index round-off must not lose the image's edge
+INDEX_TOLERANCE = 1e-6
 
-# points this close (in voxels) outside the first or last voxel centre count
-# as on it: world -> index round-off must not lose the image's edge
-_EDGE = 1e-6
+
+@dataclass(frozen=True)
+class ImageGrid:
+    """Geometry of an image in ITK physical space (what a mask is drawn on).
+
+    ``world = origin + direction @ (spacing * index_xyz)``; arrays are
+    indexed ``[z, y, x]``, so ``shape`` is ``(nz, ny, nx)`` while
+    ``spacing`` and ``origin`` are ``(x, y, z)``.
+    """
+
+    shape: tuple[int, int, int]
+    spacing: np.ndarray = field(default_factory=lambda: np.ones(3))
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    direction: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    def __post_init__(self):
+        object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
+        object.__setattr__(self, "spacing", np.asarray(self.spacing, dtype=float).reshape(3))
+        object.__setattr__(self, "origin", np.asarray(self.origin, dtype=float).reshape(3))
+        object.__setattr__(self, "direction", np.asarray(self.direction, dtype=float).reshape(3, 3))
+        if len(self.shape) != 3:
+            raise ValueError(f"an image grid must be 3D, got shape {self.shape}")
+        if not np.all(self.spacing > 0):
+            raise ValueError(f"spacing must be positive, got {self.spacing}")
+
+    def index_to_world(self, index_xyz) -> np.ndarray:
+        return (np.asarray(index_xyz, dtype=float) * self.spacing) @ self.direction.T + self.origin
+
+    def world_to_index(self, world) -> np.ndarray:
+        """Continuous index ``(i, j, k)`` (x, y, z order) of world points."""
+        return np.linalg.solve(self.direction, (np.asarray(world, dtype=float) - self.origin).T).T / self.spacing
+
+
+class SamplingView(NamedTuple):
+    """What trilinear sampling reads, as plain arrays (read-only): for the
+    compiled kernels, which take arrays, not objects."""
+
+    values: np.ndarray  #: the voxels, flat (x fastest), NaN on no-data
+    strides: np.ndarray  #: flat offsets of one step in x, y, z
+    upper: np.ndarray  #: the last voxel index in x, y, z
+    to_index: np.ndarray  #: world direction -> index, 3x3
+    origin: np.ndarray  #: world point of voxel (0, 0, 0)
 
 
 class Volume:
@@ -28,7 +72,7 @@ class Volume:
         echo sector, 0 in CETUS volumes).  Samples touching such a voxel are
         treated as missing.  ``None``: every voxel is data.
     no_data_mask : bool array, optional
-        Voxels without data, in addition (see :func:`sector_mask`).
+        Voxels without data, in addition (see :func:`outside_sector`).
 
     Notes
     -----
@@ -105,7 +149,7 @@ class Volume:
         """Whether world points lie within the image (between the first and
         last voxel centres)."""
         idx = self.world_to_index(world)
-        return np.all((idx >= -_EDGE) & (idx <= self._upper + _EDGE), axis=-1)
+        return np.all((idx >= -INDEX_TOLERANCE) & (idx <= self._upper + INDEX_TOLERANCE), axis=-1)
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -125,7 +169,7 @@ class Volume:
         world = np.asarray(world, dtype=float)
         shape = world.shape[:-1]
         idx = self.world_to_index(world.reshape(-1, 3))
-        valid = np.all((idx >= -_EDGE) & (idx <= self._upper + _EDGE), axis=1)
+        valid = np.all((idx >= -INDEX_TOLERANCE) & (idx <= self._upper + INDEX_TOLERANCE), axis=1)
         idx = np.clip(idx, 0, self._upper)
         base = np.minimum(np.floor(idx), np.maximum(self._upper - 1, 0)).astype(np.int64)
         t = idx - base
@@ -141,6 +185,14 @@ class Volume:
                     out += wx * wy * wz * self._flat[flat]
         out[~valid | np.isnan(out)] = fill_value
         return out.reshape(shape)
+
+    def sampling_view(self) -> SamplingView:
+        """The arrays :meth:`sample` reads (views, not copies; read-only)."""
+        arrays = [np.ndarray.view(a) for a in (self._flat, self._strides, self._upper, self._to_index,
+                                               self.grid.origin)]
+        for a in arrays:
+            a.flags.writeable = False
+        return SamplingView(*arrays)
 
     def __call__(self, world) -> np.ndarray:
         return self.sample(world)

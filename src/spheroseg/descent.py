@@ -1,0 +1,137 @@
+"""One level of the descent: the Hermite parameters moved by the region force.
+
+The paper's scheme (eq. 25) is ``H <- H - dt dF/dH`` with ``dF/dH`` of
+eq. 22.  Here the force is a normal displacement of at most ``step`` mm
+(:meth:`spheroseg.backends.NumpyBackend.displacement`), converted to ``v0``
+and projected onto the Hermite space by least squares with the mass matrix
+``M = B^T W B``: the exact form of eq. 10's normalisation, so the update is
+``dH = -dt M^-1 dF/dH`` with the force per unit area instead of per unit
+``v1 v2``.  Two terms join that least-squares problem: an implicit
+thin-plate step towards the reference (initial) shape, and landmark rows.
+The new parameters solve
+
+    (M + a T + L^T Omega L) p+ = M p + B^T W dv0 + a T p_ref + L^T Omega (L p + r)
+
+with ``T`` the thin-plate matrix, ``a`` the smoothness, ``L`` the surface
+at the landmarks and ``r`` the landmarks' residuals along ``v0``, each
+clipped to a step.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .backends import Observation, select_backend
+from .energy import Landmarks, SampledSurface, area_gradient
+from .surface import Surface
+
+__all__ = ["Descent"]
+
+# a landmark of weight 1 outweighs the data over this fraction of the
+# (v1, v2) domain: about one patch at 4 x 4
+_LANDMARK_AREA = 0.05
+
+
+def add_rows(inverse: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """``(K + L^T diag(w) L)^-1`` from ``K^-1`` (Woodbury: a few landmark
+    rows need no new factorisation)."""
+    u = inverse @ rows.T
+    core = np.eye(len(rows)) + weights[:, None] * (rows @ u)
+    return inverse - u @ np.linalg.solve(core, weights[:, None] * u.T)
+
+
+class Descent:
+    """The iteration on one Hermite grid.
+
+    Parameters
+    ----------
+    surface : Surface
+        The start; its grid is the level's.
+    reference : Surface
+        The shape the thin-plate prior pulls towards (same grid).
+    order, step, smoothness, nu : see :class:`spheroseg.SegmentOptions`
+    landmarks : array (k, 3), optional
+        World points held by the landmark rows, with ``landmark_weights`` (k,).
+    backend : {"auto", "compiled", "numpy"}
+    """
+
+    def __init__(self, surface: Surface, reference: Surface, *, order: int, step: float, smoothness: float,
+                 nu: float = 0.0, landmarks=None, landmark_weights=None, backend: str = "auto"):
+        self.model = SampledSurface(surface.system, surface.pose, surface.grid, order)
+        self.discretisation = d = self.model.discretisation
+        self.backend = select_backend(self.model, compiled=backend != "numpy")
+        self.like = surface
+        self.p = self.model.parameters(surface.coefficients)
+        self.step, self.nu, self.smoothness = step, nu, smoothness
+        self.set_reference(reference)
+        self.set_landmarks(landmarks, landmark_weights)
+        self.h0_floor = None  # fixed per level on the first iteration
+        self._radius = None
+
+    @property
+    def surface(self) -> Surface:
+        """The current surface."""
+        return self.like.with_coefficients(self.model.coefficients(self.p))
+
+    def set_surface(self, surface: Surface) -> None:
+        """Continue from ``surface`` (same grid and pose)."""
+        self.p = self.model.parameters(surface.coefficients)
+
+    def set_reference(self, reference: Surface) -> None:
+        """The shape the thin-plate prior pulls towards."""
+        self.prior = self.discretisation.smoothing(self.smoothness) @ self.model.parameters(reference.coefficients)
+
+    def set_landmarks(self, landmarks, weights=None) -> None:
+        """Hold the surface through world points ``(k, 3)`` with weights ``(k,)``."""
+        d = self.discretisation
+        self.system_inverse = d.system_inverse(self.smoothness)
+        self.landmarks = None
+        if landmarks is not None and len(landmarks):
+            self.landmarks = Landmarks.from_world(self.model, landmarks)
+            self.omega = np.asarray(weights, float) * _LANDMARK_AREA * d.area
+            self._landmark_basis = self.landmarks.basis.toarray()
+            self.system_inverse = add_rows(self.system_inverse, self._landmark_basis, self.omega)
+
+    def observe(self, volume, data_term) -> Observation:
+        """The surface and the image at the sample points, with what the
+        data term reads (band means) and, with an area term, the geometry."""
+        offsets = data_term.band_offsets if data_term.needs_bands else None
+        return self.backend.observe(self.p, volume, band_offsets=offsets, geometry=self.nu > 0)
+
+    def iterate(self, obs: Observation, c_in, c_out, scale: float) -> float:
+        """One step; returns the RMS motion of the surface (mm)."""
+        m, d = self.model, self.discretisation
+        if self.h0_floor is None:  # fixed per level: a median per iteration costs more than the rest
+            self.h0_floor = 0.3 * float(np.median(obs.h0))
+        area_speed = None
+        if self.nu:
+            def area_speed(normal_to_v0):
+                return self.nu * self._area_speed(obs.geometry, normal_to_v0)
+        wdv0 = self.backend.displacement(obs, c_in, c_out, scale, step=self.step, h0_floor=self.h0_floor,
+                                         area_speed=area_speed)
+        rhs = self.backend.scatter(wdv0)
+        if self.landmarks is not None:
+            # rows omega |L p_new - (L p + res)|^2: move towards each landmark
+            # by at most a step
+            lm = self.landmarks
+            f = self._landmark_basis @ self.p
+            res = np.clip((lm.v0 - f) * lm.h0, -self.step, self.step) / lm.h0
+            rhs += self._landmark_basis.T @ (self.omega * (f + res))
+        p_new = self.system_inverse @ (d.mass @ self.p + self.prior + rhs)
+        dp = p_new - self.p
+        self.p = p_new
+        return float(np.sqrt(np.dot(m.weights, (obs.h0 * self.backend.gather(dp)) ** 2) / d.area))
+
+    def _area_speed(self, g, normal_to_v0) -> np.ndarray:
+        """Normal speed (steps, outward) of the area term: minus the mean
+        curvature from the gradient of paper eq. 23, made dimensionless by
+        the typical radius so that ``nu = 1`` moves a sphere by a step.
+
+        ``dA/dp = int G f_i`` where ``G = 2H h0 cos A_K`` (``2H`` the sum of
+        the principal curvatures); ``B M^-1 dA/dp`` is ``G`` projected on the
+        Hermite space."""
+        field = self.backend.gather(self.discretisation.mass_inverse @ area_gradient(self.model, self.p, g))
+        two_h = field / (np.maximum(g.area, 1e-12) * normal_to_v0)
+        if self._radius is None:
+            self._radius = float(np.median(np.linalg.norm(g.local, axis=1)))
+        return -np.clip(0.5 * two_h * self._radius, -1.0, 1.0)

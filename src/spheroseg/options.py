@@ -1,0 +1,151 @@
+"""The options of a segmentation, validated once.
+
+:class:`SegmentOptions` is what :func:`spheroseg.segment`,
+:func:`spheroseg.track` and :class:`spheroseg.Tracker` take as keywords; a
+result records it as ``parameters`` (:meth:`SegmentOptions.as_parameters`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+
+from .surface import DEFAULT_RADIUS_RATIO
+
+__all__ = ["SegmentOptions", "MODES", "SYSTEMS", "BACKENDS", "format_point"]
+
+#: data terms (see :mod:`spheroseg.dataterms`)
+MODES = ("local", "chan-vese", "fast")
+#: coordinate systems of the surface (see :mod:`spheroseg.coords`)
+SYSTEMS = ("prolate", "spherical", "cylindrical")
+#: array backends (see :mod:`spheroseg.backends`)
+BACKENDS = ("auto", "compiled", "numpy")
+
+
+def format_point(point) -> str:
+    """``(x, y, z)`` with two decimals, for messages."""
+    return "(" + ", ".join(f"{float(v):.2f}" for v in np.ravel(point)) + ")"
+
+
+@dataclass(frozen=True)
+class SegmentOptions:
+    """Options of a segmentation (all keyword arguments of :func:`spheroseg.segment`).
+
+    Parameters
+    ----------
+    system : {"prolate", "spherical", "cylindrical"}
+        Coordinate system of the surface (paper eq. 2).
+    patches : (int, int)
+        Hermite patches around (theta) and along (apex to base) the cavity;
+        the paper's 8 x 8 by default.
+    mode : {"local", "chan-vese", "fast"}
+        Data term (:mod:`spheroseg.dataterms`).
+    step : float
+        Largest normal displacement of the surface per iteration, mm.  The
+        default 1 mm is about 4 % of a ventricle's radius: the paper's
+        ``dt = 0.04``.
+    max_iterations : int
+        Cap on iterations at each level of the coarse-to-fine schedule.
+    tol : float
+        A level stops when the RMS motion of the surface in an iteration
+        falls below ``tol`` mm.
+    coarse_to_fine : bool
+        Start on a quarter and then half of the patches (exact refinement).
+    band, band_out : float
+        Widths (mm) of the bands of the local means and of the outer shell
+        of the global means.
+    interface : float, optional
+        Grey level of the interface for ``mode="fast"`` (default: Otsu's
+        threshold of the samples around the initial surface).
+    nu : float
+        Weight of the area term (paper eqs. 16-17, 23-24), 0 as in the paper:
+        a normal speed of ``nu`` times the mean curvature times the typical
+        radius, in steps (1 moves a sphere inwards by a step).
+    smoothness : float
+        Weight of a thin-plate regularisation of the surface's departure
+        from its initial shape, applied as an implicit step each iteration
+        (0 for the paper's method); 1 halves a wave of the patch size at
+        8 x 8 patches per step.
+    landmark_weight : float
+        How strongly the landmarks hold the surface (1: a landmark
+        outweighs the data over 5 % of the surface, about a patch at 4 x 4).
+    apex_weight : float
+        The apex point is a landmark of this weight (0: free apex).
+    order : int
+        Sample points per patch and direction (paper: 8).
+    radius_ratio : float
+        Base radius of the initial half-ellipsoid over the apex-base distance.
+    backend : {"auto", "compiled", "numpy"}
+        The iteration's array work (:mod:`spheroseg.backends`): ``"auto"``
+        compiles it where numba and the system allow, ``"numpy"`` runs the
+        reference.
+    """
+
+    system: str = "prolate"
+    patches: tuple[int, int] = (8, 8)
+    mode: str = "local"
+    step: float = 1.0
+    max_iterations: int = 60
+    tol: float = 0.05
+    coarse_to_fine: bool = True
+    band: float = 8.0
+    band_out: float = 15.0
+    interface: float | None = None
+    nu: float = 0.0
+    smoothness: float = 1.0
+    landmark_weight: float = 1.0
+    apex_weight: float = 1.0
+    order: int = 8
+    radius_ratio: float = DEFAULT_RADIUS_RATIO
+    backend: str = "auto"
+
+    def __post_init__(self):
+        system = getattr(self.system, "name", self.system)  # a CoordinateSystem instance names itself
+        if system not in SYSTEMS:
+            raise ValueError(f"system must be one of {SYSTEMS}, got {self.system!r}")
+        object.__setattr__(self, "system", system)
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
+        try:
+            patches = tuple(int(n) for n in self.patches)
+        except (TypeError, ValueError):
+            patches = ()
+        if len(patches) != 2 or min(patches) < 2 or patches != tuple(self.patches):
+            raise ValueError(f"patches must be two integers >= 2 (around, along), got {self.patches!r}")
+        object.__setattr__(self, "patches", patches)
+        for name in ("step", "tol", "band", "band_out"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {value!r}")
+        for name in ("max_iterations", "order"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0):
+                raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+        if self.order < 1:
+            raise ValueError(f"order must be a positive integer, got {self.order!r}")
+        for name in ("nu", "smoothness", "landmark_weight", "apex_weight"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a number >= 0, got {value!r}")
+        if not 0 < self.radius_ratio < 1:
+            raise ValueError(f"radius_ratio must be in (0, 1), got {self.radius_ratio!r}")
+        if self.interface is not None and not np.isfinite(self.interface):
+            raise ValueError(f"interface must be a finite grey level, got {self.interface!r}")
+
+    @classmethod
+    def names(cls) -> tuple[str, ...]:
+        """The option names, in order."""
+        return tuple(f.name for f in fields(cls))
+
+    def as_parameters(self) -> dict:
+        """The options as plain JSON-ready values (what results record)."""
+        out = asdict(self)
+        out["patches"] = list(self.patches)
+        return out
+
+    def replace(self, **changes) -> "SegmentOptions":
+        """A copy with some options changed (validated again)."""
+        return SegmentOptions(**{**asdict(self), **changes})

@@ -1,0 +1,125 @@
+"""What a segmentation and a tracked sequence return."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .surface import Surface
+
+__all__ = ["SegmentationResult", "TrackingResult", "Intermediate", "STATUS_MESSAGES"]
+
+#: why a descent stopped, by ``status`` (as scipy's ``OptimizeResult``)
+STATUS_MESSAGES = {
+    0: "the surface stopped moving (RMS motion below tol)",
+    1: "the iteration cap was reached before the surface stopped moving",
+    2: "stopped by the caller before the surface stopped moving (iter_callback raised StopIteration)",
+}
+
+
+@dataclass
+class SegmentationResult:
+    """What :func:`spheroseg.segment` found (or one frame of :func:`spheroseg.track`).
+
+    Attributes
+    ----------
+    surface : Surface
+    iterations : int
+        Iterations run, over all levels.
+    converged : bool
+        Whether the last level stopped on surface motion (not the cap).
+    c_in, c_out : float
+        Median region means at the end (image units).
+    seconds : float
+        Wall time of the segmentation.
+    parameters : dict
+        The options it ran with (:meth:`spheroseg.SegmentOptions.as_parameters`).
+    status : int
+        Why it stopped: 0 the surface stopped moving, 1 the iteration cap,
+        2 ``iter_callback`` raised ``StopIteration``.
+    message : str
+        The same in words.
+    """
+
+    surface: Surface
+    iterations: int
+    converged: bool
+    c_in: float
+    c_out: float
+    seconds: float
+    parameters: dict = field(default_factory=dict)
+    status: int = 0
+    message: str = STATUS_MESSAGES[0]
+
+    @property
+    def volume_ml(self) -> float:
+        """Volume of the cavity, closed at the base plane (mL)."""
+        return self.surface.volume_ml()
+
+    def mask(self, volume) -> np.ndarray:
+        """Boolean mask ``[z, y, x]`` of the cavity on ``volume``'s grid."""
+        return self.surface.mask(volume.grid)
+
+    def mesh(self, n_v1: int = 64, n_v2: int = 32, *, closed: bool = True):
+        """Triangle mesh ``(points [n, 3] world mm, faces [m, 3])``."""
+        return self.surface.mesh(n_v1, n_v2, closed=closed)
+
+
+@dataclass
+class TrackingResult:
+    """Per-frame results of :func:`spheroseg.track`, and the clinical indices."""
+
+    frames: list[SegmentationResult]
+
+    @property
+    def volumes_ml(self) -> np.ndarray:
+        return np.array([f.volume_ml for f in self.frames])
+
+    @property
+    def ed_frame(self) -> int:
+        """End-diastole: the frame of largest volume."""
+        return int(np.argmax(self.volumes_ml))
+
+    @property
+    def es_frame(self) -> int:
+        """End-systole: the frame of smallest volume."""
+        return int(np.argmin(self.volumes_ml))
+
+    @property
+    def edv_ml(self) -> float:
+        return float(self.volumes_ml.max())
+
+    @property
+    def esv_ml(self) -> float:
+        return float(self.volumes_ml.min())
+
+    @property
+    def ef(self) -> float:
+        """Ejection fraction in percent, ``100 (EDV - ESV) / EDV``."""
+        return 100.0 * (self.edv_ml - self.esv_ml) / self.edv_ml
+
+
+@dataclass(frozen=True)
+class Intermediate:
+    """What ``iter_callback`` receives after each iteration.
+
+    Attributes
+    ----------
+    surface : Surface
+        The surface after the iteration.
+    iteration : int
+        Iterations run so far in this frame (1 after the first).
+    level : int
+        Index of the coarse-to-fine level it ran on.
+    patches : (int, int)
+        That level's patches.
+    motion : float
+        RMS motion of the surface in the iteration (mm).
+    """
+
+    surface: Surface
+    iteration: int
+    level: int
+    patches: tuple[int, int]
+    motion: float

@@ -1,0 +1,325 @@
+"""The stepper: a surface model and its region statistics, advanced by
+iterations and by frames.
+
+A :class:`Tracker` holds what a segmentation carries from one iteration to
+the next (the Hermite parameters, the level's matrices, the data term and
+its statistics) and advances by :meth:`~Tracker.iterate` (one iteration)
+or :meth:`~Tracker.step` (a new frame of a sequence); :func:`spheroseg.segment`
+and :func:`spheroseg.track` are short loops over it, as
+:func:`scipy.integrate.solve_ivp` loops over ``OdeSolver.step``.  Its
+``status`` is ``None`` while it runs, then says why it stopped.
+
+The coarse-to-fine schedule is data (:func:`schedule`): a list of
+:class:`Level` (patches, data term, iteration cap).  Each level starts
+from the previous one's surface refined exactly (a Hermite surface on
+``N`` patches is one on ``2N``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, LocalMeans, band_offsets
+from .descent import Descent
+from .options import SegmentOptions, format_point
+from .results import STATUS_MESSAGES, Intermediate, SegmentationResult
+from .surface import Surface
+
+__all__ = ["Tracker", "Level", "schedule"]
+
+
+@dataclass(frozen=True)
+class Level:
+    """One level of the coarse-to-fine schedule."""
+
+    patches: tuple[int, int]
+    data_term: type[DataTerm]
+    max_iterations: int
+
+
+def schedule(options: SegmentOptions, *, coarse_to_fine: bool | None = None) -> list[Level]:
+    """The levels of a segmentation: ``options.patches`` halved while both
+    stay even and at least 2 (coarse to fine, unless disabled), each capped
+    at ``options.max_iterations``.  The local data term runs on the finest
+    level only; the coarser ones use the global means, which bring the
+    surface to the walls from afar."""
+    coarse_to_fine = options.coarse_to_fine if coarse_to_fine is None else coarse_to_fine
+    patches = [tuple(options.patches)]
+    while coarse_to_fine and min(patches[0]) >= 4 and patches[0][0] % 2 == 0 and patches[0][1] % 2 == 0:
+        patches.insert(0, (patches[0][0] // 2, patches[0][1] // 2))
+    term = DATA_TERMS[options.mode]
+    coarse = GlobalMeans if term is LocalMeans else term
+    return [Level(p, term if k == len(patches) - 1 else coarse, options.max_iterations)
+            for k, p in enumerate(patches)]
+
+
+def _check_volume(volume) -> None:
+    if not (callable(getattr(volume, "sample", None)) and hasattr(volume, "contains") and hasattr(volume, "grid")):
+        raise TypeError(f"volume must be a spheroseg.Volume, got {type(volume).__name__}")
+
+
+def _check_point(volume, point, name: str) -> np.ndarray:
+    try:
+        p = np.asarray(point, dtype=float)
+    except (TypeError, ValueError):
+        p = np.full(0, np.nan)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        raise ValueError(f"{name} must be 3 finite numbers (x, y, z in mm), got {point!r}")
+    if not volume.contains(p):
+        lo, hi = volume.bounds
+        raise ValueError(f"{name} {format_point(p)} lies outside the image "
+                         f"(x, y, z from {format_point(lo)} to {format_point(hi)} mm)")
+    return p
+
+
+class Tracker:
+    """A segmentation that steps: iteration by iteration, frame by frame.
+
+    Parameters
+    ----------
+    volume : Volume
+        The first (or only) frame: a 3D echo image, blood dark, tissue bright.
+    apex, base : (x, y, z)
+        World points (mm, ITK physical space): the endocardial apex and the
+        centre of the mitral plane.
+    landmarks : array (k, 3), optional
+        World points the surface must pass through (to stop a leak).
+    init : Surface, optional
+        Start from this surface instead of the half-ellipsoid (no
+        coarse-to-fine then); ``apex`` and ``base`` are still checked.
+    **options
+        :class:`spheroseg.SegmentOptions`.
+
+    Attributes
+    ----------
+    status : int or None
+        ``None`` while iterating; then as :attr:`SegmentationResult.status`.
+    iteration : int
+        Iterations run in the current frame.
+    level : int
+        Index of the current level in :attr:`levels`.
+    motion : float
+        RMS motion of the last iteration (mm).
+
+    Examples
+    --------
+    >>> from spheroseg import Tracker
+    >>> from spheroseg.phantom import make_phantom
+    >>> ph = make_phantom(seed=1, spacing=2.0)
+    >>> tracker = Tracker(ph.volume, ph.apex, ph.base)
+    >>> while tracker.status is None:
+    ...     motion = tracker.iterate()
+    >>> result = tracker.result()
+    >>> bool(abs(result.volume_ml - ph.truth_volume_ml) < 0.2 * ph.truth_volume_ml)
+    True
+    """
+
+    def __init__(self, volume, apex, base, *, landmarks=None, init: Surface | None = None, **options):
+        started = time.perf_counter()
+        self.options = opts = SegmentOptions(**options)
+        _check_volume(volume)
+        self.apex = _check_point(volume, apex, "apex")
+        self.base = _check_point(volume, base, "base")
+        if np.linalg.norm(self.apex - self.base) < 1e-6:
+            raise ValueError("apex and base must be distinct points")
+        if init is not None and not isinstance(init, Surface):
+            raise TypeError(f"init must be a spheroseg.Surface, got {type(init).__name__}")
+        self.volume = volume
+        self.landmarks = self._check_landmarks(landmarks)
+        self.levels = schedule(opts, coarse_to_fine=opts.coarse_to_fine and init is None)
+        if init is None:
+            surface = Surface.from_apex_base(self.apex, self.base, system=opts.system, patches=self.levels[0].patches,
+                                             radius_ratio=opts.radius_ratio)
+        else:
+            surface = init
+        self.level = 0
+        self._descent = self._new_descent(surface, surface)
+        self._terms = self._prepare_terms()
+        self.iteration, self.motion, self.status = 0, np.nan, None
+        self._level_iterations = 0
+        self._converged = False
+        self._seconds = time.perf_counter() - started
+        self._skip_empty_levels()
+
+    # construction ----------------------------------------------------------
+
+    def _check_landmarks(self, landmarks) -> np.ndarray:
+        if landmarks is None:
+            return np.empty((0, 3))
+        try:
+            points = np.asarray(landmarks, dtype=float).reshape(-1, 3)
+        except (TypeError, ValueError):
+            raise ValueError(f"landmarks must be points (x, y, z in mm), got {landmarks!r}") from None
+        for k, point in enumerate(points):
+            _check_point(self.volume, point, f"landmark {k}")
+        return points
+
+    def _held_points(self):
+        """The landmarks and, when it has a weight, the clicked apex: a point
+        of the endocardium the user gave (near-field clutter would otherwise
+        push it down)."""
+        opts = self.options
+        points, weights = self.landmarks, np.full(len(self.landmarks), opts.landmark_weight)
+        if opts.apex_weight > 0:
+            points = np.concatenate([points, self.apex[None]])
+            weights = np.concatenate([weights, [opts.apex_weight]])
+        return (points, weights) if len(points) else (None, None)
+
+    def _new_descent(self, surface: Surface, reference: Surface) -> Descent:
+        patches = self.levels[self.level].patches
+        while (surface.grid.n1, surface.grid.n2) != patches:
+            if surface.grid.n1 >= patches[0] or surface.grid.n2 >= patches[1]:
+                raise ValueError(f"the start surface has {surface.grid.n1} x {surface.grid.n2} patches: it must be "
+                                 f"{patches[0]} x {patches[1]} or refine to it")
+            surface, reference = surface.refine(), reference.refine()
+        self._reference = reference
+        points, weights = self._held_points()
+        opts = self.options
+        return Descent(surface, reference, order=opts.order, step=opts.step, smoothness=opts.smoothness, nu=opts.nu,
+                       landmarks=points, landmark_weights=weights, backend=opts.backend)
+
+    def _prepare_terms(self) -> dict:
+        """The data terms of the schedule, from the grey levels around the
+        initial surface: a check that there is something to segment, the
+        scale of the contrast, the fast mode's levels."""
+        d, opts = self._descent, self.options
+        obs = d.backend.observe(d.p, self.volume)
+        probe = GlobalMeans(np.zeros(1), band=opts.band, band_out=opts.band_out)
+        self._start_means = probe.global_means(d.backend, self.volume, obs)
+        rows = d.discretisation.band_rows
+        samples = np.concatenate([
+            d.backend.samples_along(self.volume, obs, -band_offsets(opts.band), rows).ravel(),
+            d.backend.samples_along(self.volume, obs, probe.shell_offsets, rows).ravel()])
+        samples = samples[np.isfinite(samples)]
+        if samples.size < 10 or np.ptp(samples) <= 1e-6 * max(np.abs(samples).max(), 1.0):
+            raise ValueError("the image is constant (or empty) around the initial surface: nothing to segment")
+        terms = {}
+        for level in self.levels:
+            if level.data_term not in terms:
+                terms[level.data_term] = level.data_term(samples, band=opts.band, band_out=opts.band_out,
+                                                         interface=opts.interface)
+        return terms
+
+    # stepping --------------------------------------------------------------
+
+    @property
+    def surface(self) -> Surface:
+        """The current surface."""
+        return self._descent.surface
+
+    @property
+    def patches(self) -> tuple[int, int]:
+        return self.levels[self.level].patches
+
+    def iterate(self) -> float:
+        """Run one iteration; at the end of a level, move to the next.
+
+        Returns
+        -------
+        float
+            RMS motion of the surface in the iteration (mm).
+        """
+        if self.status is not None:
+            raise RuntimeError(f"the tracker has stopped ({self.message}); step(volume) starts a new frame")
+        started = time.perf_counter()
+        term = self._terms[self.levels[self.level].data_term]
+        obs = self._descent.observe(self.volume, term)
+        self.c_in, self.c_out, scale = term.means(self._descent.backend, self.volume, obs)
+        self.motion = self._descent.iterate(obs, self.c_in, self.c_out, scale)
+        self.iteration += 1
+        self._level_iterations += 1
+        if self.motion < self.options.tol:
+            self._end_level(converged=True)
+        elif self._level_iterations >= self.levels[self.level].max_iterations:
+            self._end_level(converged=False)
+        self._seconds += time.perf_counter() - started
+        return self.motion
+
+    def _end_level(self, *, converged: bool) -> None:
+        self._converged = converged
+        if self.level + 1 < len(self.levels):
+            self.level += 1
+            self._level_iterations = 0
+            self._descent = self._new_descent(self._descent.surface, self._reference)
+            self._skip_empty_levels()
+        else:
+            self.status = 0 if converged else 1
+
+    def _skip_empty_levels(self) -> None:
+        if self.status is None and self.levels[self.level].max_iterations == 0:
+            self._end_level(converged=False)
+
+    def stop(self, status: int = 2) -> None:
+        """End the current frame now (``status`` 2: stopped from outside)."""
+        self.status = status
+
+    @property
+    def message(self) -> str:
+        """Why the current frame stopped (empty while running)."""
+        return "" if self.status is None else STATUS_MESSAGES[self.status]
+
+    def intermediate(self) -> Intermediate:
+        """The state after the last iteration, as ``iter_callback`` gets it."""
+        return Intermediate(self.surface, self.iteration, self.level, self.patches, float(self.motion))
+
+    def run(self, iter_callback=None) -> SegmentationResult:
+        """Iterate until the current frame stops; ``iter_callback(intermediate)``
+        is called after every iteration and may raise ``StopIteration``."""
+        while self.status is None:
+            self.iterate()
+            if iter_callback is not None:
+                try:
+                    iter_callback(self.intermediate())
+                except StopIteration:
+                    self.stop(2)
+        return self.result()
+
+    def step(self, volume, *, max_iterations: int | None = None, iter_callback=None) -> SegmentationResult:
+        """Segment a new frame, starting from the current surface.
+
+        The finest level continues on ``volume``: same model, matrices and
+        region statistics; the current surface is the start and the
+        reference shape of the smoothing prior; at most ``max_iterations``
+        (default: the options') until the surface stops moving.
+        """
+        _check_volume(volume)
+        if max_iterations is not None and not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 1):
+            raise ValueError(f"max_iterations must be a positive integer, got {max_iterations!r}")
+        if self.status is None:
+            self.run()  # the current frame first
+        started = time.perf_counter()
+        surface = self.surface
+        cap = self.options.max_iterations if max_iterations is None else int(max_iterations)
+        self.levels[-1] = Level(self.levels[-1].patches, self.levels[-1].data_term, cap)
+        self.level = len(self.levels) - 1
+        self.volume = volume
+        self._descent.set_surface(surface)
+        self._descent.set_reference(surface)
+        self._reference = surface
+        self.iteration, self._level_iterations, self.status, self._converged = 0, 0, None, False
+        self._seconds = time.perf_counter() - started
+        self._frame_options = {"max_iterations": cap, "coarse_to_fine": False}
+        return self.run(iter_callback)
+
+    def set_landmarks(self, landmarks) -> None:
+        """Replace the user's landmarks (world points ``(k, 3)``) and continue
+        the finest level from the current surface (the viewer's edits)."""
+        points = self._check_landmarks(landmarks)
+        self.landmarks = points
+        self._descent.set_landmarks(*self._held_points())
+        self.level = len(self.levels) - 1 if self.status is not None else self.level
+        self._level_iterations, self.status = 0, None
+
+    def result(self) -> SegmentationResult:
+        """The current frame's result."""
+        c_in = getattr(self, "c_in", self._start_means[0])
+        c_out = getattr(self, "c_out", self._start_means[1])
+        parameters = {**self.options.as_parameters(), **getattr(self, "_frame_options", {})}
+        status = 2 if self.status is None else self.status
+        return SegmentationResult(
+            surface=self.surface, iterations=self.iteration, converged=self._converged,
+            c_in=float(np.nanmedian(c_in)), c_out=float(np.nanmedian(c_out)), seconds=self._seconds,
+            parameters=parameters, status=status, message=STATUS_MESSAGES[status])

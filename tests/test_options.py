@@ -1,0 +1,44 @@
+import json
+
+import pytest
+
+from spheroseg.options import SegmentOptions, format_point
+
+
+def test_defaults_round_trip_through_json():
+    opts = SegmentOptions()
+    params = json.loads(json.dumps(opts.as_parameters()))
+    assert params["patches"] == [8, 8] and params["mode"] == "local" and params["backend"] == "auto"
+    assert SegmentOptions(**params) == opts
+    assert set(params) == set(SegmentOptions.names())
+
+
+@pytest.mark.parametrize("changes, message", [
+    (dict(mode="levelset"), "mode must be one of"),
+    (dict(system="polar"), "system must be one of"),
+    (dict(patches=(8,)), "patches must be two integers >= 2"),
+    (dict(patches=(8, 2.5)), "patches must be two integers >= 2"),
+    (dict(step=-1.0), "step must be a positive number, got -1.0"),
+    (dict(tol=float("nan")), "tol must be a positive number"),
+    (dict(max_iterations=True), "max_iterations must be a non-negative integer"),
+    (dict(order=0), "order must be a positive integer"),
+    (dict(nu=-0.1), "nu must be a number >= 0"),
+    (dict(radius_ratio=1.5), r"radius_ratio must be in \(0, 1\)"),
+    (dict(interface=float("inf")), "interface must be a finite grey level"),
+])
+def test_bad_options_are_refused_with_their_name(changes, message):
+    with pytest.raises(ValueError, match=message):
+        SegmentOptions(**changes)
+    with pytest.raises(ValueError, match=message):
+        SegmentOptions().replace(**changes)
+
+
+def test_unknown_option_is_a_type_error():
+    with pytest.raises(TypeError):
+        SegmentOptions(smoothnes=1.0)
+
+
+def test_format_point():
+    import numpy as np
+
+    assert format_point(np.array([1.0, -2.345, 1e3])) == "(1.00, -2.35, 1000.00)"
