@@ -32,7 +32,7 @@ def test_global_means_are_the_region_values(two_regions, backend):
     volume, model, p, _, _ = two_regions
     b = NumpyBackend(model) if backend == "numpy" else select_backend(model)
     term = GlobalMeans(np.array([C_IN, C_OUT]), band_out=15.0)
-    c_in, c_out, scale = term.means(b, volume, b.observe(p, volume))
+    c_in, c_out, scale = term.force(b, volume, b.observe(p, volume))[1:4]
     # the cavity along the rays (to 0.95 f) and the shell 3 to 15 mm outside
     assert c_in == pytest.approx(C_IN, abs=0.5)
     assert c_out == pytest.approx(C_OUT, abs=0.5)
@@ -44,19 +44,19 @@ def test_local_means_are_the_band_values_and_respect_polarity(two_regions):
     b = NumpyBackend(model)
     term = LocalMeans(np.array([C_IN, C_OUT]), band=8.0)
     obs = b.observe(p, volume, band_offsets=term.band_offsets)
-    c_in, c_out, scale = term.means(b, volume, obs)
+    _, c_in, c_out, scale, _ = term.force(b, volume, obs)
     # on the interface: blood in the inner band, tissue in the outer one
     assert np.median(c_in) == pytest.approx(C_IN, abs=1.0) and np.median(c_out) == pytest.approx(C_OUT, abs=1.0)
     assert scale == pytest.approx(np.median(c_out - c_in) ** 2)
     # 4 mm inside: the outer band (2 to 8 mm) is part blood, so its mean lies between
     b = NumpyBackend(inner)
-    c_in, c_out, _ = term.means(b, volume, b.observe(p_inner, volume, band_offsets=term.band_offsets))
+    c_in, c_out = term.band_means(b, b.observe(p_inner, volume, band_offsets=term.band_offsets))
     assert np.median(c_in) == pytest.approx(C_IN, abs=1.0) and C_IN + 20 < np.median(c_out) < C_OUT - 20
     # inside brighter than outside: no contrast, no force, the least scale
     b = NumpyBackend(model)
     flipped = Volume(C_IN + C_OUT - volume.array)
     obs = b.observe(p, flipped, band_offsets=term.band_offsets)
-    c_in, c_out, scale = term.means(b, flipped, obs)
+    _, c_in, c_out, scale, _ = term.force(b, flipped, obs)
     np.testing.assert_allclose(c_out, c_in)
     assert scale == term.min_scale
 
@@ -68,7 +68,8 @@ def test_fixed_interface_levels():
     assert otsu_threshold(samples) == pytest.approx(70.0)
     given = FixedInterface(samples, interface=60.0)
     assert (given.c_in, given.c_out) == (10.0, 110.0)  # the class means' half gap about the given level
-    assert given.means(None, None, None) == (10.0, 110.0, 100.0**2)
+    obs = type("Obs", (), {"u": np.zeros(3)})()
+    assert given.force(None, None, obs)[1:] == (10.0, 110.0, 100.0**2, 1.0)
 
 
 def test_modes_map_to_one_class_each():

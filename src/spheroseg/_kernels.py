@@ -268,14 +268,14 @@ def cavity_sums(image, strides, upper, to_index, image_origin, f, cos_th, sin_th
         out_weight[r] = weight
 
 
-def normal_displacement(u, c_in, c_out, scale, h0, cos, h0_floor, min_cos, step, weights, out):
+def normal_displacement(u, c_in, c_out, scale, clip, h0, cos, h0_floor, min_cos, step, weights, out):
     """``out = weights * dv0``: the region force of eq. 22 as a displacement
     in ``v0`` per sample point, as :meth:`spheroseg.backends.NumpyBackend.displacement`
     (the reference, through :func:`spheroseg.energy.normal_speed`)."""
     for q in range(u.shape[0]):
         r = (c_out[q] - c_in[q]) * (2.0 * u[q] - c_in[q] - c_out[q]) / scale
         if math.isfinite(r):
-            speed = -min(max(r, -1.0), 1.0)
+            speed = -min(max(r, -clip), clip)
         elif math.isfinite(u[q]):
             speed = 0.0
         else:  # off the data: pulled back in

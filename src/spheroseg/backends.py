@@ -136,13 +136,15 @@ class NumpyBackend:
     # the force ----------------------------------------------------------------
 
     def displacement(self, obs: Observation, c_in, c_out, scale: float, *, step: float, h0_floor: float,
+                     clip: float = 1.0, u=None,
                      area_speed: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
         """``W dv0``: the normal speed of :func:`~spheroseg.energy.normal_speed`
         times ``step`` (mm), converted to ``v0`` (``h0 cos``, both bounded
         below: near a focal point or at grazing rays ``v0`` barely moves the
-        surface), times the quadrature weights.  ``area_speed`` adds a speed
-        (steps) given the conversion factor."""
-        speed = normal_speed(obs.u, c_in, c_out, scale)
+        surface), times the quadrature weights.  ``u`` replaces the observed
+        grey level (a data term's transform of it); ``clip`` bounds the speed;
+        ``area_speed`` adds a speed (steps) given the conversion factor."""
+        speed = normal_speed(obs.u if u is None else u, c_in, c_out, scale, clip)
         normal_to_v0 = np.maximum(obs.h0 * np.maximum(obs.cos, MIN_COS), h0_floor)
         if area_speed is not None:
             speed = speed + area_speed(normal_to_v0)
@@ -220,13 +222,14 @@ class CompiledBackend(NumpyBackend):
         return out[:, 0] if values.ndim == 1 else out
 
     def displacement(self, obs: Observation, c_in, c_out, scale: float, *, step: float, h0_floor: float,
-                     area_speed=None) -> np.ndarray:
+                     clip: float = 1.0, u=None, area_speed=None) -> np.ndarray:
         if area_speed is not None:
-            return super().displacement(obs, c_in, c_out, scale, step=step, h0_floor=h0_floor, area_speed=area_speed)
+            return super().displacement(obs, c_in, c_out, scale, step=step, h0_floor=h0_floor, clip=clip, u=u,
+                                        area_speed=area_speed)
         n = self.model.n_samples
         c_in, c_out = (np.full(n, c) if np.ndim(c) == 0 else c for c in (c_in, c_out))
-        self.kernels.normal_displacement(obs.u, c_in, c_out, scale, obs.h0, obs.cos, h0_floor, MIN_COS, step,
-                                         self.model.weights, self._displacement)
+        self.kernels.normal_displacement(obs.u if u is None else u, c_in, c_out, scale, clip, obs.h0, obs.cos,
+                                         h0_floor, MIN_COS, step, self.model.weights, self._displacement)
         return self._displacement
 
 

@@ -39,9 +39,11 @@ References
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
-__all__ = ["DataTerm", "FixedInterface", "GlobalMeans", "LocalMeans", "DATA_TERMS", "band_offsets",
+__all__ = ["DataTerm", "Force", "FixedInterface", "GlobalMeans", "LocalMeans", "DATA_TERMS", "band_offsets",
            "shell_offsets", "otsu_threshold"]
 
 # fractions of f at which the cavity is sampled along each ray
@@ -72,6 +74,19 @@ def otsu_threshold(values: np.ndarray) -> float:
     score = k * (n - k) * (m1 - m0) ** 2
     i = int(np.argmax(score))
     return float((v[i] + v[i + 1]) / 2)
+
+
+class Force(NamedTuple):
+    """What the force of eq. 22 needs at the sample points: the grey level
+    ``u`` (or a data term's transform of it), the region means in the same
+    units (scalars or arrays), the squared contrast the force is divided
+    by, and the bound of the resulting speed (in steps)."""
+
+    u: np.ndarray
+    c_in: object
+    c_out: object
+    scale: float
+    clip: float = 1.0
 
 
 def _ratio(numerator: float, denominator: float) -> float:
@@ -108,10 +123,9 @@ class DataTerm:
         self.band_offsets = band_offsets(band) if self.needs_bands else None
         self.shell_offsets = shell_offsets(band_out)
 
-    def means(self, backend, volume, obs):
-        """``(c_in, c_out, scale)`` for the observation ``obs``: scalars or
-        arrays over the sample points, and the squared contrast the force is
-        divided by."""
+    def force(self, backend, volume, obs) -> Force:
+        """The :class:`Force` for the observation ``obs``.  Sets
+        :attr:`grey_means`, the median region means in image units."""
         raise NotImplementedError
 
     def global_means(self, backend, volume, obs) -> tuple[float, float]:
@@ -139,16 +153,18 @@ class FixedInterface(DataTerm):
         half = (hi.mean() - lo.mean()) / 2 if lo.size and hi.size else self.spread
         self.c_in, self.c_out = mid - half, mid + half
 
-    def means(self, backend, volume, obs):
-        return self.c_in, self.c_out, (self.c_out - self.c_in) ** 2
+    def force(self, backend, volume, obs) -> Force:
+        self.grey_means = (self.c_in, self.c_out)
+        return Force(obs.u, self.c_in, self.c_out, (self.c_out - self.c_in) ** 2)
 
 
 class GlobalMeans(DataTerm):
     """Global Chan-Vese means, re-estimated every iteration."""
 
-    def means(self, backend, volume, obs):
+    def force(self, backend, volume, obs) -> Force:
         c_in, c_out = self.global_means(backend, volume, obs)
-        return c_in, c_out, max((c_out - c_in) ** 2, self.min_scale)
+        self.grey_means = (c_in, c_out)
+        return Force(obs.u, c_in, c_out, max((c_out - c_in) ** 2, self.min_scale))
 
 
 class LocalMeans(DataTerm):
@@ -156,7 +172,13 @@ class LocalMeans(DataTerm):
 
     needs_bands = True
 
-    def means(self, backend, volume, obs):
+    def force(self, backend, volume, obs) -> Force:
+        c_in, c_out = self.band_means(backend, obs)
+        contrast = np.maximum(c_out - c_in, 0.0)
+        self.grey_means = (float(np.nanmedian(c_in)), float(np.nanmedian(c_out)))
+        return Force(obs.u, c_in, c_in + contrast, max(np.median(contrast) ** 2, self.min_scale))
+
+    def band_means(self, backend, obs):
         """The band means projected on the Hermite space (the band rows'
         quadrature: ``M^-1 B_b^T W_b m``) and evaluated at every sample
         point.  Inside brighter than outside (wrong polarity) gives no force."""
@@ -171,8 +193,7 @@ class LocalMeans(DataTerm):
         # one mat-vec a field: BLAS multiplies a 259 x 2 block slower than that
         smooth = np.stack([d.mass_inverse @ column for column in rhs.T], axis=1)
         c_in, c_out = backend.gather(smooth)
-        contrast = np.maximum(c_out - c_in, 0.0)
-        return c_in, c_in + contrast, max(np.median(contrast) ** 2, self.min_scale)
+        return c_in, c_out
 
 
 #: the data term of each ``mode``

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from .backends import Observation, select_backend
+from .dataterms import Force
 from .energy import Landmarks, SampledSurface, area_gradient
 from .surface import Surface
 
@@ -98,8 +99,9 @@ class Descent:
         offsets = data_term.band_offsets if data_term.needs_bands else None
         return self.backend.observe(self.p, volume, band_offsets=offsets, geometry=self.nu > 0)
 
-    def iterate(self, obs: Observation, c_in, c_out, scale: float) -> float:
-        """One step; returns the RMS motion of the surface (mm)."""
+    def iterate(self, obs: Observation, force: Force) -> float:
+        """One step with the data term's force; returns the RMS motion of
+        the surface (mm)."""
         m, d = self.model, self.discretisation
         if self.h0_floor is None:  # fixed per level: a median per iteration costs more than the rest
             self.h0_floor = 0.3 * float(np.median(obs.h0))
@@ -107,8 +109,8 @@ class Descent:
         if self.nu:
             def area_speed(normal_to_v0):
                 return self.nu * self._area_speed(obs.geometry, normal_to_v0)
-        wdv0 = self.backend.displacement(obs, c_in, c_out, scale, step=self.step, h0_floor=self.h0_floor,
-                                         area_speed=area_speed)
+        wdv0 = self.backend.displacement(obs, force.c_in, force.c_out, force.scale, step=self.step,
+                                         h0_floor=self.h0_floor, clip=force.clip, u=force.u, area_speed=area_speed)
         rhs = self.backend.scatter(wdv0)
         if self.landmarks is not None:
             # rows omega |L p_new - (L p + res)|^2: move towards each landmark

@@ -227,8 +227,9 @@ class Tracker:
         started = time.perf_counter()
         term = self._terms[self.levels[self.level].data_term]
         obs = self._descent.observe(self.volume, term)
-        self.c_in, self.c_out, scale = term.means(self._descent.backend, self.volume, obs)
-        self.motion = self._descent.iterate(obs, self.c_in, self.c_out, scale)
+        force = term.force(self._descent.backend, self.volume, obs)
+        self.c_in, self.c_out = term.grey_means
+        self.motion = self._descent.iterate(obs, force)
         self.iteration += 1
         self._level_iterations += 1
         if self.motion < self.options.tol:
@@ -315,8 +316,7 @@ class Tracker:
 
     def result(self) -> SegmentationResult:
         """The current frame's result."""
-        c_in = getattr(self, "c_in", self._start_means[0])
-        c_out = getattr(self, "c_out", self._start_means[1])
+        c_in, c_out = getattr(self, "c_in", self._start_means[0]), getattr(self, "c_out", self._start_means[1])
         parameters = {**self.options.as_parameters(), **getattr(self, "_frame_options", {})}
         status = 2 if self.status is None else self.status
         return SegmentationResult(
