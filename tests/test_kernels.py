@@ -73,13 +73,18 @@ def test_samples_match_volume_sample_including_no_data(case):
     offsets = np.array([-4.0, 0.0, 3.0])
     rows = np.arange(model.n_samples)
     mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
-    _kernels.sample_along(*vol.sampling_view(), world, normal, rows, offsets, mean, count)
+    _kernels.sample_along(*vol.sampling_view(), world, normal, rows, offsets, 0.0, mean, count)
     samples = vol.sample(world.T[:, None, :] + offsets[None, :, None] * normal.T[:, None, :])
     ok = np.isfinite(samples)
     assert 0 < (count == 0).sum() and (count == 3).sum() > 0  # the test reaches both cases
     np.testing.assert_array_equal(count, ok.sum(axis=1))
     with np.errstate(invalid="ignore"):
         expected = np.nansum(samples, axis=1) / ok.sum(axis=1)
+    np.testing.assert_allclose(mean, expected, rtol=1e-9, atol=1e-9)
+    # with log compression undone: the mean of exp(a v), not exp of the mean
+    _kernels.sample_along(*vol.sampling_view(), world, normal, rows, offsets, 0.05, mean, count)
+    with np.errstate(invalid="ignore"):
+        expected = np.nansum(np.exp(0.05 * samples), axis=1) / ok.sum(axis=1)
     np.testing.assert_allclose(mean, expected, rtol=1e-9, atol=1e-9)
 
 

@@ -81,32 +81,36 @@ class NumpyBackend:
 
     # the surface and the image ---------------------------------------------
 
-    def observe(self, p, volume, *, band_offsets=None, geometry: bool = False) -> Observation:
+    def observe(self, p, volume, *, band_offsets=None, geometry: bool = False, exponent: float = 0.0) -> Observation:
         """The surface of parameters ``p`` at the samples and the image there;
         with ``band_offsets`` (mm, positive), the mean grey levels at those
-        distances inside and outside along the normal, on the band rows."""
+        distances inside and outside along the normal, on the band rows.  A
+        non-zero ``exponent`` ``a`` reads ``exp(a v)`` for every sample ``v``."""
         m = self.model
         g = m.geometry(p)
         h0 = m.system.scale_factors(g.f, m.v1, m.v2)[0]
         cos = np.einsum("ij,ij->i", g.normal @ m.pose.rotation, g.jacobian[:, :, 0]) / h0
         obs = Observation(g.f, h0, cos, g.area, g.world.T, g.normal.T, u=None, geometry=g)
-        obs.u = row_nanmean(self.samples_along(volume, obs, _SURFACE_OFFSETS))
+        obs.u = row_nanmean(self.samples_along(volume, obs, _SURFACE_OFFSETS, exponent=exponent))
         if band_offsets is not None:
             rows = self.discretisation.band_rows
-            obs.inside = row_nanmean(self.samples_along(volume, obs, -band_offsets, rows))
-            obs.outside = row_nanmean(self.samples_along(volume, obs, band_offsets, rows))
+            obs.inside = row_nanmean(self.samples_along(volume, obs, -band_offsets, rows, exponent=exponent))
+            obs.outside = row_nanmean(self.samples_along(volume, obs, band_offsets, rows, exponent=exponent))
         return obs
 
-    def samples_along(self, volume, obs: Observation, offsets, rows=slice(None)) -> np.ndarray:
-        """Grey levels at ``world + s normal`` for ``s`` in ``offsets`` (mm):
-        ``(rows, offsets)``, NaN off the data."""
+    def samples_along(self, volume, obs: Observation, offsets, rows=slice(None), *, exponent: float = 0.0,
+                      order: int = 1) -> np.ndarray:
+        """Grey levels (or ``exp(exponent v)``) at ``world + s normal`` for
+        ``s`` in ``offsets`` (mm): ``(rows, offsets)``, NaN off the data;
+        trilinear, or the nearest voxel with ``order=0``."""
         pts = obs.world.T[rows, None, :] + np.asarray(offsets)[None, :, None] * obs.normal.T[rows, None, :]
-        return volume.sample(pts)
+        values = volume.sample(pts) if order == 1 else volume.sample(pts, order=order)
+        return np.exp(exponent * values) if exponent else values
 
-    def mean_along(self, volume, obs: Observation, offsets, rows) -> tuple[np.ndarray, np.ndarray]:
+    def mean_along(self, volume, obs: Observation, offsets, rows, *, exponent: float = 0.0):
         """Mean (NaN if none) and number of the finite samples along the
         normals of ``rows``."""
-        u = self.samples_along(volume, obs, offsets, rows)
+        u = self.samples_along(volume, obs, offsets, rows, exponent=exponent)
         return row_nanmean(u), np.isfinite(u).sum(axis=1)
 
     def cavity_sums(self, volume, obs: Observation, fractions, rows) -> tuple[np.ndarray, np.ndarray]:
@@ -145,10 +149,17 @@ class NumpyBackend:
         grey level (a data term's transform of it); ``clip`` bounds the speed;
         ``area_speed`` adds a speed (steps) given the conversion factor."""
         speed = normal_speed(obs.u if u is None else u, c_in, c_out, scale, clip)
-        normal_to_v0 = np.maximum(obs.h0 * np.maximum(obs.cos, MIN_COS), h0_floor)
+        normal_to_v0 = self.normal_to_v0(obs, h0_floor)
         if area_speed is not None:
             speed = speed + area_speed(normal_to_v0)
         return self.model.weights * step * speed / normal_to_v0
+
+    @staticmethod
+    def normal_to_v0(obs: Observation, h0_floor: float) -> np.ndarray:
+        """mm of normal motion per unit ``v0`` at each sample point: ``h0 cos``,
+        bounded below (near a focal point, or at grazing rays, ``v0`` barely
+        moves the surface)."""
+        return np.maximum(obs.h0 * np.maximum(obs.cos, MIN_COS), h0_floor)
 
 
 class CompiledBackend(NumpyBackend):
@@ -171,30 +182,32 @@ class CompiledBackend(NumpyBackend):
         self._counts = np.empty(n, np.int64)
         self._displacement = np.empty(n)
 
-    def observe(self, p, volume, *, band_offsets=None, geometry: bool = False) -> Observation:
+    def observe(self, p, volume, *, band_offsets=None, geometry: bool = False, exponent: float = 0.0) -> Observation:
         if geometry:
-            return super().observe(p, volume, band_offsets=band_offsets, geometry=True)
+            return super().observe(p, volume, band_offsets=band_offsets, geometry=True, exponent=exponent)
         m, d, b = self.model, self.discretisation, self._buffers
         coefficients = (d.constraints @ p).reshape(m.grid.shape)
         self.kernels.prolate_surface(coefficients, d.order, *d.tables, *d.trig, m.system.focal_length,
                                      m.pose.rotation, m.pose.origin, b["f"], b["h0"], b["cos"], b["area"],
                                      b["world"], b["normal"])
         image = volume.sampling_view()
-        self.kernels.sample_along(*image, b["world"], b["normal"], self._all_rows, _SURFACE_OFFSETS, b["u"],
+        self.kernels.sample_along(*image, b["world"], b["normal"], self._all_rows, _SURFACE_OFFSETS, exponent, b["u"],
                                   self._counts)
         obs = Observation(**b)
         if band_offsets is not None:
             rows = d.band_rows
             counts = self._counts[:len(rows)]
-            self.kernels.sample_along(*image, b["world"], b["normal"], rows, -band_offsets, b["inside"], counts)
-            self.kernels.sample_along(*image, b["world"], b["normal"], rows, band_offsets, b["outside"], counts)
+            self.kernels.sample_along(*image, b["world"], b["normal"], rows, -band_offsets, exponent, b["inside"],
+                                      counts)
+            self.kernels.sample_along(*image, b["world"], b["normal"], rows, band_offsets, exponent, b["outside"],
+                                      counts)
         else:
             obs.inside = obs.outside = None
         return obs
 
-    def mean_along(self, volume, obs: Observation, offsets, rows):
+    def mean_along(self, volume, obs: Observation, offsets, rows, *, exponent: float = 0.0):
         mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
-        self.kernels.sample_along(*volume.sampling_view(), obs.world, obs.normal, rows, offsets, mean, count)
+        self.kernels.sample_along(*volume.sampling_view(), obs.world, obs.normal, rows, offsets, exponent, mean, count)
         return mean, count
 
     def cavity_sums(self, volume, obs: Observation, fractions, rows):

@@ -51,7 +51,7 @@ def schedule(options: SegmentOptions, *, coarse_to_fine: bool | None = None) -> 
     while coarse_to_fine and min(patches[0]) >= 4 and patches[0][0] % 2 == 0 and patches[0][1] % 2 == 0:
         patches.insert(0, (patches[0][0] // 2, patches[0][1] // 2))
     term = DATA_TERMS[options.mode]
-    coarse = GlobalMeans if term is LocalMeans else term
+    coarse = GlobalMeans if issubclass(term, LocalMeans) else term
     return [Level(p, term if k == len(patches) - 1 else coarse, options.max_iterations)
             for k, p in enumerate(patches)]
 
@@ -179,7 +179,8 @@ class Tracker:
         points, weights = self._held_points()
         opts = self.options
         return Descent(surface, reference, order=opts.order, step=opts.step, smoothness=opts.smoothness, nu=opts.nu,
-                       landmarks=points, landmark_weights=weights, backend=opts.backend)
+                       landmarks=points, landmark_weights=weights, backend=opts.backend,
+                       adaptive_step=opts.adaptive_step)
 
     def _prepare_terms(self) -> dict:
         """The data terms of the schedule, from the grey levels around the
@@ -299,6 +300,7 @@ class Tracker:
         self.volume = volume
         self._descent.set_surface(surface)
         self._descent.set_reference(surface)
+        self._descent.reset_step(self.options.step)
         self._reference = surface
         self.iteration, self._level_iterations, self.status, self._converged = 0, 0, None, False
         self._seconds = time.perf_counter() - started
