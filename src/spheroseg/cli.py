@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .options import MODES, SYSTEMS
+from .options import MODES, SYSTEMS, SegmentOptions
 
 EXIT_ERROR = 2
 
@@ -53,7 +53,7 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="overwrite existing outputs in DIR")
     p.add_argument("--system", default="prolate", choices=SYSTEMS)
     p.add_argument("--patches", nargs=2, type=int, default=(8, 8), metavar=("N_THETA", "N_MU"))
-    p.add_argument("--mode", default="local", choices=MODES, help="data term")
+    p.add_argument("--mode", default=SegmentOptions.mode, choices=MODES, help="data term")
     p.add_argument("--step", type=float, default=1.0, help="largest surface motion per iteration, mm")
     p.add_argument("--max-iterations", type=int, default=60, help="per coarse-to-fine level")
     p.add_argument("--smoothness", type=float, default=1.0, help="thin-plate prior weight (0: the paper's method)")

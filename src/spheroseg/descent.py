@@ -66,6 +66,7 @@ class Descent:
         self.p = self.model.parameters(surface.coefficients)
         self.step, self.nu, self.smoothness = step, nu, smoothness
         self.adaptive_step = adaptive_step
+        self._initial_step = step
         self._previous_motion = None
         self.set_reference(reference)
         self.set_landmarks(landmarks, landmark_weights)
@@ -141,8 +142,9 @@ class Descent:
         return float(np.sqrt(np.dot(m.weights, motion**2) / d.area))
 
     def reset_step(self, step: float) -> None:
-        """Start again from ``step`` mm (a new frame)."""
-        self.step, self._previous_motion = step, None
+        """Start again from ``step`` mm (a new frame, new landmarks)."""
+        self.step = self._initial_step = step
+        self._previous_motion = None
 
     def _adapt_step(self, motion: np.ndarray) -> None:
         """Halve the step when the surface turns back on itself: a motion
@@ -154,7 +156,7 @@ class Descent:
             dot = np.dot(w, motion * self._previous_motion)
             norms = np.sqrt(np.dot(w, motion**2) * np.dot(w, self._previous_motion**2))
             if norms > 0 and dot < -0.5 * norms:
-                self.step *= 0.5
+                self.step = max(0.5 * self.step, self._initial_step / 8)
         self._previous_motion = motion.copy()
 
     def _area_speed(self, g, normal_to_v0) -> np.ndarray:

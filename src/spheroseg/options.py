@@ -87,7 +87,7 @@ class SegmentOptions:
 
     system: str = "prolate"
     patches: tuple[int, int] = (8, 8)
-    mode: str = "local"
+    mode: str = "intensity"
     step: float = 1.0
     adaptive_step: bool = True
     max_iterations: int = 60

@@ -313,6 +313,7 @@ class Tracker:
         points = self._check_landmarks(landmarks)
         self.landmarks = points
         self._descent.set_landmarks(*self._held_points())
+        self._descent.reset_step(self.options.step)
         self.level = len(self.levels) - 1 if self.status is not None else self.level
         self._level_iterations, self.status = 0, None
 
