@@ -1,3 +1,5 @@
+import hashlib
+
 import numpy as np
 import pytest
 
@@ -55,3 +57,55 @@ def test_sequence_volume_curve():
 
 def test_families_exist():
     assert {"clean", "speckle", "dropout", "clutter", "low_contrast", "tilted"} <= set(FAMILIES)
+
+
+# The legacy image (no formation, no base descent) pinned: tests/data/descent_reference.npz
+# was recorded on these arrays.  Digests computed on commit 5937444, before the
+# image formations were added: sha256 of the grey levels (as uint8) and of the
+# truth mask, the truth volume (mL) and the sum of |truth mesh coordinates| (mm).
+LEGACY = {
+    "default": ("d15e754af3f9a914", "9577648faf586f64", 123.965482193, 1570457.071154),
+    "clean": ("df886091da439ae4", "d2f7355beb663b62", 152.395686567, 1604831.017122),
+    "speckle": ("e40acde2339c7be8", "a67fff00e91de765", 181.083203306, 1692982.403721),
+    "dropout": ("e9890724dc9650aa", "33da58fc8b4eb9dc", 110.520137351, 1535285.247347),
+    "clutter": ("8e31985550107919", "31ad338a32b5e5ae", 141.911187248, 1605128.404669),
+    "low_contrast": ("8f16a8ed3a6c5f12", "4f98eca66d9adfd4", 152.682477205, 1610810.47242),
+    "tilted": ("2ed7f633082b232e", "41d3041a05127f74", 145.836617929, 1949602.07893),
+}
+LEGACY_SEQUENCE = [
+    ("e2ca10c9cd9ac14a", "f950e51eba9324fd", 167.862158677, 1632090.640723),
+    ("a1834965d1546c9e", "9e5358d5bc8298b2", 117.14388534, 1657463.134321),
+    ("248be374b2896c3b", "67338907bd5af1cd", 75.525427076, 1686973.479338),
+    ("b63b309edb105783", "9e5358d5bc8298b2", 117.14388534, 1657463.134321),
+]
+
+
+def _digest(ph):
+    def sha(a):
+        return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()[:16]
+
+    return sha(ph.volume.array.astype(np.uint8)), sha(ph.truth_mask), ph.truth_volume_ml, np.abs(ph.truth_mesh[0]).sum()
+
+
+def _check_legacy(ph, expected):
+    image, mask, ml, mesh = _digest(ph)
+    assert np.array_equal(ph.volume.array, ph.volume.array.astype(np.uint8)), "grey levels are integers"
+    assert (image, mask) == expected[:2], "the legacy image or truth mask changed"
+    np.testing.assert_allclose([ml, mesh], expected[2:], rtol=1e-9)
+
+
+@pytest.mark.parametrize("family", list(LEGACY))
+def test_legacy_phantoms_unchanged(family):
+    # the families as tests/data/make_descent_reference.py makes them
+    if family == "default":
+        ph = make_phantom()
+    else:
+        ph = make_phantom(seed=200 + list(FAMILIES).index(family), spacing=1.5, **FAMILIES[family])
+    _check_legacy(ph, LEGACY[family])
+
+
+def test_legacy_sequence_unchanged():
+    seq = make_sequence(seed=7, n_frames=4, spacing=2.0)
+    for frame, expected in zip(seq.frames, LEGACY_SEQUENCE, strict=True):
+        _check_legacy(frame, expected)
+        np.testing.assert_allclose(frame.base, seq.frames[0].base)
