@@ -27,7 +27,9 @@ The true volume is the integral ``int int R^3 / 3 sin(phi) dtheta dphi``
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import itertools
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
@@ -35,7 +37,7 @@ from scipy import ndimage
 from .echo import BeamGrid, BeamImage, ImageFormation, form_image, scan_convert
 from .volume import Volume
 
-__all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES"]
+__all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES", "FORMATIONS", "sweep_cases"]
 
 #: the phantom families of the benchmarks, as keyword arguments of make_phantom
 FAMILIES = {
@@ -46,6 +48,34 @@ FAMILIES = {
     "low_contrast": dict(contrast=0.35),
     "tilted": dict(tilt_deg=25.0),
 }
+
+_DEFAULT = ImageFormation()
+#: named image formations of the accuracy sweep: the default apical scan and
+#: one setting changed at a time, to either side of it
+FORMATIONS = {
+    "default": _DEFAULT,
+    "psf_narrow": replace(_DEFAULT, axial_psf_mm=0.5, lateral_psf_mm=2.0, elevation_psf_mm=2.2),
+    "psf_wide": replace(_DEFAULT, axial_psf_mm=1.2, lateral_psf_mm=4.5, elevation_psf_mm=5.0),
+    "dr_40": replace(_DEFAULT, dynamic_range_db=40.0),
+    "dr_70": replace(_DEFAULT, dynamic_range_db=70.0),
+    "gain_-6": replace(_DEFAULT, gain_db=-6.0),
+    "gain_+6": replace(_DEFAULT, gain_db=6.0),
+    "tgc_under": replace(_DEFAULT, tgc_db_per_cm=0.8),
+    "tgc_over": replace(_DEFAULT, tgc_db_per_cm=2.6),
+    # blood brighter or darker, the myocardium where it was
+    "blood_low": replace(_DEFAULT, blood_db=_DEFAULT.blood_db - 8, contrast_db=_DEFAULT.contrast_db + 8),
+    "blood_high": replace(_DEFAULT, blood_db=_DEFAULT.blood_db + 8, contrast_db=_DEFAULT.contrast_db - 8),
+    # the myocardium brighter or darker, the blood where it was
+    "contrast_high": replace(_DEFAULT, contrast_db=_DEFAULT.contrast_db + 7),
+    "contrast_low": replace(_DEFAULT, contrast_db=_DEFAULT.contrast_db - 10),
+    "clutter_none": replace(_DEFAULT, clutter_db=None),
+    "clutter_strong": replace(_DEFAULT, clutter_db=-12.0),
+    "dropout": replace(_DEFAULT, dropout_db=30.0),
+}
+
+#: the options of make_phantom that place the scene (a family made only of
+#: these can be imaged by any formation)
+_SCENE_OPTIONS = {"length", "radius", "wall", "tilt_deg"}
 
 _LEGACY_IMAGE = dict(speckle=True, dropout=False, clutter=False, contrast=1.0, dynamic_range_db=45.0)
 
@@ -405,3 +435,32 @@ def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33
                          _speckle_seed=seed * 1000 + t, _base_descent=descent, formation=formation, **kwargs)
         )
     return PhantomSequence(frames)
+
+
+def sweep_cases(*, families=("speckle", "tilted"), formations=None, seeds=(0,)) -> Iterator[tuple[str, str, dict]]:
+    """The cross of scene families x image formations x seeds, for benchmarks.
+
+    Yields ``(family, formation name, keyword arguments of make_phantom)``.
+    Every formation sees the same scenes (seed ``s + 10 * k`` for the k-th
+    family), so that settings compare on equal cases.  The default is
+    2 families x 16 formations = 32 cases.
+
+    Parameters
+    ----------
+    families : sequence of str
+        Names in :data:`FAMILIES` that only place the scene (``speckle``, the
+        upright ventricle, and ``tilted``); the others set the legacy image.
+    formations : sequence of str, optional
+        Names in :data:`FORMATIONS`; all of them by default.
+    seeds : sequence of int
+    """
+    formations = list(FORMATIONS) if formations is None else list(formations)
+    for name in families:
+        if name not in FAMILIES or not set(FAMILIES[name]) <= _SCENE_OPTIONS:
+            scene = [k for k, v in FAMILIES.items() if set(v) <= _SCENE_OPTIONS]
+            raise ValueError(f"family {name!r} cannot be imaged by a formation; choose from {scene}")
+    for name in formations:
+        if name not in FORMATIONS:
+            raise ValueError(f"unknown formation {name!r}; choose from {list(FORMATIONS)}")
+    for (k, family), seed, name in itertools.product(enumerate(families), seeds, formations):
+        yield family, name, dict(seed=seed + 10 * k, formation=FORMATIONS[name], **FAMILIES[family])
