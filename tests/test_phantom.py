@@ -242,3 +242,17 @@ def test_base_descent_truth_follows(descending):
 def test_base_descent_validation():
     with pytest.raises(ValueError, match="base_descent"):
         make_sequence(n_frames=2, spacing=3.0, base_descent=-1.0)
+
+
+def test_dropout_darkens_a_wall_region_only():
+    f = replace(WIDE, clutter_db=None)
+    base = make_phantom(seed=2, spacing=3.0, formation=f)
+    lost = make_phantom(seed=2, spacing=3.0, formation=replace(f, dropout_db=30.0))
+    diff = base.volume.array - lost.volume.array
+    k, j, i = np.nonzero(diff > 20)
+    centre = np.stack([i, j, k], 1).mean(0) * 3.0
+    assert len(i) > 20 and np.linalg.norm(base.truth_mesh[0] - centre, axis=1).min() < 10, "on the wall"
+    # the same image elsewhere: a region of 16 mm radius (plus the PSF)
+    k, j, i = np.nonzero(np.abs(diff) > 1)
+    assert np.linalg.norm(np.stack([i, j, k], 1) * 3.0 - centre, axis=1).max() < 30
+    assert diff[np.abs(diff) > 1].mean() > 20, "darker there"
