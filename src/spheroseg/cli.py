@@ -8,9 +8,7 @@ unless ``--force``; an input is never overwritten.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -149,49 +147,12 @@ def _mask_suffix(args, source: Path) -> str:
     return {".seq.nrrd": ".nrrd", ".nhdr": ".nrrd"}.get(fmt, fmt if fmt in MASK_SUFFIXES else ".nii.gz")
 
 
-def _versions() -> dict:
-    import scipy
-    import SimpleITK
-
-    return {"spheroseg": __version__, "python": platform.python_version(), "numpy": np.__version__,
-            "scipy": scipy.__version__, "SimpleITK": SimpleITK.Version_VersionString()}
-
-
-def _write_json(path: Path, data: dict) -> None:
-    from .io import write_atomically
-
-    write_atomically(path, lambda tmp: tmp.write_text(json.dumps(data, indent=1, default=_json_default)))
-
-
-def _json_default(value):
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
-
-
-def _write_surface_outputs(out: Path, stem: str, surface_name: str, result, args_stl: bool) -> dict:
-    from .surface_io import write_cmiss, write_mesh, write_surface_json
-
-    points, faces = result.mesh()
-    files = {}
-    for suffix in (".vtk", ".ply") + ((".stl",) if args_stl else ()):
-        write_mesh(out / f"{stem}{suffix}", points, faces)
-        files[f"mesh{suffix}"] = f"{stem}{suffix}"
-    write_surface_json(out / surface_name, result.surface, volume_ml=result.volume_ml)
-    files["surface"] = surface_name
-    if result.surface.system.name == "prolate":
-        exnode, exelem = write_cmiss(out / Path(surface_name).stem, result.surface)
-        files["cmiss"] = [exnode.name, exelem.name]
-    return files
-
-
 # -- commands ----------------------------------------------------------------
 
 
 def cmd_segment(args) -> int:
-    from .io import load, save_mask
+    from .io import load
+    from .outputs import write_segmentation_outputs
     from .segment import segment
 
     source = Path(args.image)
@@ -205,47 +166,15 @@ def cmd_segment(args) -> int:
     volume = load(source, spacing=args.spacing, no_data_value=args.no_data)
     t_load = time.perf_counter() - t0
     result = segment(volume, apex, base, landmarks=landmarks, **_segment_kwargs(args))
-    mask = result.mask(volume)
-    save_mask(out / ("mask" + suffix), mask, volume)
-    files = {"mask": "mask" + suffix, **_write_surface_outputs(out, "mesh", "surface.json", result, args.stl)}
-    if not args.no_report:
-        from .report import save_report
-
-        save_report(out / "report.png", volume, result.surface, mask=mask, title=f"{source.name}: {result.volume_ml:.1f} mL")
-        files["report"] = "report.png"
-    results = {
-        "input": str(source), "volume_ml": result.volume_ml, "iterations": result.iterations,
-        "converged": result.converged, "status": result.status, "message": result.message,
-        "c_in": result.c_in, "c_out": result.c_out,
-        "seconds": {"load": t_load, "segment": result.seconds}, "apex": apex, "base": base,
-        "landmarks": landmarks if landmarks is not None else [], "parameters": result.parameters,
-        "units": {"points": "mm, LPS (ITK physical space)", "volume": "mL"}, "files": files, "versions": _versions(),
-    }
-    _write_json(out / "results.json", results)
+    write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base, landmarks=landmarks,
+                               mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
     _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
     return 0
 
 
-def _write_tracking_outputs(out: Path, volumes, result, suffix: str, stl: bool, title: str | None,
-                            truth_mask=None) -> None:
-    """Per-frame masks and surfaces, and the report (unless title is None)."""
-    from .io import save_mask
-
-    (out / "masks").mkdir(exist_ok=True)
-    (out / "meshes").mkdir(exist_ok=True)
-    for t, (frame, volume) in enumerate(zip(result.frames, volumes)):
-        save_mask(out / "masks" / f"frame_{t:03d}{suffix}", frame.mask(volume), volume)
-        _write_surface_outputs(out / "meshes", f"frame_{t:03d}", f"frame_{t:03d}_surface.json", frame, stl)
-    if title is not None:
-        from .report import save_report
-
-        ed = result.ed_frame
-        save_report(out / "report.png", volumes[ed], result.frames[ed].surface, volumes_ml=result.volumes_ml,
-                    ed_frame=ed, es_frame=result.es_frame, title=title, truth_mask=truth_mask)
-
-
 def cmd_track(args) -> int:
     from .io import load_sequence
+    from .outputs import write_tracking_outputs
     from .segment import track
 
     source = Path(args.sequence)
@@ -269,17 +198,8 @@ def cmd_track(args) -> int:
     finally:
         if bar is not None:
             bar.close()
-    _write_tracking_outputs(out, volumes, result, suffix, args.stl, None if args.no_report else
-                            f"{source.name}: EDV {result.edv_ml:.1f} mL, ESV {result.esv_ml:.1f} mL, EF {result.ef:.1f} %")
-    results = {
-        "input": str(source), "frames": len(volumes), "volumes_ml": result.volumes_ml, "edv_ml": result.edv_ml,
-        "esv_ml": result.esv_ml, "ef_percent": result.ef, "ed_frame": result.ed_frame, "es_frame": result.es_frame,
-        "iterations": [f.iterations for f in result.frames],
-        "seconds": {"load": t_load, "segment": [f.seconds for f in result.frames]}, "apex": apex, "base": base,
-        "parameters": {**result.frames[0].parameters, "iterations_per_frame": args.iterations_per_frame},
-        "units": {"points": "mm, LPS (ITK physical space)", "volume": "mL", "ef": "percent"}, "versions": _versions(),
-    }
-    _write_json(out / "results.json", results)
+    write_tracking_outputs(out, volumes, result, source=source, apex=apex, base=base, landmarks=landmarks,
+                           mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
     _say(args, f"EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
                f"(frame {result.es_frame}), EF {result.ef:.1f} %; outputs in {out}")
     return 0
@@ -296,7 +216,9 @@ def _fresh_demo_folder() -> Path:
 
 def cmd_demo(args) -> int:
     from .metrics import dice, surface_distances
+    from .outputs import versions, write_frame_files, write_json
     from .phantom import make_sequence
+    from .report import save_report
     from .segment import track
 
     out = Path(args.out) if args.out else _fresh_demo_folder()
@@ -315,18 +237,19 @@ def cmd_demo(args) -> int:
         rows.append({"frame": t, "volume_ml": frame.volume_ml, "truth_ml": truth.truth_volume_ml, "dice": d,
                      "iterations": frame.iterations, "ms": 1000 * frame.seconds})
     sd = surface_distances(result.frames[ed].mesh(closed=False), seq.frames[ed].truth_mesh)
-    _write_tracking_outputs(out, seq.volumes, result, ".nii.gz", False,
-                            f"demo: EF {result.ef:.1f} % (truth {seq.truth_ef:.1f} %); yellow spheroseg, red truth",
-                            truth_mask=seq.frames[ed].truth_mask)
+    write_frame_files(out, seq.volumes, result)
+    save_report(out / "report.png", seq.volumes[ed], result.frames[ed].surface, volumes_ml=result.volumes_ml,
+                ed_frame=ed, es_frame=result.es_frame, truth_mask=seq.frames[ed].truth_mask,
+                title=f"demo: EF {result.ef:.1f} % (truth {seq.truth_ef:.1f} %); yellow spheroseg, red truth")
     seg_ms = 1000 * sum(f.seconds for f in result.frames)
     summary = {
         "frames": rows, "edv_ml": result.edv_ml, "esv_ml": result.esv_ml, "ef_percent": result.ef,
         "truth": {"edv_ml": float(seq.truth_volumes_ml.max()), "esv_ml": float(seq.truth_volumes_ml.min()),
                   "ef_percent": seq.truth_ef},
         "ed_surface_distance_mm": sd, "seconds": {"make_phantom": t_make, "segment_all_frames": seg_ms / 1000},
-        "versions": _versions(),
+        "versions": versions(),
     }
-    _write_json(out / "results.json", summary)
+    write_json(out / "results.json", summary)
     dices = np.array([r["dice"] for r in rows])
     _say(args,
          f"  Dice per frame: median {np.median(dices):.3f}, worst {dices.min():.3f}",
