@@ -1,4 +1,4 @@
-"""The command line: ``spheroseg segment | track | demo``.
+"""The command line: ``spheroseg segment | track | batch | demo``.
 
 Every failure is one line on stderr and a non-zero exit status.  Outputs
 are written to temporary files and renamed; existing outputs are kept
@@ -49,14 +49,19 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="a point the surface must pass through (repeatable)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs in DIR")
+    p.add_argument("--spacing", nargs=3, type=float, metavar=("SX", "SY", "SZ"),
+                   help="voxel spacing in mm (required for .npy, overrides the file's)")
+    _add_options(p)
+
+
+def _add_options(p: argparse.ArgumentParser) -> None:
+    """The segmentation and output options (segment, track, batch)."""
     p.add_argument("--system", default="prolate", choices=SYSTEMS)
     p.add_argument("--patches", nargs=2, type=int, default=(8, 8), metavar=("N_THETA", "N_MU"))
     p.add_argument("--mode", default=SegmentOptions.mode, choices=MODES, help="data term")
     p.add_argument("--step", type=float, default=1.0, help="largest surface motion per iteration, mm")
     p.add_argument("--max-iterations", type=int, default=60, help="per coarse-to-fine level")
     p.add_argument("--smoothness", type=float, default=1.0, help="thin-plate prior weight (0: the paper's method)")
-    p.add_argument("--spacing", nargs=3, type=float, metavar=("SX", "SY", "SZ"),
-                   help="voxel spacing in mm (required for .npy, overrides the file's)")
     p.add_argument("--no-data", default="auto", type=_no_data, metavar="auto|none|VALUE",
                    help="voxels without data: 'auto' (default) the zero padding around an echo sector, "
                         "'none', or a voxel value")
@@ -64,6 +69,29 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stl", action="store_true", help="also write the mesh as STL")
     p.add_argument("--no-report", action="store_true", help="skip the PNG report")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stdout")
+
+
+def _shard(text: str) -> tuple[int, int]:
+    try:
+        i, n = (int(part) for part in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected I/N (e.g. 2/4), got {text!r}") from None
+    if not 1 <= i <= n:
+        raise argparse.ArgumentTypeError(f"expected I/N with 1 <= I <= N, got {text!r}")
+    return i, n
+
+
+def _positive(kind):
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or not value > 0 or value != value:
+            raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+        return value
+
+    return parse
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -80,6 +108,21 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("sequence", help="4D image, .seq.nrrd, folder or glob of 3D frames, DICOM folder")
     _add_common(tr)
     tr.add_argument("--iterations-per-frame", type=int, default=20)
+    batch = sub.add_parser("batch", help="segment or track every study of a manifest (JSON or CSV), resumably",
+                           description="Segment or track every study of a manifest; DIR/<id>/ per study, "
+                                       "DIR/summary.json and .csv. Exit status: 0 every study ok, 1 some failed, "
+                                       "2 a bad manifest or bad options (nothing run); 130 interrupted.")
+    batch.add_argument("manifest", help="JSON (a list of studies) or CSV; keys id, image, apex, base, landmarks, "
+                                        "points, spacing, track")
+    batch.add_argument("--out", required=True, metavar="DIR", help="cohort folder (created if missing)")
+    where = batch.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=_positive(int), metavar="N", help="local worker processes (default: one per core)")
+    where.add_argument("--scheduler", metavar="ADDRESS", help="a Dask scheduler, e.g. tcp://host:8786 (spheroseg[dask])")
+    batch.add_argument("--shard", type=_shard, metavar="I/N", help="run only studies I, I+N, I+2N... (1-based); "
+                                                                  "summary-I-of-N.json/.csv")
+    batch.add_argument("--timeout", type=_positive(float), metavar="S", help="seconds a study may take")
+    batch.add_argument("--iterations-per-frame", type=int, default=20)
+    _add_options(batch)
     demo = sub.add_parser("demo", help="track a built-in synthetic sequence and compare with its truth")
     demo.add_argument("--out", metavar="DIR", help="output folder (default: a new ./spheroseg-demo*)")
     demo.add_argument("--force", action="store_true")
@@ -136,15 +179,15 @@ def _segment_kwargs(args) -> dict:
 
 
 def _mask_suffix(args, source: Path) -> str:
-    from .io import MASK_SUFFIXES, image_format
+    from .io import MASK_SUFFIXES
+    from .outputs import default_mask_suffix
 
     if args.mask_format:
         suffix = args.mask_format if args.mask_format.startswith(".") else "." + args.mask_format
         if suffix.lower() not in MASK_SUFFIXES:
             raise CliError(f"--mask-format must be one of {', '.join(MASK_SUFFIXES)}, got {args.mask_format}")
         return suffix.lower()
-    fmt = image_format(source) if source.is_file() else ".nii.gz"
-    return {".seq.nrrd": ".nrrd", ".nhdr": ".nrrd"}.get(fmt, fmt if fmt in MASK_SUFFIXES else ".nii.gz")
+    return default_mask_suffix(source)
 
 
 # -- commands ----------------------------------------------------------------
@@ -203,6 +246,63 @@ def cmd_track(args) -> int:
     _say(args, f"EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
                f"(frame {result.es_frame}), EF {result.ef:.1f} %; outputs in {out}")
     return 0
+
+
+def cmd_batch(args) -> int:
+    from tqdm import tqdm
+
+    from .batch import read_manifest, segment_many, select_shard, warm_up, write_summary
+
+    studies = select_shard(read_manifest(args.manifest), args.shard)
+    SegmentOptions(**_segment_kwargs(args))  # bad options: an error before anything runs
+    if args.iterations_per_frame < 1:
+        raise CliError(f"--iterations-per-frame must be a positive integer, got {args.iterations_per_frame}")
+    options = {**_segment_kwargs(args), "iterations_per_frame": args.iterations_per_frame,
+               "no_data_value": args.no_data, "mask_suffix": _mask_suffix(args, Path("")) if args.mask_format else None,
+               "stl": args.stl, "report": not args.no_report}
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"output folder {out} is a file")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CliError(f"cannot create output folder {out}: {exc.strerror}") from None
+    client = executor = None
+    if args.scheduler:
+        try:
+            from distributed import Client
+        except ImportError:
+            raise CliError('--scheduler needs Dask: pip install "spheroseg[dask]"') from None
+        try:
+            client = Client(args.scheduler, timeout=30)
+        except OSError as exc:
+            raise CliError(f"cannot reach the Dask scheduler {args.scheduler}: {exc}") from None
+        client.run(warm_up)
+        executor = client.get_executor()
+    rows = {}
+    bar = tqdm(total=len(studies), unit="study", desc="batch", file=sys.stderr, disable=args.quiet)
+    outcomes = segment_many(studies, out=out, executor=executor, workers=args.workers, timeout=args.timeout,
+                            options=options)
+    try:
+        for outcome in outcomes:
+            rows[outcome.id] = outcome.row
+            bar.update(1)
+            if outcome.status != "ok":
+                bar.write(f"{outcome.id}: failed: {outcome.row['error']}", file=sys.stderr)
+    except KeyboardInterrupt:
+        outcomes.close()  # running studies finish; no partial folder stays
+        bar.close()
+        print("spheroseg: interrupted; finished studies are complete, run again to go on", file=sys.stderr)
+        return 130
+    finally:
+        bar.close()
+        if client is not None:
+            client.close()
+    name = "summary" if args.shard is None else "summary-{}-of-{}".format(*args.shard)
+    write_summary(out, [rows[s.id] for s in studies], name=name)
+    failed = sum(row["status"] != "ok" for row in rows.values())
+    _say(args, f"{len(rows) - failed} ok, {failed} failed; summary in {out / name}.json and .csv")
+    return 1 if failed else 0
 
 
 def _fresh_demo_folder() -> Path:
@@ -265,7 +365,7 @@ def cmd_demo(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    handlers = {"segment": cmd_segment, "track": cmd_track, "demo": cmd_demo}
+    handlers = {"segment": cmd_segment, "track": cmd_track, "demo": cmd_demo, "batch": cmd_batch}
     try:
         return handlers[args.command](args)
     except KeyboardInterrupt:

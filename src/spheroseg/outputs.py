@@ -20,7 +20,7 @@ from . import __version__
 from .io import save_mask, write_atomically
 
 __all__ = ["write_segmentation_outputs", "write_tracking_outputs", "write_surface_files", "write_frame_files",
-           "write_json", "versions"]
+           "write_json", "versions", "default_mask_suffix"]
 
 _UNITS = {"points": "mm, LPS (ITK physical space)", "volume": "mL"}
 
@@ -34,6 +34,16 @@ def versions() -> dict:
             "scipy": scipy.__version__, "SimpleITK": SimpleITK.Version_VersionString()}
 
 
+def default_mask_suffix(source) -> str:
+    """The mask's image type for an input: the input's own (a ``.seq.nrrd``
+    or ``.nhdr`` gives ``.nrrd``), ``.nii.gz`` for folders, globs and DICOM."""
+    from .io import MASK_SUFFIXES, image_format
+
+    source = Path(source)
+    fmt = image_format(source) if source.is_file() else ".nii.gz"
+    return {".seq.nrrd": ".nrrd", ".nhdr": ".nrrd"}.get(fmt, fmt if fmt in MASK_SUFFIXES else ".nii.gz")
+
+
 def _json_default(value):
     if isinstance(value, np.ndarray):
         return value.tolist()
@@ -44,7 +54,7 @@ def _json_default(value):
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
-def write_json(path: Path, data: dict) -> dict:
+def write_json(path: Path, data: dict | list) -> dict | list:
     """Write ``data`` as indented JSON atomically; return it as read back
     (plain lists and numbers instead of numpy values)."""
     text = json.dumps(data, indent=1, default=_json_default)
