@@ -15,7 +15,7 @@ import pytest
 import SimpleITK as sitk
 
 from spheroseg import segment_many
-from spheroseg.batch import (SUMMARY_FIELDS, TEST_HOOK_VARIABLE, ManifestError, read_manifest, select_shard,
+from spheroseg.batch import (SUMMARY_FIELDS, TEST_HOOK_VARIABLE, ManifestError, Study, read_manifest, select_shard,
                              study_checksum)
 from spheroseg.io import load, load_sequence
 from spheroseg.phantom import make_phantom, make_sequence
@@ -307,3 +307,38 @@ def test_dask_local_cluster_gives_the_same_summary_and_survives_a_killed_worker(
     assert killed["status"] == "failed" and "worker process died" in killed["error"], killed
     assert [r for r in rows if r["id"] != "v3"] == [r for r in expected if r["id"] != "v3"]
     assert no_partial_folders(tmp_path / "out")
+
+
+def test_checksum_follows_every_input_byte(tmp_path):
+    """A MetaImage's .raw, a folder's frames and the markups count; paths of
+    an unchanged study give the same checksum."""
+    ph = make_phantom(seed=7, spacing=4.0)
+    image = sitk.GetImageFromArray(ph.volume.array.astype(np.uint8))
+    sitk.WriteImage(image, str(tmp_path / "v.mhd"))
+    (tmp_path / "p.mrk.json").write_text("{}")
+    study = Study(id="v", image=str(tmp_path / "v.mhd"), points=str(tmp_path / "p.mrk.json"))
+    first = study_checksum(study, {})
+    assert study_checksum(study, {}) == first
+    raw = tmp_path / "v.raw"
+    data = bytearray(raw.read_bytes())
+    data[len(data) // 2] ^= 1
+    raw.write_bytes(bytes(data))
+    second = study_checksum(study, {})
+    assert second != first
+    (tmp_path / "p.mrk.json").write_text("{ }")
+    assert study_checksum(study, {}) != second
+    raw.unlink()  # missing: a checksum all the same (the study runs and fails with the loader's reason)
+    assert study_checksum(study, {}) not in (first, second)
+
+
+def test_segment_many_validates_before_running(tmp_path):
+    entry = {"id": "a", "image": "x.mha", "apex": [0, 0, 0], "base": [0, 0, 9]}
+    with pytest.raises(ValueError, match="unique"):
+        segment_many([entry, {**entry, "id": "A"}], out=tmp_path / "o")
+    with pytest.raises(ValueError, match="unknown option"):
+        segment_many([entry], out=tmp_path / "o", options={"colour": 1})
+    with pytest.raises(ValueError, match="patches"):
+        segment_many([entry], out=tmp_path / "o", options={"patches": (1, 8)})
+    with pytest.raises(ValueError, match="timeout"):
+        segment_many([entry], out=tmp_path / "o", timeout=0)
+    assert not (tmp_path / "o").exists()

@@ -18,7 +18,7 @@ is the one reported).
 
 Test hook (for the test suite only): the environment variable
 ``SPHEROSEG_BATCH_TEST_HOOK="ID=exit,ID2=sleep:SECONDS"`` makes a worker
-exit abruptly (``os._exit``) on study ``ID``, or spend ``SECONDS`` (in Python, so
+die abruptly (SIGKILL, as a crash) on study ``ID``, or spend ``SECONDS`` (in Python, so
 that a timeout interrupts it) before study ``ID2``.
 """
 
@@ -52,6 +52,8 @@ SUMMARY_FIELDS = ("id", "status", "kind", "volume_ml", "edv_ml", "esv_ml", "ef",
                   "error")
 #: keys a manifest entry may have
 MANIFEST_KEYS = ("id", "image", "apex", "base", "landmarks", "points", "spacing", "track")
+#: options of a run beside :class:`spheroseg.SegmentOptions`'s (see :func:`run_study`)
+RUN_OPTIONS = ("iterations_per_frame", "no_data_value", "mask_suffix", "stl", "report")
 #: a worker stuck past its timeout exits after this many more seconds (or half the timeout, if longer)
 HARD_TIMEOUT_GRACE = 10.0
 TEST_HOOK_VARIABLE = "SPHEROSEG_BATCH_TEST_HOOK"
@@ -313,6 +315,13 @@ def study_checksum(study: Study, options: dict) -> str:
 # -- one study, in a worker --------------------------------------------------
 
 
+def _die() -> None:
+    """End this process at once, as a crash would (no cleanup, no exception)."""
+    import signal
+
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
 def _test_hook(study_id: str) -> None:
     spec = os.environ.get(TEST_HOOK_VARIABLE)
     if not spec:
@@ -322,7 +331,7 @@ def _test_hook(study_id: str) -> None:
         if name.strip() != study_id:
             continue
         if action == "exit":
-            os._exit(70)
+            _die()
         if action.startswith("sleep:"):  # in small steps, as a long computation: a timeout interrupts it
             end = time.monotonic() + float(action.split(":", 1)[1])
             while time.monotonic() < end:
@@ -346,7 +355,7 @@ class _Deadline:
 
     def _exit(self):
         if not self.done.is_set():
-            os._exit(71)
+            _die()
 
     def __enter__(self):
         if self.seconds is not None:
@@ -624,8 +633,8 @@ def _as_study(item, folder: Path) -> Study:
 
 
 def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executor | None = None,
-                 workers: int | None = None, timeout: float | None = None, options: dict | None = None,
-                 progress: Callable[[StudyOutcome], None] | None = None) -> Iterator[StudyOutcome]:
+                 workers: int | None = None, timeout: float | None = None,
+                 options: dict | None = None) -> Iterator[StudyOutcome]:
     """Segment or track many studies; yield each one's outcome as it finishes.
 
     Parameters
@@ -640,49 +649,58 @@ def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executo
         ``client.get_executor()``).  Default: a process pool of ``workers``
         (one per core), each worker loading the compiled kernels once.
     workers : int, optional
-        Size of the default pool.
+        Size of the default pool.  Its workers inherit the environment:
+        ``spheroseg batch`` sets ``OMP_NUM_THREADS=1`` (and OpenBLAS's, MKL's)
+        unless given, as Dask does for its workers, so that the two give the
+        same numbers to the last bit.
     timeout : float, optional
         Seconds a study may take; over it the study fails.
     options : dict, optional
         As :func:`run_study`.
-    progress : callable, optional
-        Called with each outcome, skipped ones included.
 
-    Yields
-    ------
-    StudyOutcome
+    Returns
+    -------
+    iterator of StudyOutcome
         Skipped studies (complete, same checksum) first, then the others in
-        the order they finish.
+        the order they finish.  Closing it early (or Ctrl-C) cancels the
+        studies not started and lets the running ones finish.
 
     Examples
     --------
     >>> from dask.distributed import Client                   # doctest: +SKIP
     >>> rows = [o.row for o in segment_many(studies, out="cohort", executor=Client().get_executor())]  # doctest: +SKIP
     """
+    from .options import SegmentOptions
+
+    studies = [_as_study(s, Path.cwd()) for s in studies]
+    ids = [s.id.lower() for s in studies]
+    if len(set(ids)) != len(ids):
+        raise ValueError("study ids must be unique")
+    if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0):
+        raise ValueError(f"timeout must be positive seconds, got {timeout!r}")
+    if workers is not None and not (isinstance(workers, int) and workers >= 1):
+        raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    options = dict(options or {})
+    unknown = sorted(set(options) - set(SegmentOptions.names()) - set(RUN_OPTIONS))
+    if unknown:
+        raise ValueError(f"unknown option(s) {', '.join(unknown)}")
+    SegmentOptions(**{k: v for k, v in options.items() if k not in RUN_OPTIONS})  # raises on a bad value
+    return _outcomes(studies, Path(out), executor, workers, timeout, options)
+
+
+def _outcomes(studies, out: Path, executor, workers, timeout, options) -> Iterator[StudyOutcome]:
     from functools import partial
 
-    folder = Path.cwd()
-    studies = [_as_study(s, folder) for s in studies]
-    ids = [s.id for s in studies]
-    if len(set(i.lower() for i in ids)) != len(ids):
-        raise ValueError("study ids must be unique")
-    if timeout is not None and not (timeout > 0):
-        raise ValueError(f"timeout must be positive seconds, got {timeout!r}")
-    options = dict(options or {})
-    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    _clean_partials(out, ids)
+    _clean_partials(out, [s.id for s in studies])
     jobs = []
     for study in studies:
         checksum = study_checksum(study, options)
         results = _complete(out, study, checksum)
         if results is None:
             jobs.append((study, checksum))
-            continue
-        outcome = StudyOutcome(summary_row(results), skipped=True)
-        if progress is not None:
-            progress(outcome)
-        yield outcome
+        else:
+            yield StudyOutcome(summary_row(results), skipped=True)
     if not jobs:
         return
     call = partial(_call, out=str(out), options=options, timeout=timeout)
@@ -692,10 +710,7 @@ def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executo
         runner = _run_executor(jobs, executor, call)
     try:
         for _, row in runner:
-            outcome = StudyOutcome(row)
-            if progress is not None:
-                progress(outcome)
-            yield outcome
+            yield StudyOutcome(row)
     finally:
         runner.close()
         _clean_partials(out, [job[0].id for job in jobs])

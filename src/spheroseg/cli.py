@@ -19,6 +19,8 @@ from . import __version__
 from .options import MODES, SYSTEMS, SegmentOptions
 
 EXIT_ERROR = 2
+#: thread counts of the linear algebra libraries, set to 1 for batch workers unless given
+BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 class CliError(Exception):
@@ -267,6 +269,8 @@ def cmd_batch(args) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise CliError(f"cannot create output folder {out}: {exc.strerror}") from None
+    for variable in BLAS_THREADS:  # one worker per core: single-threaded BLAS in each (as Dask's workers)
+        os.environ.setdefault(variable, "1")
     client = executor = None
     if args.scheduler:
         try:
