@@ -9,7 +9,8 @@ Every configuration runs the whole cohort into a fresh folder, timed from
 the command's start to its exit (interpreter start, workers' start and
 kernel loading included); the Dask cluster is started once beforehand (a
 cluster outlives its jobs) and its start is timed apart.  Writes
-docs/batch.json and regenerates docs/benchmarks.md.
+docs/batch.json and its own section of docs/benchmarks.md (the rest of the
+page is left as it is; ``--section-only`` rewrites the section from the JSON).
 """
 
 from __future__ import annotations
@@ -29,8 +30,8 @@ import SimpleITK as sitk
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import machine, write_json  # noqa: E402
-from report import write_markdown  # noqa: E402
+from common import DOCS, machine, write_json  # noqa: E402
+from report import batch_section  # noqa: E402
 
 from spheroseg.phantom import make_phantom  # noqa: E402
 
@@ -76,11 +77,31 @@ def shell_loop(folder: Path, out: Path, studies: list[dict]) -> tuple[float, lis
     return time.perf_counter() - t0, seconds
 
 
+def write_section() -> Path:
+    """Replace (or append) this benchmark's section of docs/benchmarks.md."""
+    section = "\n".join(batch_section(json.loads((DOCS / "batch.json").read_text())))
+    path = DOCS / "benchmarks.md"
+    text = path.read_text()
+    title = section.splitlines()[0]
+    if title in text:
+        start = text.index(title)
+        end = text.find("\n## ", start + len(title))
+        text = text[:start] + section + ("\n" + text[end:] if end >= 0 else "\n")
+    else:
+        text = text.rstrip("\n") + "\n\n" + section + "\n"
+    path.write_text(text)
+    return path
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--studies", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--section-only", action="store_true", help="rewrite the section from docs/batch.json")
     args = parser.parse_args()
+    if args.section_only:
+        print("wrote", write_section())
+        return
     os.environ.setdefault("OMP_NUM_THREADS", "1")  # as spheroseg batch and Dask set for their workers
     started, load = time.perf_counter(), os.getloadavg()
     work = Path(tempfile.mkdtemp(prefix="spheroseg-batch-bench-"))
@@ -133,8 +154,7 @@ def main() -> None:
                         walls.append(wall)
                         seconds += [row["seconds"] for row in rows]
                 record(f"Dask LocalCluster, {workers} worker{'s' * (workers > 1)}", walls, seconds, workers,
-                       f"spheroseg batch --scheduler ADDRESS (LocalCluster(n_workers={workers}, "
-                       "threads_per_worker=1, processes=True) started beforehand)")
+                       "spheroseg batch --scheduler ADDRESS")
         data = {"command": "python benchmarks/batch.py " + " ".join(sys.argv[1:]), "machine": machine(),
                 "studies": args.studies, "repeats": args.repeats, "spacing_mm": SPACING,
                 "volume_shape": list(make_phantom(seed=300, spacing=SPACING).volume.shape),
@@ -142,7 +162,7 @@ def main() -> None:
                 "dask_cluster_start_seconds": dask_start, "wall_seconds": time.perf_counter() - started,
                 "load": [load[0], os.getloadavg()[0]]}
         print("wrote", write_json("batch.json", data))
-        print("wrote", write_markdown())
+        print("wrote", write_section())
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

@@ -294,7 +294,7 @@ def _targets(acc, sp, sweep=None) -> list[str]:
     return ["## Targets", "", "| target | measured | |", "| --- | --- | --- |"] + rows
 
 
-def _batch(b) -> list[str]:
+def batch_section(b) -> list[str]:
     out = ["## Cohorts: spheroseg batch", "",
            f"Command: `{b['command']}` ({b['wall_seconds'] / 60:.0f} min). Machine: {_machine(b['machine'])}; "
            f"shared with other jobs (load average {b['load'][0]:.1f} at the start, {b['load'][1]:.1f} at the end, on 2 cores), so the figures are "
@@ -304,7 +304,11 @@ def _batch(b) -> list[str]:
            "the command's start to its exit, median of "
            f"{b['repeats']} runs into fresh folders. Overhead: worker-seconds a study costs beyond loading and "
            "segmenting it (outputs, interpreter and worker start, kernel loading, scheduling): "
-           "wall x workers / studies - mean(load + segment).", "",
+           "wall x workers / studies - mean(load + segment). In the shell loop every study's segmentation is the "
+           "first of its process, so its time includes loading the compiled kernels (about 0.2 s unloaded); the "
+           "workers load them once. The Dask rows run on a `LocalCluster(n_workers=N, threads_per_worker=1, "
+           "processes=True)` started beforehand. With 2 workers on a machine this loaded, the second worker "
+           "mostly waits for a core: the load + segment time of a study doubles.", "",
            "| how | studies/s | median wall s | load + segment s a study | overhead s a study |",
            "| --- | --- | --- | --- | --- |"]
     for name, c in b["configs"].items():
@@ -324,7 +328,7 @@ def write_markdown() -> Path:
              "JSON files beside this page. Targets that are missed say so.", ""]
     parts += _targets(_load("accuracy.json"), _load("speed.json"), _load("accuracy_sweep.json")) + [""]
     for name, fn in (("fit.json", _fit), ("accuracy.json", _accuracy), ("accuracy_sweep.json", _formation_sweep),
-                     ("speed.json", _speed), ("batch.json", _batch)):
+                     ("speed.json", _speed), ("batch.json", batch_section)):
         data = _load(name)
         if data:
             parts += fn(data) + [""]
