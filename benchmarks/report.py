@@ -307,8 +307,9 @@ def batch_section(b) -> list[str]:
            "wall x workers / studies - mean(load + segment). In the shell loop every study's segmentation is the "
            "first of its process, so its time includes loading the compiled kernels (about 0.2 s unloaded); the "
            "workers load them once. The Dask rows run on a `LocalCluster(n_workers=N, threads_per_worker=1, "
-           "processes=True)` started beforehand. With 2 workers on a machine this loaded, the second worker "
-           "mostly waits for a core: the load + segment time of a study doubles.", "",
+           "processes=True)` started beforehand. On a machine this loaded the second worker seldom finds a free "
+           "core (the load + segment time of a study grows with it), so 1 against 2 workers is not measured "
+           "here; what stands is the shell loop against any of the batch runs.", "",
            "| how | studies/s | median wall s | load + segment s a study | overhead s a study |",
            "| --- | --- | --- | --- | --- |"]
     for name, c in b["configs"].items():

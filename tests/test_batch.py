@@ -182,6 +182,7 @@ def test_cohort_finishes_the_good_reports_the_bad_and_resumes(cohort, reference,
     api = segment(v1, studies[1]["apex"], studies[1]["base"])
     assert by_id["v1"]["volume_ml"] == pytest.approx(api.volume_ml, rel=1e-9)
     assert by_id["v1"]["iterations"] == api.iterations and by_id["v1"]["kind"] == "segment"
+    assert by_id["v1"]["descent_status"] == api.status
     s1 = load_sequence(folder / "images" / "s1.npy", spacing=(2.5,) * 3)
     api = track(s1, studies[5]["apex"], studies[5]["base"])
     assert by_id["s1"]["kind"] == "track" and len(list((out / "s1" / "masks").iterdir())) == 3

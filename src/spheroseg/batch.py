@@ -48,8 +48,8 @@ __all__ = ["Study", "StudyOutcome", "StudyTimeout", "ManifestError", "read_manif
            "study_checksum", "summary_row", "write_summary", "select_shard", "warm_up", "SUMMARY_FIELDS"]
 
 #: columns of ``summary.json`` / ``summary.csv``
-SUMMARY_FIELDS = ("id", "status", "kind", "volume_ml", "edv_ml", "esv_ml", "ef", "iterations", "quality", "seconds",
-                  "error")
+SUMMARY_FIELDS = ("id", "status", "kind", "volume_ml", "edv_ml", "esv_ml", "ef", "iterations", "descent_status",
+                  "quality", "seconds", "error")
 #: keys a manifest entry may have
 MANIFEST_KEYS = ("id", "image", "apex", "base", "landmarks", "points", "spacing", "track")
 #: options of a run beside :class:`spheroseg.SegmentOptions`'s (see :func:`run_study`)
@@ -370,6 +370,9 @@ class _Deadline:
         self.done.set()
         for timer in self.timers:
             timer.cancel()
+            timer.join()
+        if self.timers:  # a StudyTimeout sent just as the study ended must not land after it
+            ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(self.thread_id), None)
         return False
 
 
@@ -436,7 +439,8 @@ def summary_row(results: dict) -> dict:
         "volume_ml": None if tracked else results.get("volume_ml"),
         "edv_ml": results.get("edv_ml"), "esv_ml": results.get("esv_ml"), "ef": results.get("ef_percent"),
         "iterations": int(np.sum(iterations)) if iterations is not None else None,
-        "quality": results.get("quality"),
+        # why the descent stopped (0 converged, 1 iteration cap, ...), when the result records it
+        "descent_status": results.get("status"), "quality": results.get("quality"),
         "seconds": float(seconds.get("load", 0.0) + np.sum(seconds.get("segment", 0.0))),
         "error": None,
     }
@@ -528,9 +532,10 @@ def warm_up() -> None:
 
 def _clean_partials(out: Path, ids: Iterable[str]) -> None:
     ids = set(ids)
-    for path in out.glob(".*.partial-*"):
-        if path.name[1:].split(".partial-")[0] in ids:
-            shutil.rmtree(path, ignore_errors=True)
+    for kind in ("partial", "old"):
+        for path in out.glob(f".*.{kind}-*"):
+            if path.name[1:].rsplit(f".{kind}-", 1)[0] in ids:
+                shutil.rmtree(path, ignore_errors=True)
 
 
 def _complete(out: Path, study: Study, checksum: str) -> dict | None:
