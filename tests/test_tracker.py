@@ -60,7 +60,7 @@ def test_schedule_is_data():
     assert schedule(SegmentOptions(mode="local"))[-1].data_term is LocalMeans
     assert [lv.data_term for lv in schedule(SegmentOptions(mode="fast"))] == [FixedInterface] * 3
     assert [lv.patches for lv in schedule(SegmentOptions(patches=(6, 8), mode="local"))] == [(3, 4), (6, 8)]
-    assert len(schedule(SegmentOptions(coarse_to_fine=False))) == 1
+    assert [lv.data_term for lv in schedule(SegmentOptions(coarse_to_fine=False))] == [LocalMeans, IntensityInterface]
 
 
 @pytest.fixture(scope="module")
