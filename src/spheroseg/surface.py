@@ -90,6 +90,98 @@ class Surface:
         return cls.from_function(system, pose, grid, v0)
 
     @classmethod
+    def from_annulus(
+        cls,
+        apex,
+        annulus,
+        *,
+        base=None,
+        system: str | CoordinateSystem = "prolate",
+        patches: tuple[int, int] = (8, 8),
+        radius_ratio: float = DEFAULT_RADIUS_RATIO,
+    ) -> "Surface":
+        r"""The initial surface, closed at the mitral plane of annulus points.
+
+        The local frame is :meth:`Pose.from_annulus`: origin at the ring's
+        centre (or ``base`` projected on the plane), long axis along the
+        plane's normal.  The apex lies at height ``h`` above the plane and
+        ``s`` mm off the axis; the surface is the half-ellipsoid of
+        semi-axes ``(h, b, b)``, ``b = radius_ratio * h``, sheared parallel
+        to the plane so that its tip is the apex:
+
+        .. math::
+
+            \left(\frac{x_1}{h}\right)^2 + \frac{|x_\perp - x_1 s / h|^2}{b^2} \le 1,
+            \quad x_1 \ge 0,
+
+        with ``s`` the apex's offset vector.  A shear keeps the volume,
+        ``2 pi h b^2 / 3``, and the base ring, the circle of radius ``b``
+        in the plane.  The Hermite surface is the shape's ``v0(v1, v2)``
+        projected in L2 on the well-formed surfaces (pole constraints),
+        subject to passing through the apex exactly: the apex pole stays on
+        the axis and its tilted tangent plane lets the tip lie off it.  With
+        the apex on the axis the shape is that of :meth:`from_apex_base`
+        (which interpolates it at the nodes instead).
+
+        Parameters
+        ----------
+        apex : (x, y, z)
+            World point (mm).
+        annulus : array (k, 3)
+            ``k >= 3`` world points (mm) on the mitral ring.
+        base : (x, y, z), optional
+            Centre of the ring, if not the points' centroid.
+        system : {"prolate", "spherical"} or CoordinateSystem
+            A system with an apex pole (the cylindrical one has none).
+        patches : (int, int)
+        radius_ratio : float
+            ``b / h`` in (0, 1); the apex must lie less than ``b`` from the axis.
+        """
+        if not 0 < radius_ratio < 1:
+            raise ValueError(f"radius_ratio must be in (0, 1), got {radius_ratio!r}")
+        pose = Pose.from_annulus(apex, annulus, base=base)
+        height, offset = pose.to_local(np.asarray(apex, float))[:2]
+        radius = radius_ratio * height
+        if offset >= radius:
+            raise ValueError(f"the apex lies {offset:.1f} mm from the normal of the mitral plane through its centre, "
+                             f"more than the initial base radius ({radius:.1f} mm = radius_ratio x the apex's "
+                             f"height {height:.1f} mm above the plane)")
+        system = coordinate_system(system)
+        if not system.poles:
+            raise ValueError(f"the {system.name} system has no apex pole: a tilted mitral plane needs "
+                             "'prolate' or 'spherical'")
+        system, _ = system.initial_v0(height, radius)
+        grid = HermiteGrid(*patches, v2_range=system.default_v2_range(height), poles=system.poles)
+
+        def inside(local):  # < 0 inside the sheared half-ellipsoid, > 0 outside
+            lateral = local[..., 1] - local[..., 0] * (offset / height)
+            return (local[..., 0] / height) ** 2 + (lateral**2 + local[..., 2] ** 2) / radius**2 - 1.0
+
+        def v0(v1, v2):
+            # the one crossing of the coordinate curve from v0 = 0 (on the
+            # axis, inside) outwards, by bisection to machine precision
+            lo, hi = np.zeros(np.shape(v1)), np.ones(np.shape(v1))
+            while np.any(out := inside(system.to_cartesian(hi, v1, v2)) <= 0):
+                hi = np.where(out, 2 * hi, hi)
+            for _ in range(64):
+                mid = 0.5 * (lo + hi)
+                below = inside(system.to_cartesian(mid, v1, v2)) <= 0
+                lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+            return 0.5 * (lo + hi)
+
+        # L2 projection on the well-formed surfaces (Gauss-Legendre points of
+        # every patch), with the apex as an equality constraint (KKT system)
+        q1, q2, w = grid.quadrature(6)
+        a = grid.constraints
+        b = (grid.basis_matrix(q1, q2) @ a).toarray()
+        apex_v0, apex_v1, apex_v2 = system.from_cartesian(pose.to_local(np.asarray(apex, float)))
+        c = (grid.basis_matrix(apex_v1, apex_v2) @ a).toarray()
+        n = b.shape[1]
+        kkt = np.block([[b.T @ (b * w[:, None]), c.T], [c, np.zeros((1, 1))]])
+        params = np.linalg.solve(kkt, np.concatenate([b.T @ (w * v0(q1, q2)), np.atleast_1d(apex_v0)]))[:n]
+        return cls(system, pose, grid, a @ params)
+
+    @classmethod
     def from_function(
         cls, system: CoordinateSystem, pose: Pose, grid: HermiteGrid, v0: float | Callable
     ) -> "Surface":
