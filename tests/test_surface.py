@@ -154,14 +154,15 @@ def test_from_annulus_is_sheared_half_ellipsoid_through_apex(system, offset):
     np.testing.assert_allclose((base_ring - centre) @ n, 0.0, atol=1e-9)
     np.testing.assert_allclose(np.linalg.norm(base_ring - centre, axis=1), b, rtol=3e-3)
     # the wall satisfies the implicit equation of the sheared half-ellipsoid:
-    # distance to it ~ |g| / |grad g| under 0.1 mm
+    # distance to it ~ |g| / |grad g| within the interpolation error at 8 x 8
+    # patches (0.04 mm for the upright half-ellipsoid, 0.2 mm with the apex 16 mm off)
     th, mu = np.meshgrid(np.linspace(0, 2 * np.pi, 40), np.linspace(0, np.pi / 2, 30))
     local = s.pose.to_local(s.points(th.ravel(), mu.ravel()))
     lateral = local[:, 1:] - local[:, :1] * np.array([offset / height, 0.0])
     g = (local[:, 0] / height) ** 2 + (lateral**2).sum(1) / b**2 - 1
     grad = np.stack([2 * local[:, 0] / height**2 - 2 * lateral[:, 0] * offset / height / b**2,
                      2 * lateral[:, 0] / b**2, 2 * lateral[:, 1] / b**2], 1)
-    assert np.max(np.abs(g) / np.linalg.norm(grad, axis=1)) < 0.1
+    assert np.max(np.abs(g) / np.linalg.norm(grad, axis=1)) < 0.25
     # a shear keeps the volume: 2 pi h b^2 / 3; the closed mesh and a voxel
     # count agree
     exact = 2 / 3 * np.pi * height * b**2 / 1000
@@ -182,7 +183,7 @@ def test_from_annulus_on_axis_is_from_apex_base():
     np.testing.assert_allclose(s.pose.origin, BASE, atol=1e-12)
     assert s.system == a.system
     th, mu = np.meshgrid(np.linspace(0, 2 * np.pi, 30), np.linspace(0, np.pi / 2, 30))
-    assert np.abs(s.points(th, mu) - a.points(th, mu)).max() < 0.05
+    assert np.abs(s.points(th, mu) - a.points(th, mu)).max() < 1e-5
 
 
 def test_from_annulus_bad_input():

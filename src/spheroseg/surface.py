@@ -116,12 +116,14 @@ class Surface:
 
         with ``s`` the apex's offset vector.  A shear keeps the volume,
         ``2 pi h b^2 / 3``, and the base ring, the circle of radius ``b``
-        in the plane.  The Hermite surface is the shape's ``v0(v1, v2)``
-        projected in L2 on the well-formed surfaces (pole constraints),
-        subject to passing through the apex exactly: the apex pole stays on
-        the axis and its tilted tangent plane lets the tip lie off it.  With
-        the apex on the axis the shape is that of :meth:`from_apex_base`
-        (which interpolates it at the nodes instead).
+        in the plane.  The Hermite surface interpolates the shape's
+        ``v0(v1, v2)`` at the nodes (values and slopes, as
+        :meth:`from_apex_base`; the second local axis points towards the
+        apex, so the nodes at ``v1 = 0`` and ``pi`` catch the tilt), then
+        takes the smallest change in the L2 norm that makes it pass through
+        the apex exactly: the apex pole stays on the axis and its tilted
+        tangent plane lets the tip lie off it.  With the apex on the axis
+        this is the surface of :meth:`from_apex_base`.
 
         Parameters
         ----------
@@ -169,16 +171,26 @@ class Surface:
                 lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
             return 0.5 * (lo + hi)
 
-        # L2 projection on the well-formed surfaces (Gauss-Legendre points of
-        # every patch), with the apex as an equality constraint (KKT system)
-        q1, q2, w = grid.quadrature(6)
+        # Hermite interpolation at the nodes, as from_apex_base (values and
+        # slopes by central differences), onto the well-formed surfaces
+        v2, v1 = np.meshgrid(grid.node_v2, grid.node_v1, indexing="ij")
+        e1, e2 = 1e-5, 1e-5 * (grid.v2_range[1] - grid.v2_range[0])
+        nodal = np.stack([
+            v0(v1, v2),
+            (v0(v1 + e1, v2) - v0(v1 - e1, v2)) / (2 * e1),
+            (v0(v1, v2 + e2) - v0(v1, v2 - e2)) / (2 * e2),
+            (v0(v1 + e1, v2 + e2) - v0(v1 - e1, v2 + e2) - v0(v1 + e1, v2 - e2) + v0(v1 - e1, v2 - e2)) / (4 * e1 * e2),
+        ], axis=-1)
+        params = grid.parameters(nodal)
+        # then the smallest change in the L2 norm (mass matrix M of the
+        # parameters) that puts the apex on the surface: p += M^-1 c r / (c M^-1 c)
         a = grid.constraints
+        q1, q2, w = grid.quadrature(6)
         b = (grid.basis_matrix(q1, q2) @ a).toarray()
         apex_v0, apex_v1, apex_v2 = system.from_cartesian(pose.to_local(np.asarray(apex, float)))
-        c = (grid.basis_matrix(apex_v1, apex_v2) @ a).toarray()
-        n = b.shape[1]
-        kkt = np.block([[b.T @ (b * w[:, None]), c.T], [c, np.zeros((1, 1))]])
-        params = np.linalg.solve(kkt, np.concatenate([b.T @ (w * v0(q1, q2)), np.atleast_1d(apex_v0)]))[:n]
+        c = (grid.basis_matrix(apex_v1, apex_v2) @ a).toarray()[0]
+        x = np.linalg.solve(b.T @ (b * w[:, None]), c)
+        params = params + x * (apex_v0 - c @ params) / (c @ x)
         return cls(system, pose, grid, a @ params)
 
     @classmethod
