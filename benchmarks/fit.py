@@ -19,7 +19,8 @@ from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
 from spheroseg.coords import annulus_plane  # noqa: E402
-from spheroseg.fit import annulus_of_open_mesh, apex_base_of_open_mesh, fit_surface, point_to_surface_distance  # noqa: E402
+from spheroseg.fit import (annulus_of_open_mesh, apex_base_of_open_mesh, fit_surface,  # noqa: E402
+                          point_to_surface_distance)
 from spheroseg.surface import Surface  # noqa: E402
 from spheroseg.surface_io import read_mesh  # noqa: E402
 

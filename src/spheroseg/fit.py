@@ -13,7 +13,9 @@ from .coords import CoordinateSystem, Pose, annulus_plane
 from .hermite import HermiteGrid
 from .surface import Surface
 
-__all__ = ["fit_surface", "annulus_of_open_mesh", "apex_base_of_open_mesh", "surface_sample", "point_to_surface_distance"]
+__all__ = [
+    "fit_surface", "annulus_of_open_mesh", "apex_base_of_open_mesh", "surface_sample", "point_to_surface_distance",
+]
 
 
 def fit_surface(

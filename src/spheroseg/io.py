@@ -18,7 +18,8 @@ import numpy as np
 
 from .volume import Volume, outside_sector
 
-__all__ = ["load", "load_sequence", "save_mask", "read_markups", "write_markups", "image_format", "IMAGE_SUFFIXES", "MASK_SUFFIXES",
+__all__ = ["load", "load_sequence", "save_mask", "read_markups", "write_markups", "image_format", "IMAGE_SUFFIXES",
+           "MASK_SUFFIXES",
            "write_atomically", "ImageFileError"]
 
 IMAGE_SUFFIXES = (".mhd", ".mha", ".nii", ".nii.gz", ".nrrd", ".nhdr", ".npy")
@@ -278,5 +279,6 @@ def write_markups(path: str | os.PathLike, *, apex=None, base=None, annulus=None
                        "positionStatus": "defined"})
     doc = {"@schema": "https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/Resources/"
                       "Schema/markups-schema-v1.0.3.json#",
-           "markups": [{"type": "Fiducial", "coordinateSystem": "LPS", "coordinateUnits": "mm", "controlPoints": points}]}
+           "markups": [{"type": "Fiducial", "coordinateSystem": "LPS", "coordinateUnits": "mm",
+                        "controlPoints": points}]}
     write_atomically(path, lambda tmp: Path(tmp).write_text(json.dumps(doc, indent=1)))
