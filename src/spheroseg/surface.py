@@ -163,8 +163,11 @@ class Surface:
             # the one crossing of the coordinate curve from v0 = 0 (on the
             # axis, inside) outwards, by bisection to machine precision
             lo, hi = np.zeros(np.shape(v1)), np.ones(np.shape(v1))
-            while np.any(out := inside(system.to_cartesian(hi, v1, v2)) <= 0):
-                hi = np.where(out, 2 * hi, hi)
+            for _ in range(64):  # an upper bracket: the shape is bounded
+                within = inside(system.to_cartesian(hi, v1, v2)) <= 0
+                if not within.any():
+                    break
+                hi = np.where(within, 2 * hi, hi)
             for _ in range(64):
                 mid = 0.5 * (lo + hi)
                 below = inside(system.to_cartesian(mid, v1, v2)) <= 0
