@@ -22,9 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .coords import Pose
 from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, LocalMeans, band_offsets
 from .descent import Descent
-from .coords import Pose
 from .options import SegmentOptions, format_point
 from .results import STATUS_MESSAGES, Intermediate, SegmentationResult
 from .surface import Surface
