@@ -69,7 +69,8 @@ FORMATIONS = {
     "contrast_high": replace(_DEFAULT, contrast_db=_DEFAULT.contrast_db + 7),
     "contrast_low": replace(_DEFAULT, contrast_db=_DEFAULT.contrast_db - 10),
     "clutter_none": replace(_DEFAULT, clutter_db=None),
-    "clutter_strong": replace(_DEFAULT, clutter_db=-12.0),
+    # haze nearly as bright as tissue over the apical third of the cavity (a poor window)
+    "clutter_strong": replace(_DEFAULT, clutter_db=-3.0, clutter_depth_mm=40.0),
     "dropout": replace(_DEFAULT, dropout_db=30.0),
 }
 
