@@ -36,8 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["ImageFormation", "BeamGrid", "BeamImage", "beam_to_probe", "probe_to_beam", "speckle_envelope", "log_compress",
-           "form_image", "scan_convert", "RAYLEIGH_DB_STD"]
+__all__ = ["ImageFormation", "BeamGrid", "BeamImage", "beam_to_probe", "probe_to_beam", "speckle_envelope",
+           "log_compress", "form_image", "scan_convert", "RAYLEIGH_DB_STD"]
 
 #: standard deviation of ``20 log10`` of a Rayleigh amplitude (fully
 #: developed speckle), dB: ``(20 / ln 10) * pi / (2 sqrt 6)``
