@@ -396,7 +396,7 @@ class BeamVolume:
         out[~valid | np.isnan(out)] = fill_value
         return out.reshape(shape)
 
-    def beam_sampling_view(self) -> BeamSamplingView:
+    def sampling_view(self) -> BeamSamplingView:
         """The arrays :meth:`sample` reads (read-only views), for the compiled kernel."""
         g = self.geometry
         arrays = [np.ndarray.view(a) for a in (self._flat, self._strides)] + [
