@@ -48,7 +48,7 @@ def _positive(name, value):
     return value
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class BeamGeometry:
     """Where the samples of a beam-space volume lie (ITK's
     ``PhasedArray3DSpecialCoordinatesImage`` fields plus what ITK leaves out).
@@ -116,6 +116,17 @@ class BeamGeometry:
                              "and a last row 0 0 0 1")
         m.flags.writeable = False
         object.__setattr__(self, "probe_to_world", m)
+
+    def _key(self) -> tuple:
+        return (self.shape, self.radius_sample_size, self.first_sample_distance, self.azimuth_angular_separation,
+                self.elevation_angular_separation, self.convention, self.centre_index,
+                tuple(self.probe_to_world.ravel()))
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, BeamGeometry) and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
 
     # --- angles ----------------------------------------------------------
 
