@@ -45,14 +45,12 @@ def iteration_parts(d, volume, repeats=300) -> dict:
 
     def project():
         d.p = p0.copy()
-        c_in, c_out, _ = term.means(d.backend, volume, obs)
-        d.iterate(obs, c_in, c_out, 100.0)
+        d.iterate(obs, term.force(d.backend, volume, obs))
 
     def whole():
         d.p = p0.copy()
         o = d.observe(volume, term)
-        c_in, c_out, _ = term.means(d.backend, volume, o)
-        d.iterate(o, c_in, c_out, 100.0)
+        d.iterate(o, term.force(d.backend, volume, o))
 
     backend, rows = d.backend, d.discretisation.band_rows
     out = {"sampling_us": 1e6 * median_time(lambda: d.observe(volume, term), repeats),
@@ -63,7 +61,7 @@ def iteration_parts(d, volume, repeats=300) -> dict:
         out["surface_and_samples_us"] = 1e6 * median_time(lambda: backend.observe(d.p, volume), repeats)
         out["band_samples_us"] = 2e6 * median_time(lambda: backend.mean_along(volume, obs, term.band_offsets, rows),
                                                    repeats)
-        out["local_means_us"] = 1e6 * median_time(lambda: term.means(backend, volume, obs), repeats)
+        out["local_means_us"] = 1e6 * median_time(lambda: term.force(backend, volume, obs), repeats)
         out["image_samples"] = d.model.n_samples + 2 * len(rows) * len(term.band_offsets)
     d.p = p0
     return out

@@ -73,13 +73,18 @@ def test_samples_match_volume_sample_including_no_data(case):
     offsets = np.array([-4.0, 0.0, 3.0])
     rows = np.arange(model.n_samples)
     mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
-    _kernels.sample_along(*vol.sampling_view(), world, normal, rows, offsets, mean, count)
+    _kernels.sample_along(*vol.sampling_view(), world, normal, rows, offsets, 0.0, mean, count)
     samples = vol.sample(world.T[:, None, :] + offsets[None, :, None] * normal.T[:, None, :])
     ok = np.isfinite(samples)
     assert 0 < (count == 0).sum() and (count == 3).sum() > 0  # the test reaches both cases
     np.testing.assert_array_equal(count, ok.sum(axis=1))
     with np.errstate(invalid="ignore"):
         expected = np.nansum(samples, axis=1) / ok.sum(axis=1)
+    np.testing.assert_allclose(mean, expected, rtol=1e-9, atol=1e-9)
+    # with log compression undone: the mean of exp(a v), not exp of the mean
+    _kernels.sample_along(*vol.sampling_view(), world, normal, rows, offsets, 0.05, mean, count)
+    with np.errstate(invalid="ignore"):
+        expected = np.nansum(np.exp(0.05 * samples), axis=1) / ok.sum(axis=1)
     np.testing.assert_allclose(mean, expected, rtol=1e-9, atol=1e-9)
 
 
@@ -94,9 +99,14 @@ def test_normal_displacement_matches_the_numpy_backend(case):
     h0, cos = rng.uniform(5, 50, n), rng.uniform(-1, 1, n)
     obs = Observation(f=None, h0=h0, cos=cos, area=None, world=None, normal=None, u=u)
     out = np.empty(n)
-    _kernels.normal_displacement(u, c_in, c_out, 300.0, h0, cos, 8.0, MIN_COS, 1.5, model.weights, out)
+    _kernels.normal_displacement(u, c_in, c_out, 300.0, 1.0, h0, cos, 8.0, MIN_COS, 1.5, model.weights, out)
     expected = NumpyBackend(model).displacement(obs, c_in, c_out, 300.0, step=1.5, h0_floor=8.0)
     np.testing.assert_allclose(out, expected, rtol=1e-12)
+    wide = np.empty(n)
+    _kernels.normal_displacement(u, c_in, c_out, 300.0, 3.0, h0, cos, 8.0, MIN_COS, 1.5, model.weights, wide)
+    np.testing.assert_allclose(wide, NumpyBackend(model).displacement(obs, c_in, c_out, 300.0, step=1.5, h0_floor=8.0,
+                                                                      clip=3.0), rtol=1e-12)
+    assert np.abs(wide).max() > np.abs(out).max()
     # and by hand: off the data pulled in by a whole step, the rest clipped
     r = (c_out - c_in) * (2 * u - c_in - c_out) / 300.0
     speed = np.where(np.isfinite(r), -np.clip(r, -1, 1), -1.0)

@@ -8,7 +8,7 @@ from spheroseg.options import SegmentOptions, format_point
 def test_defaults_round_trip_through_json():
     opts = SegmentOptions()
     params = json.loads(json.dumps(opts.as_parameters()))
-    assert params["patches"] == [8, 8] and params["mode"] == "local" and params["backend"] == "auto"
+    assert params["patches"] == [8, 8] and params["mode"] == "intensity" and params["backend"] == "auto"
     assert SegmentOptions(**params) == opts
     assert set(params) == set(SegmentOptions.names())
 

@@ -222,10 +222,12 @@ def prolate_surface(coefficients, order, basis1, basis2, cos_th, sin_th, cos_mu,
         out_normal[2, q] = r20 * m0 + r21 * m1 + r22 * m2
 
 
-def sample_along(image, strides, upper, to_index, image_origin, world, normal, rows, offsets, out_mean, out_count):
+def sample_along(image, strides, upper, to_index, image_origin, world, normal, rows, offsets, exponent, out_mean,
+                 out_count):
     """For each ``q`` in ``rows``: the mean (NaN if none) and the number of the
     finite samples at ``world[:, q] + s normal[:, q]`` for ``s`` in
-    ``offsets`` (mm)."""
+    ``offsets`` (mm); with a non-zero ``exponent`` ``a``, of ``exp(a v)`` for
+    each sample ``v`` (log compression undone)."""
     for r in range(rows.shape[0]):
         q = rows[r]
         # the point and the normal in voxel index: the samples are a line there
@@ -234,6 +236,8 @@ def sample_along(image, strides, upper, to_index, image_origin, world, normal, r
         total, count = 0.0, 0
         for s in offsets:
             v = _sample(image, strides, upper, pi + s * ni, pj + s * nj, pk + s * nk)
+            if exponent != 0.0:
+                v = math.exp(exponent * v)
             if not math.isnan(v):
                 total += v
                 count += 1
@@ -268,14 +272,14 @@ def cavity_sums(image, strides, upper, to_index, image_origin, f, cos_th, sin_th
         out_weight[r] = weight
 
 
-def normal_displacement(u, c_in, c_out, scale, h0, cos, h0_floor, min_cos, step, weights, out):
+def normal_displacement(u, c_in, c_out, scale, clip, h0, cos, h0_floor, min_cos, step, weights, out):
     """``out = weights * dv0``: the region force of eq. 22 as a displacement
     in ``v0`` per sample point, as :meth:`spheroseg.backends.NumpyBackend.displacement`
     (the reference, through :func:`spheroseg.energy.normal_speed`)."""
     for q in range(u.shape[0]):
         r = (c_out[q] - c_in[q]) * (2.0 * u[q] - c_in[q] - c_out[q]) / scale
         if math.isfinite(r):
-            speed = -min(max(r, -1.0), 1.0)
+            speed = -min(max(r, -clip), clip)
         elif math.isfinite(u[q]):
             speed = 0.0
         else:  # off the data: pulled back in

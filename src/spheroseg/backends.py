@@ -5,8 +5,9 @@
 :func:`spheroseg.energy.normal_speed` and restates none of them.
 :class:`CompiledBackend` does the same work in the numba kernels of
 :mod:`spheroseg._kernels` (prolate spheroidal system only), writing into
-arrays allocated once; the tests require both to give the same
-segmentations.  :func:`select_backend` chooses once, as trimesh picks a ray
+arrays allocated once (a :class:`~spheroseg.beamspace.BeamVolume` is sampled
+by those of :mod:`spheroseg._beam_kernels`); the tests require both to give
+the same segmentations.  :func:`select_backend` chooses once, as trimesh picks a ray
 engine.
 
 The methods, for a model of ``n`` sample points and parameters ``p``:
@@ -31,6 +32,7 @@ from typing import Callable
 
 import numpy as np
 
+from .beamspace import BeamVolume
 from .coords import ProlateSpheroidal
 from .energy import Geometry, SampledSurface, normal_speed
 
@@ -81,32 +83,36 @@ class NumpyBackend:
 
     # the surface and the image ---------------------------------------------
 
-    def observe(self, p, volume, *, band_offsets=None, geometry: bool = False) -> Observation:
+    def observe(self, p, volume, *, band_offsets=None, geometry: bool = False, exponent: float = 0.0) -> Observation:
         """The surface of parameters ``p`` at the samples and the image there;
         with ``band_offsets`` (mm, positive), the mean grey levels at those
-        distances inside and outside along the normal, on the band rows."""
+        distances inside and outside along the normal, on the band rows.  A
+        non-zero ``exponent`` ``a`` reads ``exp(a v)`` for every sample ``v``."""
         m = self.model
         g = m.geometry(p)
         h0 = m.system.scale_factors(g.f, m.v1, m.v2)[0]
         cos = np.einsum("ij,ij->i", g.normal @ m.pose.rotation, g.jacobian[:, :, 0]) / h0
         obs = Observation(g.f, h0, cos, g.area, g.world.T, g.normal.T, u=None, geometry=g)
-        obs.u = row_nanmean(self.samples_along(volume, obs, _SURFACE_OFFSETS))
+        obs.u = row_nanmean(self.samples_along(volume, obs, _SURFACE_OFFSETS, exponent=exponent))
         if band_offsets is not None:
             rows = self.discretisation.band_rows
-            obs.inside = row_nanmean(self.samples_along(volume, obs, -band_offsets, rows))
-            obs.outside = row_nanmean(self.samples_along(volume, obs, band_offsets, rows))
+            obs.inside = row_nanmean(self.samples_along(volume, obs, -band_offsets, rows, exponent=exponent))
+            obs.outside = row_nanmean(self.samples_along(volume, obs, band_offsets, rows, exponent=exponent))
         return obs
 
-    def samples_along(self, volume, obs: Observation, offsets, rows=slice(None)) -> np.ndarray:
-        """Grey levels at ``world + s normal`` for ``s`` in ``offsets`` (mm):
-        ``(rows, offsets)``, NaN off the data."""
+    def samples_along(self, volume, obs: Observation, offsets, rows=slice(None), *, exponent: float = 0.0,
+                      order: int = 1) -> np.ndarray:
+        """Grey levels (or ``exp(exponent v)``) at ``world + s normal`` for
+        ``s`` in ``offsets`` (mm): ``(rows, offsets)``, NaN off the data;
+        trilinear, or the nearest voxel with ``order=0``."""
         pts = obs.world.T[rows, None, :] + np.asarray(offsets)[None, :, None] * obs.normal.T[rows, None, :]
-        return volume.sample(pts)
+        values = volume.sample(pts) if order == 1 else volume.sample(pts, order=order)
+        return np.exp(exponent * values) if exponent else values
 
-    def mean_along(self, volume, obs: Observation, offsets, rows) -> tuple[np.ndarray, np.ndarray]:
+    def mean_along(self, volume, obs: Observation, offsets, rows, *, exponent: float = 0.0):
         """Mean (NaN if none) and number of the finite samples along the
         normals of ``rows``."""
-        u = self.samples_along(volume, obs, offsets, rows)
+        u = self.samples_along(volume, obs, offsets, rows, exponent=exponent)
         return row_nanmean(u), np.isfinite(u).sum(axis=1)
 
     def cavity_sums(self, volume, obs: Observation, fractions, rows) -> tuple[np.ndarray, np.ndarray]:
@@ -136,17 +142,26 @@ class NumpyBackend:
     # the force ----------------------------------------------------------------
 
     def displacement(self, obs: Observation, c_in, c_out, scale: float, *, step: float, h0_floor: float,
+                     clip: float = 1.0, u=None,
                      area_speed: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
         """``W dv0``: the normal speed of :func:`~spheroseg.energy.normal_speed`
         times ``step`` (mm), converted to ``v0`` (``h0 cos``, both bounded
         below: near a focal point or at grazing rays ``v0`` barely moves the
-        surface), times the quadrature weights.  ``area_speed`` adds a speed
-        (steps) given the conversion factor."""
-        speed = normal_speed(obs.u, c_in, c_out, scale)
-        normal_to_v0 = np.maximum(obs.h0 * np.maximum(obs.cos, MIN_COS), h0_floor)
+        surface), times the quadrature weights.  ``u`` replaces the observed
+        grey level (a data term's transform of it); ``clip`` bounds the speed;
+        ``area_speed`` adds a speed (steps) given the conversion factor."""
+        speed = normal_speed(obs.u if u is None else u, c_in, c_out, scale, clip)
+        normal_to_v0 = self.normal_to_v0(obs, h0_floor)
         if area_speed is not None:
             speed = speed + area_speed(normal_to_v0)
         return self.model.weights * step * speed / normal_to_v0
+
+    @staticmethod
+    def normal_to_v0(obs: Observation, h0_floor: float) -> np.ndarray:
+        """mm of normal motion per unit ``v0`` at each sample point: ``h0 cos``,
+        bounded below (near a focal point, or at grazing rays, ``v0`` barely
+        moves the surface)."""
+        return np.maximum(obs.h0 * np.maximum(obs.cos, MIN_COS), h0_floor)
 
 
 class CompiledBackend(NumpyBackend):
@@ -158,9 +173,10 @@ class CompiledBackend(NumpyBackend):
 
     def __init__(self, model: SampledSurface):
         super().__init__(model)
-        from . import _kernels
+        from . import _beam_kernels, _kernels
 
         self.kernels = _kernels
+        self.beam_kernels = _beam_kernels
         n, nb = model.n_samples, len(self.discretisation.band_rows)
         self._all_rows = np.arange(n)
         self._buffers = dict(f=np.empty(n), h0=np.empty(n), cos=np.empty(n), area=np.empty(n),
@@ -169,37 +185,45 @@ class CompiledBackend(NumpyBackend):
         self._counts = np.empty(n, np.int64)
         self._displacement = np.empty(n)
 
-    def observe(self, p, volume, *, band_offsets=None, geometry: bool = False) -> Observation:
+    def observe(self, p, volume, *, band_offsets=None, geometry: bool = False, exponent: float = 0.0) -> Observation:
         if geometry:
-            return super().observe(p, volume, band_offsets=band_offsets, geometry=True)
+            return super().observe(p, volume, band_offsets=band_offsets, geometry=True, exponent=exponent)
         m, d, b = self.model, self.discretisation, self._buffers
         coefficients = (d.constraints @ p).reshape(m.grid.shape)
         self.kernels.prolate_surface(coefficients, d.order, *d.tables, *d.trig, m.system.focal_length,
                                      m.pose.rotation, m.pose.origin, b["f"], b["h0"], b["cos"], b["area"],
                                      b["world"], b["normal"])
-        image = volume.sampling_view()
-        self.kernels.sample_along(*image, b["world"], b["normal"], self._all_rows, _SURFACE_OFFSETS, b["u"],
-                                  self._counts)
+        kernels, image = self._sampling(volume)
+        kernels.sample_along(*image, b["world"], b["normal"], self._all_rows, _SURFACE_OFFSETS, exponent, b["u"],
+                             self._counts)
         obs = Observation(**b)
         if band_offsets is not None:
             rows = d.band_rows
             counts = self._counts[:len(rows)]
-            self.kernels.sample_along(*image, b["world"], b["normal"], rows, -band_offsets, b["inside"], counts)
-            self.kernels.sample_along(*image, b["world"], b["normal"], rows, band_offsets, b["outside"], counts)
+            kernels.sample_along(*image, b["world"], b["normal"], rows, -band_offsets, exponent, b["inside"], counts)
+            kernels.sample_along(*image, b["world"], b["normal"], rows, band_offsets, exponent, b["outside"], counts)
         else:
             obs.inside = obs.outside = None
         return obs
 
-    def mean_along(self, volume, obs: Observation, offsets, rows):
+    def _sampling(self, volume):
+        """The kernels that sample ``volume`` (Cartesian or beam space) and
+        the arrays they read."""
+        kernels = self.beam_kernels if isinstance(volume, BeamVolume) else self.kernels
+        return kernels, volume.sampling_view()
+
+    def mean_along(self, volume, obs: Observation, offsets, rows, *, exponent: float = 0.0):
         mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
-        self.kernels.sample_along(*volume.sampling_view(), obs.world, obs.normal, rows, offsets, mean, count)
+        kernels, image = self._sampling(volume)
+        kernels.sample_along(*image, obs.world, obs.normal, rows, offsets, exponent, mean, count)
         return mean, count
 
     def cavity_sums(self, volume, obs: Observation, fractions, rows):
         m, d = self.model, self.discretisation
         total, weight = np.empty(len(rows)), np.empty(len(rows))
-        self.kernels.cavity_sums(*volume.sampling_view(), obs.f, *d.trig, m.system.focal_length, m.pose.rotation,
-                                 m.pose.origin, rows, fractions, total, weight)
+        kernels, image = self._sampling(volume)
+        kernels.cavity_sums(*image, obs.f, *d.trig, m.system.focal_length, m.pose.rotation, m.pose.origin, rows,
+                            fractions, total, weight)
         return total, weight
 
     def gather(self, p) -> np.ndarray:
@@ -220,13 +244,14 @@ class CompiledBackend(NumpyBackend):
         return out[:, 0] if values.ndim == 1 else out
 
     def displacement(self, obs: Observation, c_in, c_out, scale: float, *, step: float, h0_floor: float,
-                     area_speed=None) -> np.ndarray:
+                     clip: float = 1.0, u=None, area_speed=None) -> np.ndarray:
         if area_speed is not None:
-            return super().displacement(obs, c_in, c_out, scale, step=step, h0_floor=h0_floor, area_speed=area_speed)
+            return super().displacement(obs, c_in, c_out, scale, step=step, h0_floor=h0_floor, clip=clip, u=u,
+                                        area_speed=area_speed)
         n = self.model.n_samples
         c_in, c_out = (np.full(n, c) if np.ndim(c) == 0 else c for c in (c_in, c_out))
-        self.kernels.normal_displacement(obs.u, c_in, c_out, scale, obs.h0, obs.cos, h0_floor, MIN_COS, step,
-                                         self.model.weights, self._displacement)
+        self.kernels.normal_displacement(obs.u if u is None else u, c_in, c_out, scale, clip, obs.h0, obs.cos,
+                                         h0_floor, MIN_COS, step, self.model.weights, self._displacement)
         return self._displacement
 
 

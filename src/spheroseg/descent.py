@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from .backends import Observation, select_backend
+from .dataterms import Force
 from .energy import Landmarks, SampledSurface, area_gradient
 from .surface import Surface
 
@@ -56,13 +57,17 @@ class Descent:
     """
 
     def __init__(self, surface: Surface, reference: Surface, *, order: int, step: float, smoothness: float,
-                 nu: float = 0.0, landmarks=None, landmark_weights=None, backend: str = "auto"):
+                 nu: float = 0.0, landmarks=None, landmark_weights=None, backend: str = "auto",
+                 adaptive_step: bool = False):
         self.model = SampledSurface(surface.system, surface.pose, surface.grid, order)
         self.discretisation = d = self.model.discretisation
         self.backend = select_backend(self.model, compiled=backend != "numpy")
         self.like = surface
         self.p = self.model.parameters(surface.coefficients)
         self.step, self.nu, self.smoothness = step, nu, smoothness
+        self.adaptive_step = adaptive_step
+        self._initial_step = step
+        self._previous_motion = None
         self.set_reference(reference)
         self.set_landmarks(landmarks, landmark_weights)
         self.h0_floor = None  # fixed per level on the first iteration
@@ -96,10 +101,12 @@ class Descent:
         """The surface and the image at the sample points, with what the
         data term reads (band means) and, with an area term, the geometry."""
         offsets = data_term.band_offsets if data_term.needs_bands else None
-        return self.backend.observe(self.p, volume, band_offsets=offsets, geometry=self.nu > 0)
+        return self.backend.observe(self.p, volume, band_offsets=offsets, geometry=self.nu > 0,
+                                    exponent=data_term.exponent or 0.0)
 
-    def iterate(self, obs: Observation, c_in, c_out, scale: float) -> float:
-        """One step; returns the RMS motion of the surface (mm)."""
+    def iterate(self, obs: Observation, force: Force) -> float:
+        """One step with the data term's force; returns the RMS motion of
+        the surface (mm)."""
         m, d = self.model, self.discretisation
         if self.h0_floor is None:  # fixed per level: a median per iteration costs more than the rest
             self.h0_floor = 0.3 * float(np.median(obs.h0))
@@ -107,9 +114,18 @@ class Descent:
         if self.nu:
             def area_speed(normal_to_v0):
                 return self.nu * self._area_speed(obs.geometry, normal_to_v0)
-        wdv0 = self.backend.displacement(obs, c_in, c_out, scale, step=self.step, h0_floor=self.h0_floor,
-                                         area_speed=area_speed)
+        clip = np.inf if force.clip is None else force.clip
+        wdv0 = self.backend.displacement(obs, force.c_in, force.c_out, force.scale, step=self.step,
+                                         h0_floor=self.h0_floor, clip=clip, u=force.u, area_speed=area_speed)
         rhs = self.backend.scatter(wdv0)
+        if force.clip is None:
+            # bound the displacement after its projection on the Hermite space
+            # (B M^-1 B^T W dv0: the force averaged over the surface), not
+            # point by point: clipping a heavy-tailed force before averaging
+            # moves the point where its mean vanishes
+            limit = self.step / self.backend.normal_to_v0(obs, self.h0_floor)
+            smooth = self.backend.gather(d.mass_inverse @ rhs)
+            rhs = self.backend.scatter(m.weights * np.clip(smooth, -limit, limit))
         if self.landmarks is not None:
             # rows omega |L p_new - (L p + res)|^2: move towards each landmark
             # by at most a step
@@ -120,7 +136,28 @@ class Descent:
         p_new = self.system_inverse @ (d.mass @ self.p + self.prior + rhs)
         dp = p_new - self.p
         self.p = p_new
-        return float(np.sqrt(np.dot(m.weights, (obs.h0 * self.backend.gather(dp)) ** 2) / d.area))
+        motion = obs.h0 * self.backend.gather(dp)
+        if self.adaptive_step:
+            self._adapt_step(motion)
+        return float(np.sqrt(np.dot(m.weights, motion**2) / d.area))
+
+    def reset_step(self, step: float) -> None:
+        """Start again from ``step`` mm (a new frame, new landmarks)."""
+        self.step = self._initial_step = step
+        self._previous_motion = None
+
+    def _adapt_step(self, motion: np.ndarray) -> None:
+        """Halve the step when the surface turns back on itself: a motion
+        against the previous one (negative correlation over the surface)
+        means the step is larger than the force's zero crossing is sharp,
+        and the surface would oscillate about it instead of settling."""
+        if self._previous_motion is not None:
+            w = self.model.weights
+            dot = np.dot(w, motion * self._previous_motion)
+            norms = np.sqrt(np.dot(w, motion**2) * np.dot(w, self._previous_motion**2))
+            if norms > 0 and dot < -0.5 * norms:
+                self.step = max(0.5 * self.step, self._initial_step / 8)
+        self._previous_motion = motion.copy()
 
     def _area_speed(self, g, normal_to_v0) -> np.ndarray:
         """Normal speed (steps, outward) of the area term: minus the mean

@@ -142,21 +142,24 @@ def region_force(u, c_in, c_out) -> np.ndarray:
     return (c_out - c_in) * (2.0 * u - c_in - c_out)
 
 
-def normal_speed(u, c_in, c_out, scale) -> np.ndarray:
-    """Outward normal speed of the surface, in steps (``[-1, 1]``), from the
-    region force: ``-clip(r / scale, -1, 1)`` with ``r`` of :func:`region_force`.
+def normal_speed(u, c_in, c_out, scale, clip: float = 1.0) -> np.ndarray:
+    """Outward normal speed of the surface, in steps, from the region force:
+    ``-clip(r / scale, -clip, clip)`` with ``r`` of :func:`region_force`.
 
     This is the descent direction of paper eq. 22 per unit area of surface:
     ``dF/dp_i = int f_i r V_K``, and moving the surface outwards by ``dn``
     where ``r > 0`` raises ``F`` by ``r dn dA``, so the surface moves against
     ``r``.  Dividing by ``scale`` (the squared contrast) makes it
-    dimensionless; the clip bounds a step in mm whatever the image's units.
+    dimensionless; the clip bounds a step in mm whatever the image's units
+    (a clip above 1 lets a heavy-tailed ``u``, speckle intensity, average
+    out before it is bounded: clipping a skewed distribution at 1 biases
+    where its mean force vanishes).
     A point with no finite grey level does not move, except a point off the
     image's data (``u`` not finite): it is pulled back in (speed -1), since
     the cavity is where the data are.
     """
     r = region_force(u, c_in, c_out) / scale
-    return np.where(np.isfinite(r), -np.clip(r, -1.0, 1.0), np.where(np.isfinite(u), 0.0, -1.0))
+    return np.where(np.isfinite(r), -np.clip(r, -clip, clip), np.where(np.isfinite(u), 0.0, -1.0))
 
 
 def data_energy(model: SampledSurface, p, sampler: Sampler, c_in, c_out, n_radial: int = 24) -> float:

@@ -16,7 +16,7 @@ from .surface import DEFAULT_RADIUS_RATIO
 __all__ = ["SegmentOptions", "MODES", "SYSTEMS", "BACKENDS", "format_point"]
 
 #: data terms (see :mod:`spheroseg.dataterms`)
-MODES = ("local", "chan-vese", "fast")
+MODES = ("intensity", "local", "chan-vese", "fast")
 #: coordinate systems of the surface (see :mod:`spheroseg.coords`)
 SYSTEMS = ("prolate", "spherical", "cylindrical")
 #: array backends (see :mod:`spheroseg.backends`)
@@ -45,6 +45,9 @@ class SegmentOptions:
         Largest normal displacement of the surface per iteration, mm.  The
         default 1 mm is about 4 % of a ventricle's radius: the paper's
         ``dt = 0.04``.
+    adaptive_step : bool
+        Halve the step whenever the surface moves back against its last
+        motion (it oscillates about the wall instead of settling).
     max_iterations : int
         Cap on iterations at each level of the coarse-to-fine schedule.
     tol : float
@@ -84,8 +87,9 @@ class SegmentOptions:
 
     system: str = "prolate"
     patches: tuple[int, int] = (8, 8)
-    mode: str = "local"
+    mode: str = "intensity"
     step: float = 1.0
+    adaptive_step: bool = True
     max_iterations: int = 60
     tol: float = 0.05
     coarse_to_fine: bool = True
@@ -120,6 +124,8 @@ class SegmentOptions:
             value = getattr(self, name)
             if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
+        if not isinstance(self.adaptive_step, (bool, np.bool_)):
+            raise ValueError(f"adaptive_step must be True or False, got {self.adaptive_step!r}")
         for name in ("max_iterations", "order"):
             value = getattr(self, name)
             if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0):

@@ -51,7 +51,7 @@ def schedule(options: SegmentOptions, *, coarse_to_fine: bool | None = None) -> 
     while coarse_to_fine and min(patches[0]) >= 4 and patches[0][0] % 2 == 0 and patches[0][1] % 2 == 0:
         patches.insert(0, (patches[0][0] // 2, patches[0][1] // 2))
     term = DATA_TERMS[options.mode]
-    coarse = GlobalMeans if term is LocalMeans else term
+    coarse = GlobalMeans if issubclass(term, LocalMeans) else term
     return [Level(p, term if k == len(patches) - 1 else coarse, options.max_iterations)
             for k, p in enumerate(patches)]
 
@@ -179,7 +179,8 @@ class Tracker:
         points, weights = self._held_points()
         opts = self.options
         return Descent(surface, reference, order=opts.order, step=opts.step, smoothness=opts.smoothness, nu=opts.nu,
-                       landmarks=points, landmark_weights=weights, backend=opts.backend)
+                       landmarks=points, landmark_weights=weights, backend=opts.backend,
+                       adaptive_step=opts.adaptive_step)
 
     def _prepare_terms(self) -> dict:
         """The data terms of the schedule, from the grey levels around the
@@ -227,8 +228,9 @@ class Tracker:
         started = time.perf_counter()
         term = self._terms[self.levels[self.level].data_term]
         obs = self._descent.observe(self.volume, term)
-        self.c_in, self.c_out, scale = term.means(self._descent.backend, self.volume, obs)
-        self.motion = self._descent.iterate(obs, self.c_in, self.c_out, scale)
+        force = term.force(self._descent.backend, self.volume, obs)
+        self.c_in, self.c_out = term.grey_means
+        self.motion = self._descent.iterate(obs, force)
         self.iteration += 1
         self._level_iterations += 1
         if self.motion < self.options.tol:
@@ -298,6 +300,7 @@ class Tracker:
         self.volume = volume
         self._descent.set_surface(surface)
         self._descent.set_reference(surface)
+        self._descent.reset_step(self.options.step)
         self._reference = surface
         self.iteration, self._level_iterations, self.status, self._converged = 0, 0, None, False
         self._seconds = time.perf_counter() - started
@@ -310,13 +313,13 @@ class Tracker:
         points = self._check_landmarks(landmarks)
         self.landmarks = points
         self._descent.set_landmarks(*self._held_points())
+        self._descent.reset_step(self.options.step)
         self.level = len(self.levels) - 1 if self.status is not None else self.level
         self._level_iterations, self.status = 0, None
 
     def result(self) -> SegmentationResult:
         """The current frame's result."""
-        c_in = getattr(self, "c_in", self._start_means[0])
-        c_out = getattr(self, "c_out", self._start_means[1])
+        c_in, c_out = getattr(self, "c_in", self._start_means[0]), getattr(self, "c_out", self._start_means[1])
         parameters = {**self.options.as_parameters(), **getattr(self, "_frame_options", {})}
         status = 2 if self.status is None else self.status
         return SegmentationResult(

@@ -160,17 +160,24 @@ class Volume:
 
     # sampling ------------------------------------------------------------
 
-    def sample(self, world, *, fill_value: float = np.nan) -> np.ndarray:
-        """Trilinear interpolation at world points, shape ``world.shape[:-1]``.
+    def sample(self, world, *, fill_value: float = np.nan, order: int = 1) -> np.ndarray:
+        """Trilinear interpolation (``order=1``) or the nearest voxel
+        (``order=0``) at world points, shape ``world.shape[:-1]``.
 
         Points outside the image (or touching a no-data voxel) get
         ``fill_value``.
         """
+        if order not in (0, 1):
+            raise ValueError(f"order must be 0 (nearest voxel) or 1 (trilinear), got {order!r}")
         world = np.asarray(world, dtype=float)
         shape = world.shape[:-1]
         idx = self.world_to_index(world.reshape(-1, 3))
         valid = np.all((idx >= -INDEX_TOLERANCE) & (idx <= self._upper + INDEX_TOLERANCE), axis=1)
         idx = np.clip(idx, 0, self._upper)
+        if order == 0:
+            out = self._flat[np.rint(idx).astype(np.int64) @ self._strides].astype(float)
+            out[~valid | np.isnan(out)] = fill_value
+            return out.reshape(shape)
         base = np.minimum(np.floor(idx), np.maximum(self._upper - 1, 0)).astype(np.int64)
         t = idx - base
         flat0 = base @ self._strides
