@@ -267,3 +267,14 @@ def test_dropout_darkens_a_wall_region_only():
     k, j, i = np.nonzero(np.abs(diff) > 1)
     assert np.linalg.norm(np.stack([i, j, k], 1) * 3.0 - centre, axis=1).max() < 30
     assert diff[np.abs(diff) > 1].mean() > 20, "darker there"
+
+
+def test_sequence_with_formation_keeps_the_truth():
+    formed = make_sequence(seed=5, n_frames=2, spacing=3.0, base_descent=9.0, formation=WIDE)
+    plain = make_sequence(seed=5, n_frames=2, spacing=3.0, base_descent=9.0)
+    for a, b in zip(formed.frames, plain.frames, strict=True):
+        np.testing.assert_array_equal(a.truth_mask, b.truth_mask)
+        np.testing.assert_array_equal(a.base, b.base)
+        assert a.params["formation"] == WIDE and not np.array_equal(a.volume.array, b.volume.array)
+    # speckle changes from frame to frame
+    assert not np.array_equal(formed.frames[0].volume.array, formed.frames[1].volume.array)
