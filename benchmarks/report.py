@@ -124,14 +124,15 @@ def _formation_sweep(sweep) -> list[str]:
     first = runs[labels[0]]
     out = ["## Accuracy across image formations (issue 11)", ""]
     for label, run in runs.items():
-        out.append(f"Run '{label}': `{run['command']}` on commit {run['commit']} ({run['wall_seconds'] / 60:.0f} min, "
-                   f"phantom generation included). Machine: {_machine(run['machine'])}; a shared machine under load "
+        mode = f", default mode '{run['default_mode']}'" if run.get("default_mode") else ""
+        out.append(f"Run '{label}': `{run['command']}` on commit {run['commit']}{mode} "
+                   f"({run['wall_seconds'] / 60:.0f} min, phantom generation included). Machine: {_machine(run['machine'])}; a shared machine under load "
                    "from other jobs, so seconds are indicative only.")
         out.append("")
     n_fam = len(first["summary"]["family"])
     out += [f"The scenes of `spheroseg.phantom` ({', '.join(first['summary']['family'])}; 1 mm voxels, exact truth) "
-            f"imaged by each named image formation of `spheroseg.phantom.FORMATIONS` ({len(first['summary']['formation'])} "
-            f"settings, {n_fam} scenes each, the same scenes for every setting): beam-space speckle with a "
+            "imaged by each named image formation of `spheroseg.phantom.FORMATIONS` "
+            f"({len(first['summary']['formation'])} settings, {n_fam} scenes each, the same scenes for every setting): beam-space speckle with a "
             "point-spread function widening with depth, attenuation, noise, TGC, log compression and scan conversion "
             "(`spheroseg.echo`). 'default' resembles an adult apical scan (axial PSF 0.8 mm, lateral 3 mm at 80 mm, "
             "55 dB); every other setting changes one thing (see docs/accuracy_sweep.json for all parameters). "
@@ -144,7 +145,8 @@ def _formation_sweep(sweep) -> list[str]:
 
     def cells(st):
         return (f"{_fmt(st['median_dice'], 3)} ({_fmt(st['worst_dice'], 3)}) | {_fmt(st['median_msd_mm'])} | "
-                f"{st['median_volume_error_pct']:+.1f} | {st['median_volume_error_ml']:+.1f} | {st['median_iterations']:.0f}")
+                f"{st['median_volume_error_pct']:+.1f} | {st['median_volume_error_ml']:+.1f} | "
+                f"{st['median_iterations']:.0f}")
 
     for group in ("formation", "family"):
         for name in first["summary"][group]:

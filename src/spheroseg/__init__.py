@@ -9,9 +9,10 @@ with an explicit bicubic Hermite surface in prolate spheroidal coordinates.
 
 __version__ = "0.1.0"
 
+from .beamspace import BeamGeometry, BeamVolume, scan_convert, to_beam_space
 from .coords import Cylindrical, Pose, ProlateSpheroidal, Spherical
 from .hermite import HermiteGrid
-from .io import ImageFileError, load, load_sequence, save_mask
+from .io import ImageFileError, load, load_sequence, save_mask, save_volume
 from .options import SegmentOptions
 from .results import Intermediate, SegmentationResult, TrackingResult
 from .segment import segment, track
@@ -22,5 +23,6 @@ from .volume import ImageGrid, Volume
 __all__ = [
     "load", "load_sequence", "save_mask", "segment", "track", "Tracker", "SegmentOptions", "Intermediate",
     "Volume", "Surface", "ImageGrid", "Pose", "ProlateSpheroidal", "Spherical", "Cylindrical", "HermiteGrid",
-    "SegmentationResult", "TrackingResult", "ImageFileError",
+    "SegmentationResult", "TrackingResult", "ImageFileError", "BeamGeometry", "BeamVolume", "scan_convert",
+    "to_beam_space", "save_volume",
 ]

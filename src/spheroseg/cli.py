@@ -1,4 +1,4 @@
-"""The command line: ``spheroseg segment | track | demo``.
+"""The command line: ``spheroseg segment | track | scan-convert | demo``.
 
 Every failure is one line on stderr and a non-zero exit status.  Outputs
 are written to temporary files and renamed; existing outputs are kept
@@ -64,8 +64,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spacing", nargs=3, type=float, metavar=("SX", "SY", "SZ"),
                    help="voxel spacing in mm (required for .npy, overrides the file's)")
     p.add_argument("--no-data", default="auto", type=_no_data, metavar="auto|none|VALUE",
-                   help="voxels without data: 'auto' (default) the zero padding around an echo sector, "
-                        "'none', or a voxel value")
+                   help="voxels without data: 'auto' (default) the zero padding around an echo sector "
+                        "(a beam-space file's NoDataValue key), 'none', or a voxel value")
     p.add_argument("--mask-format", metavar="EXT", help="mask file type, e.g. .nii.gz (default: the input's)")
     p.add_argument("--stl", action="store_true", help="also write the mesh as STL")
     p.add_argument("--no-report", action="store_true", help="skip the PNG report")
@@ -86,6 +86,14 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("sequence", help="4D image, .seq.nrrd, folder or glob of 3D frames, DICOM folder")
     _add_common(tr)
     tr.add_argument("--iterations-per-frame", type=int, default=20)
+    sc = sub.add_parser("scan-convert", help="resample a beam-space image or 3D+t sequence on a Cartesian grid")
+    sc.add_argument("image", help="beam-space .mha/.nrrd (ITK PhasedArray3D header keys), 3D or 3D+t")
+    sc.add_argument("output", help="Cartesian image to write (.mha, .mhd, .nrrd, .nii, .nii.gz)")
+    sc.add_argument("--voxel-size", type=float, metavar="MM",
+                    help="isotropic voxel size in mm (default: the finest beam spacing)")
+    sc.add_argument("--nearest", action="store_true", help="nearest sample instead of trilinear in [r, e, a]")
+    sc.add_argument("--force", action="store_true", help="overwrite an existing output")
+    sc.add_argument("--quiet", action="store_true")
     demo = sub.add_parser("demo", help="track a built-in synthetic sequence and compare with its truth")
     demo.add_argument("--out", metavar="DIR", help="output folder (default: a new ./spheroseg-demo*)")
     demo.add_argument("--force", action="store_true")
@@ -222,7 +230,7 @@ def cmd_segment(args) -> int:
     if not args.no_report:
         from .report import save_report
 
-        save_report(out / "report.png", volume, result.surface, mask=mask, title=f"{source.name}: {result.volume_ml:.1f} mL")
+        save_report(out / "report.png", _displayable(volume), result.surface, mask=mask, title=f"{source.name}: {result.volume_ml:.1f} mL")
         files["report"] = "report.png"
     results = {
         "input": str(source), "volume_ml": result.volume_ml, "iterations": result.iterations,
@@ -236,6 +244,14 @@ def cmd_segment(args) -> int:
     _write_json(out / "results.json", results)
     _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
     return 0
+
+
+def _displayable(volume):
+    """The volume on the Cartesian grid its masks are drawn on (a beam-space
+    one scan-converted, for the report's slices)."""
+    from .beamspace import BeamVolume, scan_convert
+
+    return scan_convert(volume) if isinstance(volume, BeamVolume) else volume
 
 
 def _write_tracking_outputs(out: Path, volumes, result, suffix: str, stl: bool, title: str | None,
@@ -252,7 +268,7 @@ def _write_tracking_outputs(out: Path, volumes, result, suffix: str, stl: bool, 
         from .report import save_report
 
         ed = result.ed_frame
-        save_report(out / "report.png", volumes[ed], result.frames[ed].surface, volumes_ml=result.volumes_ml,
+        save_report(out / "report.png", _displayable(volumes[ed]), result.frames[ed].surface, volumes_ml=result.volumes_ml,
                     ed_frame=ed, es_frame=result.es_frame, title=title, truth_mask=truth_mask)
 
 
@@ -296,6 +312,40 @@ def cmd_track(args) -> int:
     _write_json(out / "results.json", results)
     _say(args, f"EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
                f"(frame {result.es_frame}), EF {result.ef:.1f} %; outputs in {out}")
+    return 0
+
+
+def cmd_scan_convert(args) -> int:
+    from .beamspace import BeamVolume, scan_convert
+    from .io import MASK_SUFFIXES, image_format, load, load_sequence, save_volume
+
+    source, target = Path(args.image), Path(args.output)
+    if image_format(target) not in MASK_SUFFIXES or image_format(target) == ".npy":
+        raise CliError(f"output {target} must be one of {', '.join(s for s in MASK_SUFFIXES if s != '.npy')}")
+    if source.exists() and target.exists() and source.resolve() == target.resolve():
+        raise CliError(f"output {target} would overwrite the input")
+    if target.exists() and not args.force:
+        raise CliError(f"{target} exists; use --force to overwrite")
+    if not target.parent.is_dir():
+        raise CliError(f"output folder {target.parent} does not exist")
+    if args.voxel_size is not None and not args.voxel_size > 0:
+        raise CliError(f"--voxel-size must be positive, got {args.voxel_size}")
+    t0 = time.perf_counter()
+    try:
+        volumes = [load(source)]
+    except ValueError as exc:
+        if "3D+t" not in str(exc):
+            raise
+        volumes = load_sequence(source)
+    if not all(isinstance(v, BeamVolume) for v in volumes):
+        raise CliError(f"{source} is not a beam-space file (no AzimuthAngularSeparation, ElevationAngularSeparation, "
+                       "RadiusSampleSize, FirstSampleDistance keys)")
+    grid = volumes[0].geometry.cartesian_grid(args.voxel_size)
+    converted = [scan_convert(v, grid, order=0 if args.nearest else 1) for v in volumes]
+    save_volume(target, converted if len(converted) > 1 else converted[0])
+    nz, ny, nx = grid.shape
+    _say(args, f"{len(converted)} frame(s) of {nx} x {ny} x {nz} voxels of {grid.spacing[0]:.3g} mm "
+               f"in {time.perf_counter() - t0:.2f} s; wrote {target}")
     return 0
 
 
@@ -356,7 +406,7 @@ def cmd_demo(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    handlers = {"segment": cmd_segment, "track": cmd_track, "demo": cmd_demo}
+    handlers = {"segment": cmd_segment, "track": cmd_track, "scan-convert": cmd_scan_convert, "demo": cmd_demo}
     try:
         return handlers[args.command](args)
     except KeyboardInterrupt:
