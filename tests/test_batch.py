@@ -343,3 +343,27 @@ def test_segment_many_validates_before_running(tmp_path):
     with pytest.raises(ValueError, match="timeout"):
         segment_many([entry], out=tmp_path / "o", timeout=0)
     assert not (tmp_path / "o").exists()
+
+
+def test_annulus_instead_of_base(cohort, tmp_path):
+    """A study closed at its mitral annulus (three points) gives what segment() gives."""
+    folder, studies = cohort
+    entry = studies[0]
+    apex, base = np.array(entry["apex"]), np.array(entry["base"])
+    axis = (apex - base) / np.linalg.norm(apex - base)
+    side = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    other = np.cross(axis, side)
+    annulus = [base + 20 * np.cos(a) * side + 20 * np.sin(a) * other for a in (0.0, 2.1, 4.2)]
+    csv_row = "; ".join(" ".join(map(repr, map(float, p))) for p in annulus)
+    study = {"id": "ann", "image": str(folder / entry["image"]), "apex": entry["apex"], "annulus": csv_row}
+    with ThreadPoolExecutor(1) as pool:
+        (outcome,) = segment_many([study], out=tmp_path, executor=pool, options={"report": False})
+    assert outcome.status == "ok", outcome.row
+    volume = load(folder / entry["image"])
+    api = segment(volume, apex, annulus=np.array(annulus))
+    assert outcome.row["volume_ml"] == pytest.approx(api.volume_ml, rel=1e-9)
+    results = json.loads((tmp_path / "ann" / "results.json").read_text())
+    np.testing.assert_allclose(results["annulus"], annulus)
+    with pytest.raises(ValueError, match="3 or more"):
+        segment_many([{**study, "annulus": csv_row.rsplit(";", 1)[0]}], out=tmp_path)

@@ -9,10 +9,11 @@ with an explicit bicubic Hermite surface in prolate spheroidal coordinates.
 
 __version__ = "0.1.0"
 
+from .beamspace import BeamGeometry, BeamVolume, scan_convert, to_beam_space
 from .coords import Cylindrical, Pose, ProlateSpheroidal, Spherical
 from .hermite import HermiteGrid
 from .batch import segment_many
-from .io import ImageFileError, load, load_sequence, save_mask
+from .io import ImageFileError, load, load_sequence, save_mask, save_volume
 from .options import SegmentOptions
 from .results import Intermediate, SegmentationResult, TrackingResult
 from .segment import segment, track
@@ -23,5 +24,6 @@ from .volume import ImageGrid, Volume
 __all__ = [
     "load", "load_sequence", "save_mask", "segment", "track", "Tracker", "SegmentOptions", "Intermediate",
     "Volume", "Surface", "ImageGrid", "Pose", "ProlateSpheroidal", "Spherical", "Cylindrical", "HermiteGrid",
-    "SegmentationResult", "TrackingResult", "ImageFileError", "segment_many",
+    "SegmentationResult", "TrackingResult", "ImageFileError", "BeamGeometry", "BeamVolume", "scan_convert",
+    "to_beam_space", "save_volume", "segment_many",
 ]

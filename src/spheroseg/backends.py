@@ -5,8 +5,9 @@
 :func:`spheroseg.energy.normal_speed` and restates none of them.
 :class:`CompiledBackend` does the same work in the numba kernels of
 :mod:`spheroseg._kernels` (prolate spheroidal system only), writing into
-arrays allocated once; the tests require both to give the same
-segmentations.  :func:`select_backend` chooses once, as trimesh picks a ray
+arrays allocated once (a :class:`~spheroseg.beamspace.BeamVolume` is sampled
+by those of :mod:`spheroseg._beam_kernels`); the tests require both to give
+the same segmentations.  :func:`select_backend` chooses once, as trimesh picks a ray
 engine.
 
 The methods, for a model of ``n`` sample points and parameters ``p``:
@@ -31,6 +32,7 @@ from typing import Callable
 
 import numpy as np
 
+from .beamspace import BeamVolume
 from .coords import ProlateSpheroidal
 from .energy import Geometry, SampledSurface, normal_speed
 
@@ -171,9 +173,10 @@ class CompiledBackend(NumpyBackend):
 
     def __init__(self, model: SampledSurface):
         super().__init__(model)
-        from . import _kernels
+        from . import _beam_kernels, _kernels
 
         self.kernels = _kernels
+        self.beam_kernels = _beam_kernels
         n, nb = model.n_samples, len(self.discretisation.band_rows)
         self._all_rows = np.arange(n)
         self._buffers = dict(f=np.empty(n), h0=np.empty(n), cos=np.empty(n), area=np.empty(n),
@@ -190,31 +193,37 @@ class CompiledBackend(NumpyBackend):
         self.kernels.prolate_surface(coefficients, d.order, *d.tables, *d.trig, m.system.focal_length,
                                      m.pose.rotation, m.pose.origin, b["f"], b["h0"], b["cos"], b["area"],
                                      b["world"], b["normal"])
-        image = volume.sampling_view()
-        self.kernels.sample_along(*image, b["world"], b["normal"], self._all_rows, _SURFACE_OFFSETS, exponent, b["u"],
-                                  self._counts)
+        kernels, image = self._sampling(volume)
+        kernels.sample_along(*image, b["world"], b["normal"], self._all_rows, _SURFACE_OFFSETS, exponent, b["u"],
+                             self._counts)
         obs = Observation(**b)
         if band_offsets is not None:
             rows = d.band_rows
             counts = self._counts[:len(rows)]
-            self.kernels.sample_along(*image, b["world"], b["normal"], rows, -band_offsets, exponent, b["inside"],
-                                      counts)
-            self.kernels.sample_along(*image, b["world"], b["normal"], rows, band_offsets, exponent, b["outside"],
-                                      counts)
+            kernels.sample_along(*image, b["world"], b["normal"], rows, -band_offsets, exponent, b["inside"], counts)
+            kernels.sample_along(*image, b["world"], b["normal"], rows, band_offsets, exponent, b["outside"], counts)
         else:
             obs.inside = obs.outside = None
         return obs
 
+    def _sampling(self, volume):
+        """The kernels that sample ``volume`` (Cartesian or beam space) and
+        the arrays they read."""
+        kernels = self.beam_kernels if isinstance(volume, BeamVolume) else self.kernels
+        return kernels, volume.sampling_view()
+
     def mean_along(self, volume, obs: Observation, offsets, rows, *, exponent: float = 0.0):
         mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
-        self.kernels.sample_along(*volume.sampling_view(), obs.world, obs.normal, rows, offsets, exponent, mean, count)
+        kernels, image = self._sampling(volume)
+        kernels.sample_along(*image, obs.world, obs.normal, rows, offsets, exponent, mean, count)
         return mean, count
 
     def cavity_sums(self, volume, obs: Observation, fractions, rows):
         m, d = self.model, self.discretisation
         total, weight = np.empty(len(rows)), np.empty(len(rows))
-        self.kernels.cavity_sums(*volume.sampling_view(), obs.f, *d.trig, m.system.focal_length, m.pose.rotation,
-                                 m.pose.origin, rows, fractions, total, weight)
+        kernels, image = self._sampling(volume)
+        kernels.cavity_sums(*image, obs.f, *d.trig, m.system.focal_length, m.pose.rotation, m.pose.origin, rows,
+                            fractions, total, weight)
         return total, weight
 
     def gather(self, p) -> np.ndarray:

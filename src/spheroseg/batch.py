@@ -51,7 +51,7 @@ __all__ = ["Study", "StudyOutcome", "StudyTimeout", "ManifestError", "read_manif
 SUMMARY_FIELDS = ("id", "status", "kind", "volume_ml", "edv_ml", "esv_ml", "ef", "iterations", "descent_status",
                   "quality", "seconds", "error")
 #: keys a manifest entry may have
-MANIFEST_KEYS = ("id", "image", "apex", "base", "landmarks", "points", "spacing", "track")
+MANIFEST_KEYS = ("id", "image", "apex", "base", "annulus", "landmarks", "points", "spacing", "track")
 #: options of a run beside :class:`spheroseg.SegmentOptions`'s (see :func:`run_study`)
 RUN_OPTIONS = ("iterations_per_frame", "no_data_value", "mask_suffix", "stl", "report")
 #: a worker stuck past its timeout exits after this many more seconds (or half the timeout, if longer)
@@ -80,7 +80,9 @@ class Study:
     image : str
         A volume or a sequence (file, folder of frames, glob, DICOM folder).
     apex, base : tuple of 3 floats, optional
-        Needed unless ``points`` gives them.
+        Needed unless ``points`` gives them (``base`` or ``annulus``).
+    annulus : tuple of points
+        Three or more points of the mitral annulus, instead of ``base``.
     landmarks : tuple of points
     points : str, optional
         A 3D Slicer markups file with points labelled apex, base, landmark...
@@ -95,6 +97,7 @@ class Study:
     image: str
     apex: tuple | None = None
     base: tuple | None = None
+    annulus: tuple = ()
     landmarks: tuple = ()
     points: str | None = None
     spacing: tuple | None = None
@@ -102,7 +105,7 @@ class Study:
 
     def as_entry(self) -> dict:
         """The study as a manifest entry (JSON values)."""
-        return {k: (list(map(list, v)) if k == "landmarks" else list(v) if isinstance(v, tuple) else v)
+        return {k: (list(map(list, v)) if k in ("landmarks", "annulus") else list(v) if isinstance(v, tuple) else v)
                 for k, v in asdict(self).items()}
 
 
@@ -145,14 +148,14 @@ def _numbers(value, count: int | None, what: str) -> tuple:
     return numbers
 
 
-def _landmarks(value) -> tuple:
+def _point_list(value, what: str) -> tuple:
     if value in (None, ""):
         return ()
     if isinstance(value, str):
         value = [part for part in value.split(";") if part.strip()]
     if not isinstance(value, (list, tuple)):
-        raise ValueError(f"landmarks must be a list of points, got {value!r}")
-    return tuple(_numbers(p, 3, "each landmark") for p in value)
+        raise ValueError(f"{what} must be a list of points, got {value!r}")
+    return tuple(_numbers(p, 3, f"each point of {what}") for p in value)
 
 
 def _flag(value) -> bool | None:
@@ -183,13 +186,17 @@ def _study(entry, folder: Path) -> Study:
     points = str(entry.get("points") or "").strip() or None
     apex = None if entry.get("apex") in (None, "") else _numbers(entry["apex"], 3, "apex")
     base = None if entry.get("base") in (None, "") else _numbers(entry["base"], 3, "base")
-    if points is None and (apex is None or base is None):
-        raise ValueError("give apex and base (x y z, mm), or points (a markups file)")
+    annulus = _point_list(entry.get("annulus"), "annulus")
+    if annulus and len(annulus) < 3:
+        raise ValueError(f"annulus needs 3 or more points, got {len(annulus)}")
+    if points is None and (apex is None or (base is None and not annulus)):
+        raise ValueError("give apex and base (x y z, mm) or apex and annulus, or points (a markups file)")
     spacing = None if entry.get("spacing") in (None, "") else _numbers(entry["spacing"], 3, "spacing")
     if spacing is not None and min(spacing) <= 0:
         raise ValueError(f"spacing must be positive, got {spacing}")
     resolve = lambda p: str(p if Path(p).is_absolute() else folder / p)  # noqa: E731
-    return Study(id=ident, image=resolve(image), apex=apex, base=base, landmarks=_landmarks(entry.get("landmarks")),
+    return Study(id=ident, image=resolve(image), apex=apex, base=base, annulus=annulus,
+                 landmarks=_point_list(entry.get("landmarks"), "landmarks"),
                  points=None if points is None else resolve(points), spacing=spacing, track=_flag(entry.get("track")))
 
 
@@ -200,7 +207,8 @@ def read_manifest(path: str | os.PathLike) -> list[Study]:
     written ``x y z``, landmarks ``x y z; x y z``.  Keys: ``id`` (unique, a
     safe folder name), ``image``, ``apex`` and ``base`` (mm, LPS), optional
     ``landmarks``, ``points`` (a markups file instead of apex/base),
-    ``spacing`` and ``track``.  Relative paths are relative to the manifest's
+    ``spacing``, ``track`` and ``annulus`` (3 or more points of the mitral
+    annulus instead of ``base``).  Relative paths are relative to the manifest's
     folder.  Input files are not opened here (a missing image fails its
     study, not the manifest).
 
@@ -405,7 +413,8 @@ def _is_sequence(image: str) -> bool:
 
 
 def _points(study: Study):
-    apex, base, landmarks = study.apex, study.base, list(study.landmarks)
+    """apex, base (or None), landmarks (or None), annulus (or None), as the CLI reads them."""
+    apex, base, landmarks, annulus = study.apex, study.base, list(study.landmarks), list(study.annulus)
     if study.points:
         from .io import read_markups
 
@@ -413,9 +422,12 @@ def _points(study: Study):
         apex = marks["apex"] if apex is None else apex
         base = marks["base"] if base is None else base
         landmarks += [tuple(p) for p in marks["landmarks"]]
-    if apex is None or base is None:
-        raise ValueError(f"{study.points}: no points labelled apex and base")
-    return np.asarray(apex, float), np.asarray(base, float), (np.array(landmarks) if landmarks else None)
+        annulus = annulus or [tuple(p) for p in marks.get("annulus", [])]
+    if apex is None or (base is None and not annulus):
+        raise ValueError(f"{study.points}: no points labelled apex and base (or annulus)")
+    as_array = lambda points: np.array(points, dtype=float) if points else None  # noqa: E731
+    return (np.asarray(apex, float), None if base is None else np.asarray(base, float), as_array(landmarks),
+            as_array(annulus))
 
 
 def _install(tmp: Path, final: Path) -> None:
@@ -490,22 +502,24 @@ def run_study(study: Study, out: str | os.PathLike, *, options: dict | None = No
     try:
         with _Deadline(timeout):
             _test_hook(study.id)
-            apex, base, landmarks = _points(study)
+            apex, base, landmarks, annulus = _points(study)
             sequence = _is_sequence(study.image) if study.track is None else study.track
             common = dict(source=study.image, apex=apex, base=base, landmarks=landmarks, mask_suffix=suffix,
                           extra={"id": study.id, "checksum": checksum, "study": study.as_entry(),
+                                 **({"annulus": annulus} if annulus is not None else {}),
                                  "options": {**options, "iterations_per_frame": per_frame, "no_data_value": no_data,
                                              "mask_suffix": suffix, **writer}}, **writer)
             t0 = time.perf_counter()
             if sequence:
                 volumes = load_sequence(study.image, spacing=study.spacing, no_data_value=no_data)
                 t_load = time.perf_counter() - t0
-                result = track(volumes, apex, base, landmarks=landmarks, iterations_per_frame=per_frame, **options)
+                result = track(volumes, apex, base, annulus=annulus, landmarks=landmarks,
+                               iterations_per_frame=per_frame, **options)
                 written = write_tracking_outputs(tmp, volumes, result, seconds={"load": t_load}, **common)
             else:
                 volume = load(study.image, spacing=study.spacing, no_data_value=no_data)
                 t_load = time.perf_counter() - t0
-                result = segment(volume, apex, base, landmarks=landmarks, **options)
+                result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, **options)
                 written = write_segmentation_outputs(tmp, volume, result, seconds={"load": t_load}, **common)
         _install(tmp, out / study.id)
         return summary_row(written)

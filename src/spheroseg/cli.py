@@ -1,4 +1,4 @@
-"""The command line: ``spheroseg segment | track | batch | demo``.
+"""The command line: ``spheroseg segment | track | batch | scan-convert | demo``.
 
 Every failure is one line on stderr and a non-zero exit status.  Outputs
 are written to temporary files and renamed; existing outputs are kept
@@ -46,7 +46,11 @@ def _no_data(text: str):
 def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--apex", nargs=3, type=float, metavar=("X", "Y", "Z"), help="apex point, world mm (LPS)")
     p.add_argument("--base", nargs=3, type=float, metavar=("X", "Y", "Z"), help="centre of the mitral plane, world mm")
-    p.add_argument("--points", metavar="MRK_JSON", help="3D Slicer markups with points labelled apex, base, landmark...")
+    p.add_argument("--annulus", nargs=3, type=float, action="append", default=[], metavar=("X", "Y", "Z"),
+                   help="a point of the mitral annulus, world mm (repeatable, 3 or more): the cavity is closed at "
+                        "their plane, whose normal is the long axis; --base may then be omitted")
+    p.add_argument("--points", metavar="MRK_JSON",
+                   help="3D Slicer markups with points labelled apex, base, annulus..., landmark...")
     p.add_argument("--landmark", nargs=3, type=float, action="append", default=[], metavar=("X", "Y", "Z"),
                    help="a point the surface must pass through (repeatable)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
@@ -65,8 +69,8 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-iterations", type=int, default=60, help="per coarse-to-fine level")
     p.add_argument("--smoothness", type=float, default=1.0, help="thin-plate prior weight (0: the paper's method)")
     p.add_argument("--no-data", default="auto", type=_no_data, metavar="auto|none|VALUE",
-                   help="voxels without data: 'auto' (default) the zero padding around an echo sector, "
-                        "'none', or a voxel value")
+                   help="voxels without data: 'auto' (default) the zero padding around an echo sector "
+                        "(a beam-space file's NoDataValue key), 'none', or a voxel value")
     p.add_argument("--mask-format", metavar="EXT", help="mask file type, e.g. .nii.gz (default: the input's)")
     p.add_argument("--stl", action="store_true", help="also write the mesh as STL")
     p.add_argument("--no-report", action="store_true", help="skip the PNG report")
@@ -114,8 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
                            description="Segment or track every study of a manifest; DIR/<id>/ per study, "
                                        "DIR/summary.json and .csv. Exit status: 0 every study ok, 1 some failed, "
                                        "2 a bad manifest or bad options (nothing run); 130 interrupted.")
-    batch.add_argument("manifest", help="JSON (a list of studies) or CSV; keys id, image, apex, base, landmarks, "
-                                        "points, spacing, track")
+    batch.add_argument("manifest", help="JSON (a list of studies) or CSV; keys id, image, apex, base, annulus, "
+                                        "landmarks, points, spacing, track")
     batch.add_argument("--out", required=True, metavar="DIR", help="cohort folder (created if missing)")
     where = batch.add_mutually_exclusive_group()
     where.add_argument("--workers", type=_positive(int), metavar="N", help="local worker processes (default: one per core)")
@@ -125,6 +129,14 @@ def build_parser() -> argparse.ArgumentParser:
     batch.add_argument("--timeout", type=_positive(float), metavar="S", help="seconds a study may take")
     batch.add_argument("--iterations-per-frame", type=int, default=20)
     _add_options(batch)
+    sc = sub.add_parser("scan-convert", help="resample a beam-space image or 3D+t sequence on a Cartesian grid")
+    sc.add_argument("image", help="beam-space .mha/.nrrd (ITK PhasedArray3D header keys), 3D or 3D+t")
+    sc.add_argument("output", help="Cartesian image to write (.mha, .mhd, .nrrd, .nii, .nii.gz)")
+    sc.add_argument("--voxel-size", type=float, metavar="MM",
+                    help="isotropic voxel size in mm (default: the finest beam spacing)")
+    sc.add_argument("--nearest", action="store_true", help="nearest sample instead of trilinear in [r, e, a]")
+    sc.add_argument("--force", action="store_true", help="overwrite an existing output")
+    sc.add_argument("--quiet", action="store_true")
     demo = sub.add_parser("demo", help="track a built-in synthetic sequence and compare with its truth")
     demo.add_argument("--out", metavar="DIR", help="output folder (default: a new ./spheroseg-demo*)")
     demo.add_argument("--force", action="store_true")
@@ -163,6 +175,7 @@ def _points(args):
     apex = None if args.apex is None else _point(args.apex)
     base = None if args.base is None else _point(args.base)
     landmarks = [_point(p) for p in args.landmark]
+    annulus = [_point(p) for p in args.annulus]
     if args.points:
         from .io import read_markups
 
@@ -170,9 +183,11 @@ def _points(args):
         apex = marks["apex"] if apex is None else apex
         base = marks["base"] if base is None else base
         landmarks += list(marks["landmarks"])
-    if apex is None or base is None:
-        raise CliError("give the apex and the base: --apex X Y Z --base X Y Z, or --points with labels apex and base")
-    return apex, base, (np.array(landmarks) if landmarks else None)
+        annulus = annulus or list(marks["annulus"])
+    if apex is None or (base is None and not annulus):
+        raise CliError("give the apex and the base (--apex X Y Z --base X Y Z) or the apex and 3 or more points of "
+                       "the mitral annulus (--annulus X Y Z, repeated), or --points with those labels")
+    return apex, base, (np.array(landmarks) if landmarks else None), (np.array(annulus) if annulus else None)
 
 
 def _segment_kwargs(args) -> dict:
@@ -204,15 +219,16 @@ def cmd_segment(args) -> int:
     suffix = _mask_suffix(args, source)
     names = ["mask" + suffix, "mesh.vtk", "mesh.ply", "surface.json", "surface.exnode", "surface.exelem", "results.json",
              "report.png"] + (["mesh.stl"] if args.stl else [])
-    apex, base, landmarks = _points(args)
+    apex, base, landmarks, annulus = _points(args)
     _prepare_out(Path(args.out), names, args.force, [source])
     out = Path(args.out)
     t0 = time.perf_counter()
     volume = load(source, spacing=args.spacing, no_data_value=args.no_data)
     t_load = time.perf_counter() - t0
-    result = segment(volume, apex, base, landmarks=landmarks, **_segment_kwargs(args))
+    result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, **_segment_kwargs(args))
     write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base, landmarks=landmarks,
-                               mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
+                               mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load},
+                               extra={"annulus": annulus} if annulus is not None else None)
     _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
     return 0
 
@@ -224,7 +240,7 @@ def cmd_track(args) -> int:
 
     source = Path(args.sequence)
     suffix = _mask_suffix(args, source)
-    apex, base, landmarks = _points(args)
+    apex, base, landmarks, annulus = _points(args)
     names = ["masks", "meshes", "results.json", "report.png"]
     _prepare_out(Path(args.out), names, args.force, [source])
     out = Path(args.out)
@@ -238,15 +254,50 @@ def cmd_track(args) -> int:
         bar = tqdm(total=len(volumes), unit="frame", desc="tracking", file=sys.stderr)
     progress = (lambda done, total: bar.update(done - bar.n)) if bar is not None else None
     try:
-        result = track(volumes, apex, base, landmarks=landmarks, iterations_per_frame=args.iterations_per_frame,
-                       progress=progress, **_segment_kwargs(args))
+        result = track(volumes, apex, base, annulus=annulus, landmarks=landmarks,
+                       iterations_per_frame=args.iterations_per_frame, progress=progress, **_segment_kwargs(args))
     finally:
         if bar is not None:
             bar.close()
     write_tracking_outputs(out, volumes, result, source=source, apex=apex, base=base, landmarks=landmarks,
-                           mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
+                           mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load},
+                           extra={"annulus": annulus} if annulus is not None else None)
     _say(args, f"EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
                f"(frame {result.es_frame}), EF {result.ef:.1f} %; outputs in {out}")
+    return 0
+
+
+def cmd_scan_convert(args) -> int:
+    from .beamspace import BeamVolume, scan_convert
+    from .io import MASK_SUFFIXES, image_format, load, load_sequence, save_volume
+
+    source, target = Path(args.image), Path(args.output)
+    if image_format(target) not in MASK_SUFFIXES or image_format(target) == ".npy":
+        raise CliError(f"output {target} must be one of {', '.join(s for s in MASK_SUFFIXES if s != '.npy')}")
+    if source.exists() and target.exists() and source.resolve() == target.resolve():
+        raise CliError(f"output {target} would overwrite the input")
+    if target.exists() and not args.force:
+        raise CliError(f"{target} exists; use --force to overwrite")
+    if not target.parent.is_dir():
+        raise CliError(f"output folder {target.parent} does not exist")
+    if args.voxel_size is not None and not args.voxel_size > 0:
+        raise CliError(f"--voxel-size must be positive, got {args.voxel_size}")
+    t0 = time.perf_counter()
+    try:
+        volumes = [load(source)]
+    except ValueError as exc:
+        if "3D+t" not in str(exc):
+            raise
+        volumes = load_sequence(source)
+    if not all(isinstance(v, BeamVolume) for v in volumes):
+        raise CliError(f"{source} is not a beam-space file (no AzimuthAngularSeparation, ElevationAngularSeparation, "
+                       "RadiusSampleSize, FirstSampleDistance keys)")
+    grid = volumes[0].geometry.cartesian_grid(args.voxel_size)
+    converted = [scan_convert(v, grid, order=0 if args.nearest else 1) for v in volumes]
+    save_volume(target, converted if len(converted) > 1 else converted[0])
+    nz, ny, nx = grid.shape
+    _say(args, f"{len(converted)} frame(s) of {nx} x {ny} x {nz} voxels of {grid.spacing[0]:.3g} mm "
+               f"in {time.perf_counter() - t0:.2f} s; wrote {target}")
     return 0
 
 
@@ -369,7 +420,8 @@ def cmd_demo(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    handlers = {"segment": cmd_segment, "track": cmd_track, "demo": cmd_demo, "batch": cmd_batch}
+    handlers = {"segment": cmd_segment, "track": cmd_track, "batch": cmd_batch, "scan-convert": cmd_scan_convert,
+                "demo": cmd_demo}
     try:
         return handlers[args.command](args)
     except KeyboardInterrupt:
