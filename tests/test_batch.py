@@ -293,9 +293,11 @@ def test_dask_local_cluster_gives_the_same_summary_and_survives_a_killed_worker(
     from distributed import Client, LocalCluster
 
     folder, _ = cohort
-    # the workers inherit the hook; a study that kills its worker is retried once by Dask, then reported
+    # the workers inherit the hook; a study that kills its worker is retried once by Dask, then reported.
+    # One task at a time on a worker (saturation 1.0): no innocent study queued on the worker that dies
     monkeypatch.setenv(TEST_HOOK_VARIABLE, "v3=exit")
-    with dask.config.set({"distributed.scheduler.allowed-failures": 1}), \
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1,
+                          "distributed.scheduler.worker-saturation": 1.0}), \
             LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
             Client(cluster) as client:
         proc = run("batch", folder / "cohort.json", "--out", tmp_path / "out", "--scheduler", cluster.scheduler_address,
