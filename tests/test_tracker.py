@@ -123,14 +123,15 @@ def test_no_private_name_is_used_across_modules():
     """A private name (leading underscore) is used only by its own module and
     class: no ``from .x import _y`` and no ``obj._y`` but on ``self`` or
     ``cls``, in the package, the tests or the benchmarks (the compiled
-    kernels' module, ``_kernels``, is reached through its public functions)."""
+    kernels' modules, ``_kernels`` and ``_beam_kernels``, are reached
+    through their public functions)."""
     offences = []
     for root in (SRC, SRC.parents[1] / "tests", SRC.parents[1] / "benchmarks"):
         for path in root.rglob("*.py"):
             for node in ast.walk(ast.parse(path.read_text())):
                 if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("spheroseg")):
                     offences += [f"{path.name}:{node.lineno} imports {a.name}" for a in node.names
-                                 if a.name.startswith("_") and not a.name.startswith("__") and a.name != "_kernels"]
+                                 if a.name.startswith("_") and not a.name.startswith("__") and a.name not in ("_kernels", "_beam_kernels")]
                 if (isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")
                         and node.attr not in NAMEDTUPLE_API
                         and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"))):

@@ -33,6 +33,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from . import _beam_kernels
 from .volume import INDEX_TOLERANCE, ImageGrid, Volume
 
 __all__ = ["BeamGeometry", "BeamVolume", "BeamSamplingView", "CONVENTIONS", "scan_convert", "to_beam_space"]
@@ -117,16 +118,17 @@ class BeamGeometry:
         m.flags.writeable = False
         object.__setattr__(self, "probe_to_world", m)
 
-    def _key(self) -> tuple:
+    def key(self) -> tuple:
+        """The fields as a hashable tuple (equality and hashing)."""
         return (self.shape, self.radius_sample_size, self.first_sample_distance, self.azimuth_angular_separation,
                 self.elevation_angular_separation, self.convention, self.centre_index,
                 tuple(self.probe_to_world.ravel()))
 
     def __eq__(self, other) -> bool:
-        return isinstance(other, BeamGeometry) and self._key() == other._key()
+        return isinstance(other, BeamGeometry) and self.key() == other.key()
 
     def __hash__(self) -> int:
-        return hash(self._key())
+        return hash(self.key())
 
     # --- angles ----------------------------------------------------------
 
@@ -425,10 +427,24 @@ class BeamVolume:
                 f"first_sample_distance={g.first_sample_distance:g}, convention={g.convention!r})")
 
 
-def _grid_points(grid: ImageGrid) -> np.ndarray:
-    nz, ny, nx = grid.shape
-    k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
-    return grid.index_to_world(np.stack([i, j, k], axis=-1).reshape(-1, 3).astype(float))
+def _grid_slice_points(grid: ImageGrid, k: int) -> np.ndarray:
+    """World points of the voxels of slice ``k`` (x fastest), (ny * nx, 3)."""
+    _, ny, nx = grid.shape
+    j, i = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
+    index = np.stack([i.ravel(), j.ravel(), np.full(i.size, k)], axis=-1).astype(float)
+    return grid.index_to_world(index)
+
+
+def _sample_points(volume: BeamVolume, points: np.ndarray, order: int) -> np.ndarray:
+    """``volume.sample(points, order=order)``, trilinear through the compiled
+    kernel when numba is installed (tested equal)."""
+    if order != 1 or not _beam_kernels.AVAILABLE:
+        return volume.sample(points, order=order)
+    n = len(points)
+    out, count = np.empty(n), np.empty(n, np.int64)
+    _beam_kernels.sample_along(*volume.sampling_view(), np.ascontiguousarray(points.T), np.zeros((3, n)),
+                               np.arange(n), np.zeros(1), 0.0, out, count)
+    return out
 
 
 def scan_convert(volume: BeamVolume, grid: ImageGrid | None = None, *, order: int = 1) -> Volume:
@@ -453,7 +469,10 @@ def scan_convert(volume: BeamVolume, grid: ImageGrid | None = None, *, order: in
     grid = volume.grid if grid is None else grid
     if not isinstance(grid, ImageGrid):
         raise TypeError(f"grid must be an ImageGrid, got {type(grid).__name__}")
-    values = volume.sample(_grid_points(grid), order=order).reshape(grid.shape)
+    if order not in (0, 1):
+        raise ValueError(f"order must be 0 (nearest sample) or 1 (trilinear), got {order!r}")
+    values = np.stack([_sample_points(volume, _grid_slice_points(grid, k), order) for k in range(grid.shape[0])])
+    values = values.reshape(grid.shape)
     missing = np.isnan(values)
     return Volume(np.where(missing, 0.0, values), spacing=grid.spacing, origin=grid.origin, direction=grid.direction,
                   no_data_mask=missing)
