@@ -2,11 +2,17 @@
 data terms and the peers (scikit-image morphological Chan-Vese, SimpleITK
 Chan-Vese dense level set), plus real CETUS Patient 7 (no truth).
 
-    python benchmarks/accuracy.py            # about half an hour on 2 cores
-    python benchmarks/accuracy.py --sweep    # the peers' parameter sweep
-    python benchmarks/accuracy.py --quick    # 2 seeds, no peers: a smoke run
+    python benchmarks/accuracy.py                 # about half an hour on 2 cores
+    python benchmarks/accuracy.py --peer-sweep    # the peers' parameter sweep
+    python benchmarks/accuracy.py --quick         # 2 seeds, no peers: a smoke run
+    python benchmarks/accuracy.py --sweep --label before   # image formations (a few minutes)
 
-Writes docs/accuracy.json and regenerates docs/benchmarks.md.
+Writes docs/accuracy.json and regenerates docs/benchmarks.md.  ``--sweep``
+segments the phantom scenes imaged by every named image formation
+(``spheroseg.phantom.FORMATIONS``) and tracks sequences with base descent,
+with spheroseg's default options, and stores the run under ``--label`` in
+docs/accuracy_sweep.json beside the runs already there (so 'before' and
+'after' a change of method sit side by side).
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from common import (  # noqa: E402
 from report import write_markdown  # noqa: E402
 
 from spheroseg.metrics import mask_volume_ml  # noqa: E402
-from spheroseg.phantom import FAMILIES, make_phantom, make_sequence  # noqa: E402
+from spheroseg.phantom import FAMILIES, FORMATIONS, make_phantom, make_sequence, sweep_cases  # noqa: E402
 from spheroseg.segment import segment, track  # noqa: E402
 from spheroseg.volume import Volume  # noqa: E402
 
@@ -79,6 +85,86 @@ def sweep() -> dict:
         results["sitk"].append({"sigma_mm": sigma, "num_iter": n, "curvature": curv, "dice": d, "seconds": t})
         print("sitk", results["sitk"][-1], flush=True)
     return results
+
+
+def formation_cases() -> list:
+    """spheroseg with default options on scene families x image formations."""
+    cases = []
+    for family, name, kwargs in sweep_cases():
+        ph = make_phantom(**kwargs)
+        r = segment(ph.volume, ph.apex, ph.base)
+        row = {**score(r.mask(ph.volume), r.mesh(closed=False), r.volume_ml, ph),
+               "volume_error_ml": r.volume_ml - ph.truth_volume_ml, "iterations": r.iterations,
+               "converged": bool(r.converged), "seconds": r.seconds}
+        cases.append({"family": family, "formation": name, "seed": kwargs["seed"], "truth_ml": ph.truth_volume_ml,
+                      "result": row})
+        print(family, name, {k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}, flush=True)
+    return cases
+
+
+#: (seed, base descent mm) of the tracked sequences of the formation sweep
+SWEEP_SEQUENCES = ((0, 0.0), (1, 0.0), (2, 0.0), (0, 10.0), (1, 12.0), (2, 14.0))
+
+
+def formation_sequences() -> list:
+    """Tracked EF on default-formation sequences, without and with base descent."""
+    rows = []
+    for seed, descent in SWEEP_SEQUENCES:
+        seq = make_sequence(seed=seed, n_frames=10, base_descent=descent, formation=FORMATIONS["default"])
+        first = seq.frames[0]
+        tr = track(seq.volumes, first.apex, first.base)
+        truth = seq.truth_volumes_ml
+        ed, es = int(np.argmax(truth)), int(np.argmin(truth))
+        rows.append({"seed": seed, "base_descent_mm": descent, "truth_ef": seq.truth_ef, "tracked_ef": tr.ef,
+                     "truth_edv_ml": truth[ed], "truth_esv_ml": truth[es], "tracked_edv_ml": tr.volumes_ml[ed],
+                     "tracked_esv_ml": tr.volumes_ml[es],
+                     "seconds_per_frame": sum(f.seconds for f in tr.frames) / len(tr.frames)})
+        print("sequence", {k: round(v, 2) for k, v in rows[-1].items()}, flush=True)
+    return rows
+
+
+def git_commit() -> str:
+    import subprocess
+
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True,
+                             cwd=Path(__file__).resolve().parent)
+        return out.stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def formation_sweep(label: str) -> None:
+    path = DOCS / "accuracy_sweep.json"
+    data = json.loads(path.read_text()) if path.is_file() else {"runs": {}}
+    t0 = time.perf_counter()
+    run = {"command": f"python benchmarks/accuracy.py --sweep --label {label}", "commit": git_commit(),
+           "machine": machine(), "method": "spheroseg.segment / track with default options",
+           "cases": formation_cases(), "sequences": formation_sequences()}
+    run["wall_seconds"] = time.perf_counter() - t0
+    run["summary"] = summarise(run["cases"])
+    data["runs"][label] = run
+    data["formations"] = {name: vars(f) for name, f in FORMATIONS.items()}
+    print("wrote", write_json("accuracy_sweep.json", data))
+    print("wrote", write_markdown())
+
+
+def summarise(cases) -> dict:
+    """Medians and extremes per formation, per family and over all cases."""
+    def stats(rows):
+        r = [c["result"] for c in rows]
+        ve = np.array([x["volume_error_pct"] for x in r])
+        return {"n": len(r), "median_dice": float(np.median([x["dice"] for x in r])),
+                "worst_dice": float(min(x["dice"] for x in r)),
+                "median_msd_mm": float(np.nanmedian([x["msd_mm"] for x in r])),
+                "median_volume_error_pct": float(np.median(ve)), "worst_volume_error_pct": float(ve[np.argmax(abs(ve))]),
+                "median_volume_error_ml": float(np.median([x["volume_error_ml"] for x in r])),
+                "median_iterations": float(np.median([x["iterations"] for x in r])),
+                "median_seconds": float(np.median([x["seconds"] for x in r]))}
+
+    return {"formation": {n: stats([c for c in cases if c["formation"] == n]) for n in dict.fromkeys(c["formation"] for c in cases)},
+            "family": {n: stats([c for c in cases if c["family"] == n]) for n in dict.fromkeys(c["family"] for c in cases)},
+            "all": stats(cases)}
 
 
 def cetus(peers: bool) -> dict | None:
@@ -132,7 +218,10 @@ def sequences(seeds, peers: bool) -> list:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sweep", action="store_true", help="run the peers' parameter sweep on one case")
+    ap.add_argument("--peer-sweep", action="store_true", help="run the peers' parameter sweep on one case")
+    ap.add_argument("--sweep", action="store_true",
+                    help="spheroseg (default options) across image formations and tracked sequences with base descent")
+    ap.add_argument("--label", default="latest", help="name of the --sweep run in docs/accuracy_sweep.json")
     ap.add_argument("--quick", action="store_true", help="2 seeds and no peers")
     ap.add_argument("--only", choices=["cases", "sequences", "cetus"],
                     help="recompute one part and keep the rest of docs/accuracy.json")
@@ -153,6 +242,9 @@ def main(argv=None):
         print("wrote", write_markdown())
         return
     if args.sweep:
+        formation_sweep(args.label)
+        return
+    if args.peer_sweep:
         write_json("peer_sweep.json", {"machine": machine(), "case": "speckle seed 100", "results": sweep()})
         return
     seeds = (0, 1) if args.quick else (0, 1, 2, 3, 4)

@@ -25,7 +25,7 @@ from spheroseg.surface import Surface
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 
-# Chosen by `python benchmarks/accuracy.py --sweep` on one case (speckle
+# Chosen by `python benchmarks/accuracy.py --peer-sweep` on one case (speckle
 # family, seed 100), then fixed for every case: see docs/benchmarks.md.
 PEER_PARAMS = {
     "skimage": {"sigma_mm": 0.0, "num_iter": 30, "smoothing": 2},

@@ -1,3 +1,5 @@
+import hashlib
+
 import numpy as np
 import pytest
 
@@ -55,3 +57,202 @@ def test_sequence_volume_curve():
 
 def test_families_exist():
     assert {"clean", "speckle", "dropout", "clutter", "low_contrast", "tilted"} <= set(FAMILIES)
+
+
+# The legacy image (no formation, no base descent) pinned: tests/data/descent_reference.npz
+# was recorded on these arrays.  Digests computed on commit 5937444, before the
+# image formations were added: sha256 of the grey levels (as uint8) and of the
+# truth mask, the truth volume (mL) and the sum of |truth mesh coordinates| (mm).
+LEGACY = {
+    "default": ("d15e754af3f9a914", "9577648faf586f64", 123.965482193, 1570457.071154),
+    "clean": ("df886091da439ae4", "d2f7355beb663b62", 152.395686567, 1604831.017122),
+    "speckle": ("e40acde2339c7be8", "a67fff00e91de765", 181.083203306, 1692982.403721),
+    "dropout": ("e9890724dc9650aa", "33da58fc8b4eb9dc", 110.520137351, 1535285.247347),
+    "clutter": ("8e31985550107919", "31ad338a32b5e5ae", 141.911187248, 1605128.404669),
+    "low_contrast": ("8f16a8ed3a6c5f12", "4f98eca66d9adfd4", 152.682477205, 1610810.47242),
+    "tilted": ("2ed7f633082b232e", "41d3041a05127f74", 145.836617929, 1949602.07893),
+}
+LEGACY_SEQUENCE = [
+    ("e2ca10c9cd9ac14a", "f950e51eba9324fd", 167.862158677, 1632090.640723),
+    ("a1834965d1546c9e", "9e5358d5bc8298b2", 117.14388534, 1657463.134321),
+    ("248be374b2896c3b", "67338907bd5af1cd", 75.525427076, 1686973.479338),
+    ("b63b309edb105783", "9e5358d5bc8298b2", 117.14388534, 1657463.134321),
+]
+
+
+def _digest(ph):
+    def sha(a):
+        return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()[:16]
+
+    return sha(ph.volume.array.astype(np.uint8)), sha(ph.truth_mask), ph.truth_volume_ml, np.abs(ph.truth_mesh[0]).sum()
+
+
+def _check_legacy(ph, expected):
+    image, mask, ml, mesh = _digest(ph)
+    assert np.array_equal(ph.volume.array, ph.volume.array.astype(np.uint8)), "grey levels are integers"
+    assert (image, mask) == expected[:2], "the legacy image or truth mask changed"
+    np.testing.assert_allclose([ml, mesh], expected[2:], rtol=1e-9)
+
+
+@pytest.mark.parametrize("family", list(LEGACY))
+def test_legacy_phantoms_unchanged(family):
+    # the families as tests/data/make_descent_reference.py makes them
+    if family == "default":
+        ph = make_phantom()
+    else:
+        ph = make_phantom(seed=200 + list(FAMILIES).index(family), spacing=1.5, **FAMILIES[family])
+    _check_legacy(ph, LEGACY[family])
+
+
+def test_legacy_sequence_unchanged():
+    seq = make_sequence(seed=7, n_frames=4, spacing=2.0)
+    for frame, expected in zip(seq.frames, LEGACY_SEQUENCE, strict=True):
+        _check_legacy(frame, expected)
+        np.testing.assert_allclose(frame.base, seq.frames[0].base)
+
+
+# --- image formations ---------------------------------------------------------
+
+from dataclasses import replace  # noqa: E402
+
+from spheroseg.echo import BeamImage, ImageFormation  # noqa: E402
+from spheroseg.phantom import FORMATIONS, sweep_cases  # noqa: E402
+
+# coarse voxels keep these fast; a wide PSF keeps the beam grid small
+COARSE = dict(seed=4, spacing=2.5)
+WIDE = replace(ImageFormation(), axial_psf_mm=1.6, lateral_psf_mm=5.0, elevation_psf_mm=5.0)
+
+
+@pytest.fixture(scope="module")
+def formed():
+    return make_phantom(**COARSE, formation=WIDE, beam_space=True), make_phantom(**COARSE)
+
+
+def test_formation_keeps_the_truth(formed):
+    ph, legacy = formed
+    np.testing.assert_array_equal(ph.truth_mask, legacy.truth_mask)
+    assert ph.truth_volume_ml == legacy.truth_volume_ml
+    np.testing.assert_array_equal(ph.apex, legacy.apex)
+    np.testing.assert_array_equal(ph.base, legacy.base)
+    np.testing.assert_array_equal(ph.truth_mesh[0], legacy.truth_mesh[0])
+    assert ph.volume.shape == legacy.volume.shape and not np.array_equal(ph.volume.array, legacy.volume.array)
+
+
+def test_formed_image_looks_like_apical_echo(formed):
+    ph, _ = formed
+    a = ph.volume.array
+    assert np.array_equal(a, np.round(a)) and a.min() == 0 and a.max() <= 255
+    # the black outside of the pyramidal sector, 0 only there
+    assert (a == 0).mean() > 0.2
+    assert np.all(a[ph.truth_mask] > 0)
+    assert np.median(a[ph.truth_mask]) < np.median(a[(a > 0) & ~ph.truth_mask]) - 60
+    assert isinstance(ph.beam, BeamImage) and ph.beam.array.shape == ph.beam.grid.shape
+    assert ph.beam.array.dtype == np.uint8 and ph.beam.array.min() >= 1
+
+
+def test_formation_deterministic_and_seeded():
+    f = replace(WIDE, clutter_db=None)
+    a = make_phantom(seed=1, spacing=3.0, formation=f)
+    b = make_phantom(seed=1, spacing=3.0, formation=f)
+    np.testing.assert_array_equal(a.volume.array, b.volume.array)
+    assert make_phantom(seed=1, spacing=3.0).params.get("formation") is None
+    assert a.params["formation"] == f
+
+
+def test_formation_settings_act_where_they_should():
+    # the same scene and speckle: strong clutter brightens the near field only
+    base = make_phantom(seed=2, spacing=3.0, formation=replace(WIDE, clutter_db=None))
+    hazy = make_phantom(seed=2, spacing=3.0, formation=replace(WIDE, clutter_db=-12.0))
+    depth = np.arange(base.volume.shape[0])[:, None, None] * 3.0 * np.ones(base.volume.shape)
+    cavity = base.truth_mask
+    diff = hazy.volume.array - base.volume.array
+    near, far = cavity & (depth < 40), cavity & (depth > 70)
+    assert diff[near].mean() > 20 and abs(diff[far].mean()) < 1
+    # gain shifts every grey level by gain * 254 / DR where nothing clips
+    bright = make_phantom(seed=2, spacing=3.0, formation=replace(WIDE, clutter_db=None, gain_db=4.0))
+    a, b = base.volume.array, bright.volume.array
+    ok = (a > 30) & (a < 200)
+    assert np.median((b - a)[ok]) == pytest.approx(4.0 * 254 / WIDE.dynamic_range_db, abs=1.0)
+
+
+def test_formation_rejects_legacy_image_options():
+    with pytest.raises(ValueError, match="dropout"):
+        make_phantom(spacing=3.0, formation=ImageFormation(), dropout=True)
+    with pytest.raises(ValueError, match="formation"):
+        make_phantom(spacing=3.0, beam_space=True)
+    with pytest.raises(TypeError, match="ImageFormation"):
+        make_phantom(spacing=3.0, formation=dict(gain_db=3))
+
+
+def test_sweep_cases():
+    cases = list(sweep_cases())
+    assert 20 <= len(cases) <= 40
+    assert {name for _, name, _ in cases} == set(FORMATIONS)
+    assert all(kw["formation"] is FORMATIONS[name] for _, name, kw in cases)
+    # every formation sees the same scenes
+    seeds = {name: sorted(kw["seed"] for _, n, kw in cases if n == name) for name in FORMATIONS}
+    assert len({tuple(s) for s in seeds.values()}) == 1
+    with pytest.raises(ValueError, match="cannot be imaged"):
+        list(sweep_cases(families=("dropout",)))
+    with pytest.raises(ValueError, match="unknown formation"):
+        list(sweep_cases(formations=("nope",)))
+
+
+# --- base descent -----------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def descending():
+    return make_sequence(seed=3, n_frames=4, spacing=2.0, base_descent=12.0), make_sequence(seed=3, n_frames=4,
+                                                                                          spacing=2.0)
+
+
+def test_base_descends_towards_the_apex(descending):
+    seq, still = descending
+    ed, es = seq.frames[0], seq.frames[2]
+    axis = (ed.apex - ed.base) / np.linalg.norm(ed.apex - ed.base)
+    np.testing.assert_allclose(es.base - ed.base, 12.0 * axis, atol=1e-9)
+    np.testing.assert_allclose(seq.frames[1].base - ed.base, 6.0 * axis, atol=1e-9)  # s = 1/2
+    for frame in seq.frames:
+        np.testing.assert_allclose(frame.apex, ed.apex, atol=1e-6)  # the apex stays put
+    # end-diastole is the same as without descent; end-systole is smaller
+    np.testing.assert_array_equal(ed.truth_mask, still.frames[0].truth_mask)
+    assert seq.truth_volumes_ml[2] < still.truth_volumes_ml[2] - 5
+    assert seq.truth_ef > still.truth_ef + 3
+
+
+def test_base_descent_truth_follows(descending):
+    seq, _ = descending
+    spacing = 2.0
+    for frame in seq.frames:
+        voxels = frame.truth_mask.sum() * spacing**3 / 1000
+        # voxel centres at 2 mm against the exact integral: within 2 %
+        assert voxels == pytest.approx(frame.truth_volume_ml, rel=0.02)
+        # the cavity closes at this frame's base plane
+        axis = (frame.apex - frame.base) / np.linalg.norm(frame.apex - frame.base)
+        k, j, i = np.nonzero(frame.truth_mask)
+        height = (np.stack([i, j, k], 1) * spacing - frame.base) @ axis
+        assert height.min() >= 0 and height.min() < spacing
+        # the true mesh closes there too
+        h = (frame.truth_mesh[0] - frame.base) @ axis
+        assert abs(h.min()) < 0.5 and abs(signed_volume(frame.truth_mesh[0] - frame.base, frame.truth_mesh[1]) / 1000
+                                          - frame.truth_volume_ml) < 0.005 * frame.truth_volume_ml
+
+
+def test_base_descent_validation():
+    with pytest.raises(ValueError, match="base_descent"):
+        make_sequence(n_frames=2, spacing=3.0, base_descent=-1.0)
+
+
+def test_dropout_darkens_a_wall_region_only():
+    f = replace(WIDE, clutter_db=None)
+    base = make_phantom(seed=2, spacing=3.0, formation=f)
+    lost = make_phantom(seed=2, spacing=3.0, formation=replace(f, dropout_db=30.0))
+    diff = base.volume.array - lost.volume.array
+    k, j, i = np.nonzero(diff > 20)
+    centre = np.stack([i, j, k], 1).mean(0) * 3.0
+    assert len(i) > 20 and np.linalg.norm(base.truth_mesh[0] - centre, axis=1).min() < 10, "on the wall"
+    # the same image elsewhere: a region of 16 mm radius (plus the PSF)
+    k, j, i = np.nonzero(np.abs(diff) > 1)
+    assert np.linalg.norm(np.stack([i, j, k], 1) * 3.0 - centre, axis=1).max() < 30
+    assert diff[np.abs(diff) > 1].mean() > 20, "darker there"

@@ -27,14 +27,17 @@ The true volume is the integral ``int int R^3 / 3 sin(phi) dtheta dphi``
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import itertools
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
 
+from .echo import BeamGrid, BeamImage, ImageFormation, form_image, scan_convert
 from .volume import Volume
 
-__all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES"]
+__all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES", "FORMATIONS", "sweep_cases"]
 
 #: the phantom families of the benchmarks, as keyword arguments of make_phantom
 FAMILIES = {
@@ -45,6 +48,36 @@ FAMILIES = {
     "low_contrast": dict(contrast=0.35),
     "tilted": dict(tilt_deg=25.0),
 }
+
+_DEFAULT = ImageFormation()
+#: named image formations of the accuracy sweep: the default apical scan and
+#: one setting changed at a time, to either side of it
+FORMATIONS = {
+    "default": _DEFAULT,
+    "psf_narrow": replace(_DEFAULT, axial_psf_mm=0.5, lateral_psf_mm=2.0, elevation_psf_mm=2.2),
+    "psf_wide": replace(_DEFAULT, axial_psf_mm=1.2, lateral_psf_mm=4.5, elevation_psf_mm=5.0),
+    "dr_40": replace(_DEFAULT, dynamic_range_db=40.0),
+    "dr_70": replace(_DEFAULT, dynamic_range_db=70.0),
+    "gain_-6": replace(_DEFAULT, gain_db=-6.0),
+    "gain_+6": replace(_DEFAULT, gain_db=6.0),
+    "tgc_under": replace(_DEFAULT, tgc_db_per_cm=0.8),
+    "tgc_over": replace(_DEFAULT, tgc_db_per_cm=2.6),
+    # blood brighter or darker, the myocardium where it was
+    "blood_low": replace(_DEFAULT, blood_db=_DEFAULT.blood_db - 8, contrast_db=_DEFAULT.contrast_db + 8),
+    "blood_high": replace(_DEFAULT, blood_db=_DEFAULT.blood_db + 8, contrast_db=_DEFAULT.contrast_db - 8),
+    # the myocardium brighter or darker, the blood where it was
+    "contrast_high": replace(_DEFAULT, contrast_db=_DEFAULT.contrast_db + 7),
+    "contrast_low": replace(_DEFAULT, contrast_db=_DEFAULT.contrast_db - 10),
+    "clutter_none": replace(_DEFAULT, clutter_db=None),
+    "clutter_strong": replace(_DEFAULT, clutter_db=-12.0),
+    "dropout": replace(_DEFAULT, dropout_db=30.0),
+}
+
+#: the options of make_phantom that place the scene (a family made only of
+#: these can be imaged by any formation)
+_SCENE_OPTIONS = {"length", "radius", "wall", "tilt_deg"}
+
+_LEGACY_IMAGE = dict(speckle=True, dropout=False, clutter=False, contrast=1.0, dynamic_range_db=45.0)
 
 
 @dataclass
@@ -58,6 +91,8 @@ class Phantom:
     base: np.ndarray
     truth_mesh: tuple[np.ndarray, np.ndarray]
     params: dict = field(default_factory=dict)
+    #: the beam-space image before scan conversion (``make_phantom(beam_space=True)``)
+    beam: BeamImage | None = None
 
 
 @dataclass
@@ -134,69 +169,9 @@ def _frame(axis):
     return np.column_stack([e1, e2, np.cross(e1, e2)])
 
 
-def make_phantom(
-    *,
-    seed: int = 0,
-    spacing: float = 1.0,
-    length: float | None = None,
-    radius: float | None = None,
-    wall: float = 9.0,
-    tilt_deg: float = 0.0,
-    speckle: bool = True,
-    dropout: bool = False,
-    clutter: bool = False,
-    contrast: float = 1.0,
-    dynamic_range_db: float = 45.0,
-    _shape: _Shape | None = None,
-    _speckle_seed: int | None = None,
-) -> Phantom:
-    """Synthetic apical 3D echo volume of a left ventricle.
-
-    Parameters
-    ----------
-    seed : int
-        Seeds the shape (size, asymmetry, papillary muscles, tilt azimuth)
-        and the speckle.
-    spacing : float
-        Isotropic voxel size in mm.
-    length, radius : float, optional
-        Apex-to-base distance and base radius of the ellipsoid before
-        perturbation (mm); drawn from the seed when omitted
-        (75-95 mm and 0.28-0.36 of the length).
-    wall : float
-        Myocardial thickness (mm).
-    tilt_deg : float
-        Angle between the long axis and the beam axis (depth).
-    speckle, dropout, clutter : bool
-    contrast : float
-        Myocardium-to-blood echogenicity contrast relative to the standard
-        case (1); 0.35 is a poor acoustic window.
-    dynamic_range_db : float
-        Log compression range.
-    """
-    if spacing <= 0:
-        raise ValueError(f"spacing must be positive, got {spacing!r}")
-    rng = np.random.default_rng(seed)
-    length = float(length if length is not None else rng.uniform(75, 95))
-    radius = float(radius if radius is not None else length * rng.uniform(0.28, 0.36))
-    shape_fn = _shape or _Shape(length, radius, rng)
-    azimuth = rng.uniform(0, 2 * np.pi)
-
-    # geometry: probe at the top centre, the apex 22 mm deep, the axis tilted
-    tilt = np.radians(tilt_deg)
-    axis_down = np.array([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), np.cos(tilt)])
-    extent_lat = 2 * (radius * 1.25 + 24) + 2 * length * np.sin(tilt) * 0.6  # the same for every frame
-    depth = 22 + length * np.cos(tilt) + 50
-    nx = ny = int(np.ceil(extent_lat / spacing)) | 1
-    nz = int(np.ceil(depth / spacing))
-    probe = np.array([(nx - 1) / 2 * spacing, (ny - 1) / 2 * spacing, 0.0])
-    apex = probe + np.array([0, 0, 22.0]) - axis_down * 0.0
-    apex = apex + np.array([-np.sin(tilt) * np.cos(azimuth), -np.sin(tilt) * np.sin(azimuth), 0]) * length * 0.3
-    base = apex + axis_down * length
-    frame = _frame(-axis_down)  # e1 from base to apex
-
-    z, y, x = np.meshgrid(*(np.arange(n, dtype=np.float32) * np.float32(spacing) for n in (nz, ny, nx)), indexing="ij")
-    world = np.stack([x, y, z], -1)
+def _anatomy(world, *, base, frame, shape_fn, wall, length, radius, azimuth) -> dict:
+    """Tissue classes at world points ``world`` (float32, ``(..., 3)``), and
+    the points in the ventricle's frame (``local``)."""
     local = (world - base.astype(np.float32)) @ frame.astype(np.float32)
     r = np.linalg.norm(local, axis=-1)
     rho = np.hypot(local[..., 1], local[..., 2])
@@ -219,38 +194,183 @@ def make_phantom(
     rv_c = local - np.array([0.45 * length, 0, 0]) - rv_dir * (radius * 1.1 + wall + 10)
     rv = ((rv_c[..., 0] / (0.45 * length)) ** 2 + (rv_c[..., 1:] @ rv_dir[1:] / 9.0) ** 2 + ((rv_c[..., 1:] @ np.array([-rv_dir[2], rv_dir[1]])) / 22.0) ** 2) <= 1
     rv &= ~myocardium & ~cavity
+    return dict(local=local, cavity=cavity, myocardium=myocardium, atrium=atrium, atrium_wall=atrium_wall, rv=rv)
 
-    tex_rng = np.random.default_rng(seed + 1_000_003)
-    texture = ndimage.gaussian_filter(tex_rng.standard_normal((nz, ny, nx)).astype(np.float32), 3.0 / spacing)
-    texture /= texture.std() + 1e-12
-    blood, tissue = 0.025, 0.30 * (1 + 0.25 * texture)
-    myo = 0.04 + 0.9 * contrast * (1 + 0.15 * texture)
-    echo = np.where(myocardium | atrium_wall, myo, tissue)
-    echo = np.where(cavity | atrium | rv, blood, echo)
-    if dropout:
-        # a lateral wall region as dark as the blood pool
-        centre = np.array([0.5 * length, 0, 0]) + np.array([0, np.cos(azimuth - 1.0), np.sin(azimuth - 1.0)]) * (radius + wall / 2)
-        d = np.linalg.norm(local - centre, axis=-1)
-        echo = np.where(d < 16.0, blood + (echo - blood) * np.clip((d - 10.0) / 6.0, 0, 1), echo)
-    depth_mm = np.linalg.norm(world - probe, axis=-1)
-    if clutter:
-        echo = echo + 0.12 * contrast * np.exp(-((depth_mm - 26.0) / 12.0) ** 2) * (1 + 0.5 * texture)
-    echo = ndimage.gaussian_filter(echo.astype(np.float32), sigma=(0.5 / spacing, 0.8 / spacing, 0.8 / spacing))
-    echo = echo * np.exp(-0.004 * depth_mm)  # attenuation left after time-gain compensation
-    if speckle:
-        s_rng = np.random.default_rng(seed if _speckle_seed is None else _speckle_seed)
-        field_ = [
-            ndimage.gaussian_filter(s_rng.standard_normal((nz, ny, nx)).astype(np.float32), sigma=(0.6 / spacing, 1.0 / spacing, 1.0 / spacing))
-            for _ in range(2)
-        ]
-        amp = np.hypot(*field_)
-        echo = echo * amp / np.sqrt(np.mean(amp**2))
-    db = 20 * np.log10(np.maximum(echo, 1e-6) / 1.0)
-    image = np.clip((db + dynamic_range_db) / dynamic_range_db, 0, 1) * 254 + 1
-    # conical sector from the probe: outside is 0 (no data)
-    v = world - probe
-    angle = np.degrees(np.arctan2(np.hypot(v[..., 0], v[..., 1]), v[..., 2]))
-    image = np.where(angle <= 38.0 + tilt_deg * 0.6, np.round(image), 0).astype(np.uint8)
+
+def _texture(shape, spacing, rng):
+    """Unit-variance Gaussian random field smoothed over 3 mm on a grid."""
+    texture = ndimage.gaussian_filter(rng.standard_normal(shape).astype(np.float32), 3.0 / spacing)
+    return texture / (texture.std() + 1e-12)
+
+
+def _formed_image(formation, *, world, probe, seed, speckle_seed, half_angle_deg, scene):
+    """The scene imaged by ``formation`` in beam space, then scan-converted to
+    the Cartesian points ``world``: ``(grey levels, BeamImage)``."""
+    # the probe is at the top centre: the far corner is the farthest point
+    corner = np.asarray(world[-1, -1, -1], dtype=float) - probe
+    grid = BeamGrid.covering(formation, half_angle_deg=half_angle_deg, max_radius_mm=float(np.linalg.norm(corner)))
+    points = grid.probe_points()
+    anatomy = _anatomy((points + probe).astype(np.float32), **scene)
+    # myocardial and tissue inhomogeneity: a smooth random field (1.5 mm grid) sampled at the beams
+    step = 1.5
+    box = np.abs(np.asarray(world[-1, -1, -1], dtype=float)) + 2 * step
+    tex = _texture(tuple(int(np.ceil(b / step)) + 1 for b in box[::-1]), step, np.random.default_rng(seed + 1_000_003))
+    world_idx = (points + probe)[..., ::-1] / step
+    texture = ndimage.map_coordinates(tex, np.moveaxis(world_idx, -1, 0), order=1, mode="nearest")
+
+    f = formation
+    tissue = 10 ** (0.2 * texture)  # 2 dB spread
+    myo = 10 ** ((f.blood_db + f.contrast_db + 1.5 * texture) / 10)
+    echo = np.where(anatomy["myocardium"] | anatomy["atrium_wall"], myo, tissue)
+    echo = np.where(anatomy["cavity"] | anatomy["atrium"] | anatomy["rv"], 10 ** (f.blood_db / 10), echo)
+    if f.dropout_db > 0:
+        # signal lost over a lateral wall region (as the legacy dropout)
+        s = scene
+        centre = (np.array([0.5 * s["length"], 0, 0]) + np.array([0, np.cos(s["azimuth"] - 1.0),
+                  np.sin(s["azimuth"] - 1.0)]) * (s["radius"] + s["wall"] / 2))
+        d = np.linalg.norm(anatomy["local"] - centre, axis=-1)
+        echo = echo * 10 ** (-f.dropout_db / 10 * np.clip((16.0 - d) / 6.0, 0, 1))
+    if f.clutter_db is not None:
+        depth = np.linalg.norm(points, axis=-1)
+        haze = np.exp(-(((depth - f.clutter_depth_mm) / 12.0) ** 2)) * 10 ** ((f.clutter_db + 3.0 * texture) / 10)
+        echo = echo + haze
+    beam = form_image(echo.astype(np.float32), grid, f, np.random.default_rng(speckle_seed))
+    image = np.round(scan_convert(beam, grid, np.asarray(world, dtype=float) - probe)).astype(np.uint8)
+    return image, BeamImage(beam, grid, probe.copy())
+
+
+def make_phantom(
+    *,
+    seed: int = 0,
+    spacing: float = 1.0,
+    length: float | None = None,
+    radius: float | None = None,
+    wall: float = 9.0,
+    tilt_deg: float = 0.0,
+    speckle: bool = True,
+    dropout: bool = False,
+    clutter: bool = False,
+    contrast: float = 1.0,
+    dynamic_range_db: float = 45.0,
+    formation: ImageFormation | None = None,
+    beam_space: bool = False,
+    _shape: _Shape | None = None,
+    _speckle_seed: int | None = None,
+    _base_descent: float = 0.0,
+) -> Phantom:
+    """Synthetic apical 3D echo volume of a left ventricle.
+
+    Parameters
+    ----------
+    seed : int
+        Seeds the shape (size, asymmetry, papillary muscles, tilt azimuth)
+        and the speckle.
+    spacing : float
+        Isotropic voxel size in mm.
+    length, radius : float, optional
+        Apex-to-base distance and base radius of the ellipsoid before
+        perturbation (mm); drawn from the seed when omitted
+        (75-95 mm and 0.28-0.36 of the length).
+    wall : float
+        Myocardial thickness (mm).
+    tilt_deg : float
+        Angle between the long axis and the beam axis (depth).
+    speckle, dropout, clutter : bool
+        Options of the legacy image (see the module's docstring).
+    contrast : float
+        Legacy image: myocardium-to-blood echogenicity contrast relative to
+        the standard case (1); 0.35 is a poor acoustic window.
+    dynamic_range_db : float
+        Legacy image: log compression range.
+    formation : ImageFormation, optional
+        Form the image as a phased-array scanner does (:mod:`spheroseg.echo`):
+        beam-space speckle with a depth-dependent PSF, attenuation, noise,
+        TGC, log compression, scan conversion to the same Cartesian grid.
+        The truth is the same as without it.  The legacy image options must
+        then keep their defaults (the formation holds its own).  ``None``:
+        the legacy image, unchanged since round 1.
+    beam_space : bool
+        With a formation, also return the beam-space image
+        (:attr:`Phantom.beam`, a :class:`spheroseg.echo.BeamImage`).
+    """
+    if spacing <= 0:
+        raise ValueError(f"spacing must be positive, got {spacing!r}")
+    if formation is not None:
+        if not isinstance(formation, ImageFormation):
+            raise TypeError(f"formation must be an ImageFormation, got {type(formation).__name__}")
+        legacy = dict(speckle=speckle, dropout=dropout, clutter=clutter, contrast=contrast,
+                      dynamic_range_db=dynamic_range_db)
+        changed = [k for k, v in legacy.items() if v != _LEGACY_IMAGE[k]]
+        if changed:
+            raise ValueError(f"{', '.join(changed)} belong to the legacy image; with a formation set them in "
+                             "ImageFormation (dropout_db, clutter_db, contrast_db, dynamic_range_db)")
+    elif beam_space:
+        raise ValueError("beam_space=True needs a formation: the legacy image is made on the Cartesian grid")
+    rng = np.random.default_rng(seed)
+    length = float(length if length is not None else rng.uniform(75, 95))
+    radius = float(radius if radius is not None else length * rng.uniform(0.28, 0.36))
+    shape_fn = _shape or _Shape(length, radius, rng)
+    azimuth = rng.uniform(0, 2 * np.pi)
+
+    # geometry: probe at the top centre, the apex 22 mm deep, the axis tilted
+    tilt = np.radians(tilt_deg)
+    axis_down = np.array([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), np.cos(tilt)])
+    extent_lat = 2 * (radius * 1.25 + 24) + 2 * length * np.sin(tilt) * 0.6  # the same for every frame
+    depth = 22 + length * np.cos(tilt) + 50
+    nx = ny = int(np.ceil(extent_lat / spacing)) | 1
+    nz = int(np.ceil(depth / spacing))
+    probe = np.array([(nx - 1) / 2 * spacing, (ny - 1) / 2 * spacing, 0.0])
+    apex = probe + np.array([0, 0, 22.0]) - axis_down * 0.0
+    apex = apex + np.array([-np.sin(tilt) * np.cos(azimuth), -np.sin(tilt) * np.sin(azimuth), 0]) * length * 0.3
+    base = apex + axis_down * (length - _base_descent)
+    frame = _frame(-axis_down)  # e1 from base to apex
+
+    z, y, x = np.meshgrid(*(np.arange(n, dtype=np.float32) * np.float32(spacing) for n in (nz, ny, nx)), indexing="ij")
+    world = np.stack([x, y, z], -1)
+    anatomy = _anatomy(world, base=base, frame=frame, shape_fn=shape_fn, wall=wall, length=length, radius=radius,
+                       azimuth=azimuth)
+    local, cavity, myocardium = anatomy["local"], anatomy["cavity"], anatomy["myocardium"]
+    atrium, atrium_wall, rv = anatomy["atrium"], anatomy["atrium_wall"], anatomy["rv"]
+
+    beam = None
+    if formation is None:
+        tex_rng = np.random.default_rng(seed + 1_000_003)
+        texture = ndimage.gaussian_filter(tex_rng.standard_normal((nz, ny, nx)).astype(np.float32), 3.0 / spacing)
+        texture /= texture.std() + 1e-12
+        blood, tissue = 0.025, 0.30 * (1 + 0.25 * texture)
+        myo = 0.04 + 0.9 * contrast * (1 + 0.15 * texture)
+        echo = np.where(myocardium | atrium_wall, myo, tissue)
+        echo = np.where(cavity | atrium | rv, blood, echo)
+        if dropout:
+            # a lateral wall region as dark as the blood pool
+            centre = np.array([0.5 * length, 0, 0]) + np.array([0, np.cos(azimuth - 1.0), np.sin(azimuth - 1.0)]) * (radius + wall / 2)
+            d = np.linalg.norm(local - centre, axis=-1)
+            echo = np.where(d < 16.0, blood + (echo - blood) * np.clip((d - 10.0) / 6.0, 0, 1), echo)
+        depth_mm = np.linalg.norm(world - probe, axis=-1)
+        if clutter:
+            echo = echo + 0.12 * contrast * np.exp(-((depth_mm - 26.0) / 12.0) ** 2) * (1 + 0.5 * texture)
+        echo = ndimage.gaussian_filter(echo.astype(np.float32), sigma=(0.5 / spacing, 0.8 / spacing, 0.8 / spacing))
+        echo = echo * np.exp(-0.004 * depth_mm)  # attenuation left after time-gain compensation
+        if speckle:
+            s_rng = np.random.default_rng(seed if _speckle_seed is None else _speckle_seed)
+            field_ = [
+                ndimage.gaussian_filter(s_rng.standard_normal((nz, ny, nx)).astype(np.float32), sigma=(0.6 / spacing, 1.0 / spacing, 1.0 / spacing))
+                for _ in range(2)
+            ]
+            amp = np.hypot(*field_)
+            echo = echo * amp / np.sqrt(np.mean(amp**2))
+        db = 20 * np.log10(np.maximum(echo, 1e-6) / 1.0)
+        image = np.clip((db + dynamic_range_db) / dynamic_range_db, 0, 1) * 254 + 1
+        # conical sector from the probe: outside is 0 (no data)
+        v = world - probe
+        angle = np.degrees(np.arctan2(np.hypot(v[..., 0], v[..., 1]), v[..., 2]))
+        image = np.where(angle <= 38.0 + tilt_deg * 0.6, np.round(image), 0).astype(np.uint8)
+    else:
+        image, beam = _formed_image(formation, world=world, probe=probe, seed=seed,
+                                    speckle_seed=seed if _speckle_seed is None else _speckle_seed,
+                                    half_angle_deg=38.0 + tilt_deg * 0.6,
+                                    scene=dict(base=base, frame=frame, shape_fn=shape_fn, wall=wall, length=length,
+                                               radius=radius, azimuth=azimuth))
 
     volume = Volume(image, spacing=(spacing,) * 3, no_data_value=0)
     return Phantom(
@@ -261,29 +381,86 @@ def make_phantom(
         base=base,
         truth_mesh=shape_fn.mesh(frame, base),
         params=dict(seed=seed, spacing=spacing, length=length, radius=radius, wall=wall, tilt_deg=tilt_deg,
-                    speckle=speckle, dropout=dropout, clutter=clutter, contrast=contrast),
+                    speckle=speckle, dropout=dropout, clutter=clutter, contrast=contrast,
+                    **({} if formation is None else dict(formation=formation)),
+                    **({} if _base_descent == 0 else dict(base_descent=_base_descent))),
+        beam=beam if beam_space else None,
     )
 
 
-def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33, **kwargs) -> PhantomSequence:
-    """A cardiac cycle from end-diastole: the cavity radius shrinks by
-    ``shortening`` at end-systole (mid-cycle) and recovers; the wall
-    thickens; the apex and the mitral plane stay put; speckle changes
-    every frame.  ``kwargs`` go to :func:`make_phantom`."""
+def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33, base_descent: float = 0.0,
+                  formation: ImageFormation | None = None, **kwargs) -> PhantomSequence:
+    """A cardiac cycle from end-diastole.
+
+    At phase ``s(t) = (1 - cos(2 pi t / n_frames)) / 2`` (0 at end-diastole,
+    1 at end-systole, mid-cycle) the cavity radius shrinks by the fraction
+    ``shortening * s``, the wall thickens by ``50 % * s`` and the mitral
+    annulus (the base plane) moves towards the apex by ``base_descent * s``
+    mm, the long axis shortening by as much (the apex stays put).  Speckle
+    changes every frame.
+
+    Parameters
+    ----------
+    n_frames : int
+    seed : int
+    shortening : float
+        Fractional radial shortening at end-systole.
+    base_descent : float
+        Descent of the mitral annulus at end-systole, mm (8-15 mm in adult
+        hearts; 0 keeps the base plane still, as in round 1).  Each frame's
+        :attr:`Phantom.base` is its true base point.
+    formation : ImageFormation, optional
+        Image formation of every frame (see :func:`make_phantom`).
+    **kwargs
+        Further options of :func:`make_phantom`.
+    """
     if n_frames < 2:
         raise ValueError(f"n_frames must be >= 2, got {n_frames!r}")
     rng = np.random.default_rng(seed)
     length = kwargs.pop("length", None) or rng.uniform(75, 95)
     radius = kwargs.pop("radius", None) or length * rng.uniform(0.28, 0.36)
     wall = kwargs.pop("wall", 9.0)
+    if not (np.isfinite(base_descent) and 0 <= base_descent < length / 3):
+        raise ValueError(f"base_descent must be in [0, {length / 3:.1f}) mm (a third of the long axis), "
+                         f"got {base_descent!r}")
     ed_shape = _Shape(length, radius, np.random.default_rng(seed))
     frames = []
     for t in range(n_frames):
         s = 0.5 * (1 - np.cos(2 * np.pi * t / n_frames))
-        shape = _Shape(length, radius * (1 - shortening * s), np.random.default_rng(seed))
+        descent = base_descent * s
+        shape = _Shape(length - descent, radius * (1 - shortening * s), np.random.default_rng(seed))
         shape.bumps = [(tb, pb, d * (1 + s)) for tb, pb, d in ed_shape.bumps]
         frames.append(
             make_phantom(seed=seed, length=length, radius=radius, wall=wall * (1 + 0.5 * s), _shape=shape,
-                         _speckle_seed=seed * 1000 + t, **kwargs)
+                         _speckle_seed=seed * 1000 + t, _base_descent=descent, formation=formation, **kwargs)
         )
     return PhantomSequence(frames)
+
+
+def sweep_cases(*, families=("speckle", "tilted"), formations=None, seeds=(0,)) -> Iterator[tuple[str, str, dict]]:
+    """The cross of scene families x image formations x seeds, for benchmarks.
+
+    Yields ``(family, formation name, keyword arguments of make_phantom)``.
+    Every formation sees the same scenes (seed ``s + 10 * k`` for the k-th
+    family), so that settings compare on equal cases.  The default is
+    2 families x 16 formations = 32 cases.
+
+    Parameters
+    ----------
+    families : sequence of str
+        Names in :data:`FAMILIES` that only place the scene (``speckle``, the
+        upright ventricle, and ``tilted``); the others set the legacy image.
+    formations : sequence of str, optional
+        Names in :data:`FORMATIONS`; all of them by default.
+    seeds : sequence of int
+    """
+    formations = list(FORMATIONS) if formations is None else list(formations)
+    for name in families:
+        if name not in FAMILIES or not set(FAMILIES[name]) <= _SCENE_OPTIONS:
+            scene = [k for k, v in FAMILIES.items() if set(v) <= _SCENE_OPTIONS]
+            raise ValueError(f"family {name!r} cannot be imaged by a formation; choose from {scene}")
+    for name in formations:
+        if name not in FORMATIONS:
+            raise ValueError(f"unknown formation {name!r}; choose from {list(FORMATIONS)}")
+    for (k, family), seed, name in itertools.product(enumerate(families), seeds, formations):
+        yield family, name, dict(seed=seed + 10 * k, formation=FORMATIONS[name], **FAMILIES[family])

@@ -1,0 +1,134 @@
+import numpy as np
+import pytest
+
+from spheroseg.echo import (
+    RAYLEIGH_DB_STD, TOP_DB, BeamGrid, ImageFormation, beam_to_probe, log_compress, probe_to_beam, scan_convert,
+    speckle_envelope,
+)
+
+# no depth dependence and no noise: the speckle alone
+FLAT = dict(attenuation_db_per_cm=0.0, tgc_db_per_cm=0.0, noise_db=-200.0, clutter_db=None)
+
+
+def grid_for(formation, *, r0=30.0, r1=110.0, n_angle=61, refine=1):
+    dr, de, da = formation.sampling()
+    nr = int((r1 - r0) / (dr / refine)) + 1
+    return BeamGrid((nr, n_angle, n_angle), dr / refine, r0, de / refine, da / refine)
+
+
+def test_rayleigh_statistics_of_uniform_speckle():
+    f = ImageFormation(dynamic_range_db=60.0, gain_db=-15.0, **FLAT)
+    g = grid_for(f)
+    env = speckle_envelope(np.full(g.shape, 2.0, np.float32), g, f, np.random.default_rng(1))
+    power = env.astype(float) ** 2 * 10 ** (-f.gain_db / 10)
+    inner = (slice(None), slice(10, -10), slice(10, -10))  # away from the sector's edge
+    # unit-energy PSF: mean intensity = echogenicity
+    assert power[inner].mean() == pytest.approx(2.0, rel=0.03)
+    # Rayleigh amplitude: std / mean = sqrt(4 / pi - 1)
+    a = env[inner].astype(float)
+    assert a.std() / a.mean() == pytest.approx(np.sqrt(4 / np.pi - 1), rel=0.02)
+    # in dB its spread is 5.57 dB (so 5.57 * 254 / DR grey levels) and its
+    # mean 10 log10(e) * (-Euler gamma) = -2.51 dB below the mean power
+    grey = log_compress(env, f)[inner].astype(float)
+    assert RAYLEIGH_DB_STD == pytest.approx(5.57, abs=0.005)
+    assert grey.std() == pytest.approx(RAYLEIGH_DB_STD * 254 / f.dynamic_range_db, rel=0.03)
+    mean_db = 10 * np.log10(2.0) + f.gain_db - 10 * np.log10(np.e) * np.euler_gamma
+    assert grey.mean() == pytest.approx(1 + 254 * (mean_db - TOP_DB + 60) / 60, abs=0.5)
+
+
+def _fwhm_from_autocovariance(intensity, axis, step):
+    """FWHM of the PSF from the intensity autocovariance along ``axis``: for a
+    Gaussian PSF of std s the intensity autocovariance is exp(-d^2 / (2 s^2))."""
+    x = np.moveaxis(intensity, axis, -1)
+    x = (x - x.mean()) / x.std()
+    sigmas = []
+    for lag in (1, 2):
+        c = np.mean(x[..., :-lag] * x[..., lag:])
+        sigmas.append(lag * step / np.sqrt(-2 * np.log(c)))
+    return np.mean(sigmas) * 2 * np.sqrt(2 * np.log(2))
+
+
+@pytest.mark.parametrize("depth", [40.0, 100.0])
+def test_psf_widths_from_speckle_autocorrelation(depth):
+    f = ImageFormation(lateral_psf_mm=3.0, elevation_psf_mm=4.0, axial_psf_mm=1.0, **FLAT)
+    g = grid_for(f, r0=depth - 12, r1=depth + 12, refine=2)
+    env = speckle_envelope(np.ones(g.shape, np.float32), g, f, np.random.default_rng(2))
+    slab = (env.astype(float) ** 2)[:, 15:-15, 15:-15]  # central beams: lateral mm = depth * angle
+    lateral = _fwhm_from_autocovariance(slab, 2, depth * g.azimuth_angular_separation)
+    elevation = _fwhm_from_autocovariance(slab, 1, depth * g.elevation_angular_separation)
+    axial = _fwhm_from_autocovariance(slab[5:-5], 0, g.radius_sample_size)
+    assert lateral == pytest.approx(f.beam_width(depth), rel=0.05)
+    assert elevation == pytest.approx(f.beam_width(depth, direction="elevation"), rel=0.05)
+    assert axial == pytest.approx(1.0, rel=0.05)
+
+
+def test_beam_width_grows_with_depth():
+    f = ImageFormation()
+    assert f.beam_width(f.reference_depth_mm) == pytest.approx(f.lateral_psf_mm)
+    assert f.beam_width(f.reference_depth_mm, direction="elevation") == pytest.approx(f.elevation_psf_mm)
+    w = f.beam_width(np.linspace(10, 160, 31))
+    assert np.all(np.diff(w) > 0)
+    # an adult apical scan: 2-4 mm at 80 mm depth
+    assert 2.0 <= f.beam_width(80.0) <= 4.0 and 0.5 <= f.axial_psf_mm <= 1.0
+
+
+def test_attenuation_and_tgc_set_the_depth_slope():
+    f = ImageFormation(attenuation_db_per_cm=2.0, tgc_db_per_cm=0.8, noise_db=-200.0, clutter_db=None,
+                       dynamic_range_db=70.0, gain_db=-5.0)
+    g = grid_for(f, r0=20.0, r1=120.0)
+    grey = log_compress(speckle_envelope(np.ones(g.shape, np.float32), g, f, np.random.default_rng(3)), f)
+    radius = g.axes()[0]
+    profile = grey[:, 10:-10, 10:-10].reshape(len(radius), -1).mean(1)
+    slope = np.polyfit(radius, profile, 1)[0]  # grey levels per mm
+    assert slope == pytest.approx((0.8 - 2.0) / 10 * 254 / 70, rel=0.03)
+
+
+def test_noise_floor():
+    f = ImageFormation(attenuation_db_per_cm=0.0, tgc_db_per_cm=0.0, noise_db=-30.0)
+    g = grid_for(f)
+    env = speckle_envelope(np.zeros(g.shape, np.float32), g, f, np.random.default_rng(4))
+    assert np.mean(env.astype(float) ** 2) == pytest.approx(10 ** (-3.0), rel=0.03)
+
+
+def test_tan_convention_off_plane():
+    # r = 100 mm at azimuth = elevation = 30 deg: z = 100 / sqrt(1 + 2 tan^2 30) (ITK's formula by hand)
+    p = beam_to_probe(100.0, np.radians(30), np.radians(30))
+    z = 100 / np.sqrt(1 + 2 / 3)
+    np.testing.assert_allclose(p, [z / np.sqrt(3), z / np.sqrt(3), z], rtol=1e-12)
+    rng = np.random.default_rng(5)
+    r, e, a = rng.uniform(5, 150, 50), rng.uniform(-0.8, 0.8, 50), rng.uniform(-0.8, 0.8, 50)
+    back = probe_to_beam(beam_to_probe(r, e, a))
+    np.testing.assert_allclose(np.stack(back), np.stack([r, e, a]), atol=1e-10)
+    assert np.isnan(probe_to_beam([[0.0, 1.0, -1.0]])[2]).all()
+
+
+def test_scan_convert_linear_in_radius_and_zero_outside():
+    f = ImageFormation()
+    g = BeamGrid((120, 41, 41), 1.0, 10.0, np.radians(1.0), np.radians(1.0))
+    radius = g.axes()[0]
+    image = np.broadcast_to(radius[:, None, None], g.shape).astype(np.float32)
+    rng = np.random.default_rng(6)
+    r, e, a = rng.uniform(12, 125, 200), rng.uniform(-0.3, 0.3, 200), rng.uniform(-0.3, 0.3, 200)
+    inside = beam_to_probe(r, e, a)
+    np.testing.assert_allclose(scan_convert(image, g, inside), r, rtol=1e-5)
+    outside = beam_to_probe(np.full(3, 60.0), np.radians([25.0, 0.0, 0.0]), np.radians([0.0, 0.0, 0.0]))
+    outside[1] = [0, 0, 5.0]  # before the first sample
+    outside[2] = [0, 0, -50.0]  # behind the probe
+    assert np.all(scan_convert(image, g, outside) == 0)
+    assert f.sampling()[0] == f.axial_psf_mm / 2
+
+
+@pytest.mark.parametrize("bad", [dict(axial_psf_mm=0.0), dict(dynamic_range_db=-40.0), dict(gain_db=np.nan),
+                                 dict(clutter_db=np.inf), dict(attenuation_db_per_cm=-1.0)])
+def test_formation_validation(bad):
+    with pytest.raises(ValueError, match="ImageFormation"):
+        ImageFormation(**bad)
+
+
+def test_envelope_input_validation():
+    f = ImageFormation()
+    g = BeamGrid((10, 5, 5), 0.4, 10.0, 0.02, 0.02)
+    with pytest.raises(ValueError, match="shape"):
+        speckle_envelope(np.ones((9, 5, 5)), g, f, np.random.default_rng(0))
+    with pytest.raises(ValueError, match=">= 0"):
+        speckle_envelope(-np.ones(g.shape), g, f, np.random.default_rng(0))
