@@ -253,14 +253,17 @@ def _beamspace(bs) -> list[str]:
     for row in bs["per_sample"]:
         out.append(f"| {row['convention']} | {row['kernel']} | {_fmt(row['ns_per_sample'], 1)} | "
                    f"{_fmt(row.get('ns_per_sample_min'), 1)} | {_fmt(100 * row['finite_fraction'], 0)} % |")
-    out += ["", "The same phantom segmented in beam space and after scan conversion (default options; mean distance: "
-            "the symmetric mean over the two meshes' vertices), and the original Cartesian phantom and its truth "
-            "for reference:", "",
-            "| convention | seed | mean distance mm | beam space mL | scan-converted mL | difference % | "
-            "original Cartesian mL | truth mL |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    out += ["", "The same phantom segmented in beam space and after scan conversion (default options; the default "
+            "Cartesian grid, the beams' spacing at mid depth; mean distance: the symmetric mean over the two meshes' "
+            "vertices), with the phantom's own Cartesian image and the truth for reference. 'formed in beam space': "
+            "the phantom's echo formed on its beams (`make_phantom(formation=FORMATIONS['default'], "
+            "beam_space=True)`, 1.5 mm Cartesian image); 'resampled': the legacy 1 mm phantom resampled on the "
+            "1 mm x 1 deg sector above, so that both routes interpolate it once more than the original.", "",
+            "| data | convention | seed | mean distance mm | beam space mL | scan-converted mL | difference % | "
+            "phantom's Cartesian mL | truth mL |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for row in bs["agreement"]:
-        out.append(f"| {row['convention']} | {row['seed']} | {_fmt(row['mean_distance_mm'])} | "
-                   f"{_fmt(row['direct_ml'], 1)} | {_fmt(row['converted_ml'], 1)} | "
+        out.append(f"| {row.get('data', 'resampled')} | {row['convention']} | {row['seed']} | "
+                   f"{_fmt(row['mean_distance_mm'])} | {_fmt(row['direct_ml'], 1)} | {_fmt(row['converted_ml'], 1)} | "
                    f"{_fmt(row['volume_difference_percent'], 1)} | {_fmt(row['original_cartesian_ml'], 1)} | "
                    f"{_fmt(row['truth_ml'], 1)} |")
     return out

@@ -231,7 +231,7 @@ def test_scan_convert_default_grid_and_type_errors():
     vol = BeamVolume(np.ones(g.shape), g)
     cart = scan_convert(vol)
     assert cart.shape == vol.grid.shape and np.allclose(cart.origin, vol.grid.origin)
-    assert np.allclose(cart.spacing, 2.0)  # the radial sample size: finer than 4 deg at mid depth (29 mm)
+    assert np.allclose(cart.spacing, 29.0 * math.radians(4))  # the beams' spacing at mid depth (29 mm)
     with pytest.raises(TypeError):
         scan_convert(cart)
     with pytest.raises(TypeError):

@@ -256,12 +256,12 @@ class BeamGeometry:
         return w.min(0), w.max(0)
 
     def default_spacing(self) -> float:
-        """The finest beam spacing (mm): the radial sample size, or the
-        distance between neighbouring beams at the sector's mid depth if
-        smaller."""
+        """The finest distance between neighbouring beams at the sector's
+        mid depth (mm): the lateral sampling a Cartesian grid needs there.
+        (The radial sample size is usually finer than the beams' resolution;
+        a grid that fine would hold ~100 times the samples.)"""
         mid = self.first_sample_distance + 0.5 * self.upper[0] * self.radius_sample_size
-        lateral = mid * min(self.azimuth_angular_separation, self.elevation_angular_separation)
-        return float(min(self.radius_sample_size, lateral))
+        return float(mid * min(self.azimuth_angular_separation, self.elevation_angular_separation))
 
     def cartesian_grid(self, spacing=None) -> ImageGrid:
         """A Cartesian grid covering the sector, axes along the probe's.
@@ -317,8 +317,8 @@ class BeamVolume:
     Notes
     -----
     Masks and volumes stay in world space: :attr:`grid` is the Cartesian grid
-    covering the sector at :meth:`BeamGeometry.default_spacing`, on which
-    ``result.mask(beam_volume)`` is drawn.
+    covering the sector at :meth:`BeamGeometry.default_spacing` (the beams'
+    spacing at mid depth), on which ``result.mask(beam_volume)`` is drawn.
     """
 
     def __init__(self, array, geometry: BeamGeometry, *, no_data_value=None, no_data_mask=None):
@@ -454,7 +454,8 @@ def scan_convert(volume: BeamVolume, grid: ImageGrid | None = None, *, order: in
     ----------
     volume : BeamVolume
     grid : ImageGrid, optional
-        Default: ``volume.grid``, covering the sector at the finest beam spacing.
+        Default: ``volume.grid``, covering the sector at the beams' spacing at
+        mid depth.
     order : {0, 1}
         Nearest sample or trilinear in ``[r, e, a]``.
 

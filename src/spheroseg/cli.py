@@ -86,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("image", help="beam-space .mha/.nrrd (ITK PhasedArray3D header keys), 3D or 3D+t")
     sc.add_argument("output", help="Cartesian image to write (.mha, .mhd, .nrrd, .nii, .nii.gz)")
     sc.add_argument("--voxel-size", type=float, metavar="MM",
-                    help="isotropic voxel size in mm (default: the finest beam spacing)")
+                    help="isotropic voxel size in mm (default: the beams' spacing at mid depth)")
     sc.add_argument("--nearest", action="store_true", help="nearest sample instead of trilinear in [r, e, a]")
     sc.add_argument("--force", action="store_true", help="overwrite an existing output")
     sc.add_argument("--quiet", action="store_true")
