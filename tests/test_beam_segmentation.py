@@ -31,7 +31,10 @@ def mean_distance(a, b):
 def test_beam_space_and_scan_converted_segmentations_agree(convention):
     ph = make_phantom(seed=1, spacing=1.5)
     beam = to_beam_space(ph.volume, phantom_geometry(ph.volume, convention))
-    cartesian = scan_convert(beam)
+    # a 1 mm grid: the default (the beams' 1.4 mm spacing at mid depth) blurs
+    # the edge more and moves the converted volume up by 1.9 % here, 2-3 %
+    # on other phantoms (docs/benchmarks.md, "Beam space")
+    cartesian = scan_convert(beam, beam.geometry.cartesian_grid(1.0))
     direct = segment(beam, ph.apex, ph.base)
     converted = segment(cartesian, ph.apex, ph.base)
     assert direct.status == converted.status == 0
