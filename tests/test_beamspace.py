@@ -154,7 +154,8 @@ def linear_in_index(g):
     """Samples that are an affine function of the index: trilinear
     interpolation in [r, e, a] reproduces it exactly at any point."""
     r, e, a = np.meshgrid(*[np.arange(n, dtype=float) for n in g.shape], indexing="ij")
-    return 2.0 * r - 3.0 * e + 0.5 * a + 7.0, lambda idx: 2.0 * idx[..., 0] - 3.0 * idx[..., 1] + 0.5 * idx[..., 2] + 7.0
+    values = 2.0 * r - 3.0 * e + 0.5 * a + 7.0
+    return values, lambda idx: 2.0 * idx[..., 0] - 3.0 * idx[..., 1] + 0.5 * idx[..., 2] + 7.0
 
 
 @pytest.mark.parametrize("convention", ["tan", "sin"])

@@ -219,7 +219,8 @@ def cmd_segment(args) -> int:
     if not args.no_report:
         from .report import save_report
 
-        save_report(out / "report.png", _displayable(volume), result.surface, mask=mask, title=f"{source.name}: {result.volume_ml:.1f} mL")
+        save_report(out / "report.png", _displayable(volume), result.surface, mask=mask,
+                    title=f"{source.name}: {result.volume_ml:.1f} mL")
         files["report"] = "report.png"
     results = {
         "input": str(source), "volume_ml": result.volume_ml, "iterations": result.iterations,
@@ -256,8 +257,9 @@ def _write_tracking_outputs(out: Path, volumes, result, suffix: str, stl: bool, 
         from .report import save_report
 
         ed = result.ed_frame
-        save_report(out / "report.png", _displayable(volumes[ed]), result.frames[ed].surface, volumes_ml=result.volumes_ml,
-                    ed_frame=ed, es_frame=result.es_frame, title=title, truth_mask=truth_mask)
+        save_report(out / "report.png", _displayable(volumes[ed]), result.frames[ed].surface,
+                    volumes_ml=result.volumes_ml, ed_frame=ed, es_frame=result.es_frame, title=title,
+                    truth_mask=truth_mask)
 
 
 def cmd_track(args) -> int:
