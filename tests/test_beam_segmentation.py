@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from spheroseg import _beam_kernels, segment, track
-from spheroseg.beamspace import BeamGeometry, BeamVolume, scan_convert, to_beam_space
+from spheroseg.beamspace import BeamGeometry, BeamVolume, beam_mask, beam_mask_volume_ml, scan_convert, to_beam_space
 from spheroseg.phantom import FORMATIONS, make_phantom, make_sequence
 
 
@@ -45,6 +45,9 @@ def test_beam_space_and_scan_converted_segmentations_agree(convention):
     mask = direct.mask(beam)
     assert mask.shape == beam.grid.shape
     assert mask.sum() * np.prod(beam.grid.spacing) / 1000 == pytest.approx(direct.volume_ml, rel=0.02)
+    # or in beam space, each sample weighted by its cell's volume (the Jacobian)
+    in_beams = beam_mask(direct.surface, beam.geometry)
+    assert beam_mask_volume_ml(in_beams, beam.geometry) == pytest.approx(direct.volume_ml, rel=0.005)
 
 
 def from_phantom_beams(beam):

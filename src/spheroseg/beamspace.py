@@ -36,7 +36,8 @@ import numpy as np
 from . import _beam_kernels
 from .volume import INDEX_TOLERANCE, ImageGrid, Volume
 
-__all__ = ["BeamGeometry", "BeamVolume", "BeamSamplingView", "CONVENTIONS", "scan_convert", "to_beam_space"]
+__all__ = ["BeamGeometry", "BeamVolume", "BeamSamplingView", "CONVENTIONS", "scan_convert", "to_beam_space",
+           "beam_mask", "beam_mask_volume_ml"]
 
 #: the angle conventions :class:`BeamGeometry` knows
 CONVENTIONS = ("tan", "sin")
@@ -491,3 +492,27 @@ def to_beam_space(volume: Volume, geometry: BeamGeometry, *, order: int = 1) -> 
     values = volume.sample(geometry.index_to_world(index.reshape(-1, 3)), order=order).reshape(geometry.shape)
     missing = np.isnan(values)
     return BeamVolume(np.where(missing, 0.0, values), geometry, no_data_mask=missing if missing.any() else None)
+
+
+def beam_mask(region, geometry: BeamGeometry) -> np.ndarray:
+    """Boolean mask ``[r, e, a]`` of the samples inside ``region`` (anything
+    with ``contains(world_points)``, e.g. a :class:`~spheroseg.Surface`):
+    the beam-space alternative to a mask on a Cartesian grid."""
+    if not isinstance(geometry, BeamGeometry):
+        raise TypeError(f"geometry must be a BeamGeometry, got {type(geometry).__name__}")
+    n_r, n_e, n_a = geometry.shape
+    index = np.stack(np.meshgrid(np.arange(n_e, dtype=float), np.arange(n_a, dtype=float), indexing="ij"), -1)
+    out = np.empty(geometry.shape, dtype=bool)
+    for r in range(n_r):  # a shell at a time: bounded memory
+        shell = np.concatenate([np.full(index.shape[:-1] + (1,), float(r)), index], axis=-1)
+        out[r] = region.contains(geometry.index_to_world(shell))
+    return out
+
+
+def beam_mask_volume_ml(mask, geometry: BeamGeometry) -> float:
+    """Volume (mL) of a beam-space mask: each sample counts the volume of its
+    index cell, ``geometry.jacobian`` (mm^3) at the sample (midpoint rule)."""
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != geometry.shape:
+        raise ValueError(f"the mask's shape {mask.shape} is not the geometry's {geometry.shape}")
+    return float(geometry.jacobian(np.argwhere(mask).astype(float)).sum()) / 1000.0
