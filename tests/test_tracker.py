@@ -11,7 +11,7 @@ import pytest
 
 import spheroseg
 from spheroseg import Tracker, segment, track
-from spheroseg.dataterms import FixedInterface, GlobalMeans, LocalIntensityMeans, LocalMeans
+from spheroseg.dataterms import FixedInterface, GlobalMeans, IntensityInterface, LocalMeans
 from spheroseg.options import SegmentOptions
 from spheroseg.phantom import make_phantom, make_sequence
 from spheroseg.tracker import schedule
@@ -56,11 +56,11 @@ def test_results_equal_the_recorded_reference(reference):
 def test_schedule_is_data():
     levels = schedule(SegmentOptions())
     assert [(lv.patches, lv.data_term, lv.max_iterations) for lv in levels] == [
-        ((2, 2), GlobalMeans, 60), ((4, 4), GlobalMeans, 60), ((8, 8), LocalIntensityMeans, 60)]
+        ((2, 2), GlobalMeans, 60), ((4, 4), GlobalMeans, 60), ((8, 8), LocalMeans, 60), ((8, 8), IntensityInterface, 60)]
     assert schedule(SegmentOptions(mode="local"))[-1].data_term is LocalMeans
     assert [lv.data_term for lv in schedule(SegmentOptions(mode="fast"))] == [FixedInterface] * 3
-    assert [lv.patches for lv in schedule(SegmentOptions(patches=(6, 8)))] == [(3, 4), (6, 8)]  # 3 x 4 halves no more
-    assert len(schedule(SegmentOptions(coarse_to_fine=False))) == 1
+    assert [lv.patches for lv in schedule(SegmentOptions(patches=(6, 8), mode="local"))] == [(3, 4), (6, 8)]
+    assert [lv.data_term for lv in schedule(SegmentOptions(coarse_to_fine=False))] == [LocalMeans, IntensityInterface]
 
 
 @pytest.fixture(scope="module")

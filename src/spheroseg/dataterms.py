@@ -43,7 +43,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["DataTerm", "Force", "FixedInterface", "GlobalMeans", "LocalMeans", "LocalIntensityMeans", "DATA_TERMS",
+__all__ = ["DataTerm", "Force", "FixedInterface", "GlobalMeans", "LocalMeans", "IntensityInterface", "DATA_TERMS",
            "band_offsets", "shell_offsets", "otsu_threshold", "speckle_nepers", "patch_of_rows"]
 
 # fractions of f at which the cavity is sampled along each ray
@@ -132,6 +132,9 @@ class DataTerm:
         :attr:`grey_means`, the median region means in image units."""
         raise NotImplementedError
 
+    def reset(self) -> None:
+        """Forget what was measured on earlier frames (a new frame starts)."""
+
     def global_means(self, backend, volume, obs) -> tuple[float, float]:
         """Volume-weighted cavity mean and area-weighted shell mean, from the
         rays of the band rows."""
@@ -202,48 +205,57 @@ class LocalMeans(DataTerm):
 
 
 
-class LocalIntensityMeans(LocalMeans):
-    """Local means of the echo intensity: the log compression undone.
+class IntensityInterface(LocalMeans):
+    """The wall where the echo intensity is half way between blood and
+    myocardium: the bias of log-domain means removed.
 
     B-mode grey levels are ``v = a + k ln I`` (log compression of the echo
-    intensity ``I`` to ``k`` grey levels per neper, ``a`` the gain) after a
-    point-spread function blurred ``I``.  Across a blood-tissue interface the
-    blurred mean intensity is ``I_b + (I_t - I_b) Phi(x / sigma)``: it passes
-    half way between the two at the interface, while the grey level half way
-    between the two regions' means is reached where ``I`` is near their
-    geometric mean, on the blood side (about two PSF widths in at 30 dB of
-    contrast: the inward bias of :class:`LocalMeans` on log-compressed data).
-    This term reads ``exp(v / k)`` for every sample, so its band means and
-    the force are in the intensity domain and the boundary settles where the
-    intensity is half way: at the interface.
+    intensity ``I``, ``k`` grey levels per neper) of an intensity that the
+    point-spread function (PSF) blurred.  Across a blood-tissue interface the
+    mean intensity is ``I_b + (I_t - I_b) Phi(x / sigma)``: half way between
+    the two at the interface.  :class:`LocalMeans` puts the wall where the
+    grey level is half way between the regions' mean grey levels, i.e. where
+    ``I`` is near their geometric mean: on the blood side, by about two PSF
+    widths at 30 dB of contrast (1.5-4 mm; volumes 10-25 % low).
 
-    ``k`` is estimated from the data itself, once, on the first iteration:
-    fully developed speckle has an exponential intensity, so ``ln I`` has a
-    standard deviation of ``pi / sqrt(6)`` (5.57 dB) whatever its mean; the
-    spread of the grey levels in the outer band (the myocardium), across
-    the rays of each patch (a few mm apart: independent speckle) and at each
-    offset, read at voxel centres (interpolation averages the log and
-    narrows its spread), gives ``k`` (:func:`speckle_nepers`).  Speckle the
-    scanner's filters have averaged has a smaller spread, so ``k`` comes out
-    low and the intensity over-expanded: the boundary then moves a fraction
-    of a PSF width outwards, where the log-domain means put it two widths
-    inwards.  Without speckle (a contrast above 50 dB per ``k``) the
-    contrast bounds ``k`` from below.
+    This term moves the wall to the grey level ``g*`` whose mean over speckle
+    belongs to half the two regions' mean intensity.  For fully developed
+    speckle ``E[v] = a + k (ln m - gamma)`` for a region of mean intensity
+    ``m``, so with the regions' mean grey levels ``c_in``, ``c_out``::
 
-    The force is not clipped point by point: the intensity of speckle is
-    heavy-tailed (exponential), and clipping a skewed force before it is
-    averaged moves the point where its mean vanishes by a third of a PSF
-    width.  The displacement is bounded after its projection on the Hermite
-    space instead (``Force.clip = None``).
+        g* = k ln((exp(c_in / k) + exp(c_out / k)) / 2)
+
+    (``c_out - k ln 2`` for a strong contrast: half the tissue's power).
+    The force stays in grey levels, so a bright speckle weighs no more than
+    in :class:`LocalMeans`.
+
+    It is the second stage of the finest level: :class:`LocalMeans` first
+    finds the wall (robustly: a log-domain midpoint lies well below the
+    myocardium whatever lies beyond it), then this term measures ``c_in``,
+    ``c_out`` in bands about that wall, freezes them, and moves the surface
+    to ``g*``.  Frozen, because measured about the moving surface the outer
+    band would reach past a myocardium dimmer than what lies beyond it
+    (pericardium, lung interface), raise ``g*`` above the myocardium and let
+    the wall creep outwards through it.  :meth:`reset` measures them again
+    (a new frame of a sequence).
+
+    ``k`` is estimated from the data, once: fully developed speckle has an
+    exponential intensity, so ``ln I`` has a standard deviation of
+    ``pi / sqrt(6)`` (5.57 dB) whatever its mean (:func:`speckle_nepers`,
+    read at voxel centres: interpolation averages the log and narrows its
+    spread).  Speckle that scan conversion or the scanner's filters averaged
+    has a smaller spread: ``k`` comes out low and ``g*`` a little high (the
+    wall a fraction of a PSF width outwards).  A contrast of over 50 dB per
+    ``k`` is not echo: it bounds ``k`` from below.
 
     References
     ----------
-    .. [1] Tao Z, Tagare HD, Beaty JD. Evaluation of four probability
-       distribution models for speckle in clinical cardiac ultrasound images.
-       IEEE Trans. Med. Imaging 25(11):1483-1491 (2006). doi:10.1109/TMI.2006.881376
-    .. [2] Wagner RF, Smith SW, Sandrik JM, Lopez H. Statistics of speckle in
+    .. [1] Wagner RF, Smith SW, Sandrik JM, Lopez H. Statistics of speckle in
        ultrasound B-scans. IEEE Trans. Sonics Ultrason. 30(3):156-163 (1983).
        doi:10.1109/T-SU.1983.31404
+    .. [2] Tao Z, Tagare HD, Beaty JD. Evaluation of four probability
+       distribution models for speckle in clinical cardiac ultrasound images.
+       IEEE Trans. Med. Imaging 25(11):1483-1491 (2006). doi:10.1109/TMI.2006.881376
     """
 
     #: standard deviation of ln I for exponential (fully developed speckle) intensity
@@ -251,41 +263,38 @@ class LocalIntensityMeans(LocalMeans):
 
     def __init__(self, samples, *, band=8.0, band_out=15.0, interface=None):
         super().__init__(samples, band=band, band_out=band_out)
-        self.exponent = None
         self.nepers = None  #: grey levels per neper of intensity, once estimated
+        self.reset()
+
+    def reset(self) -> None:
+        """Measure the region means again on the next observation."""
+        self._frozen = None
 
     def force(self, backend, volume, obs) -> Force:
-        if self.exponent is None:
-            obs = self._undo_compression(backend, volume, obs)
-        c_in, c_out = self.band_means(backend, obs)
-        contrast = np.maximum(c_out - c_in, 0.0)
-        median_out = float(np.nanmedian(c_out))
-        # report the band means as grey levels, as the other terms do
-        to_grey = lambda i: self.nepers * np.log(max(i, 1e-300))  # noqa: E731
-        self.grey_means = (to_grey(float(np.nanmedian(c_in))), to_grey(median_out))
-        scale = max(float(np.median(contrast)) ** 2, (_MIN_CONTRAST * median_out) ** 2)
-        return Force(obs.u, c_in, c_in + contrast, scale, None)
+        if self._frozen is None:
+            if self.nepers is None:
+                self.nepers = self.estimate_nepers(backend, volume, obs)
+            c_in, c_out = self.band_means(backend, obs)
+            contrast = np.maximum(c_out - c_in, 0.0)
+            c_out = c_in + contrast
+            k = self.nepers
+            threshold = c_out + k * (np.logaddexp(c_in / k, c_out / k) - c_out / k - np.log(2.0))
+            self.grey_means = (float(np.nanmedian(c_in)), float(np.nanmedian(c_out)))
+            self._frozen = (threshold - contrast / 2, threshold + contrast / 2,
+                            max(float(np.median(contrast)) ** 2, self.min_scale))
+        return Force(obs.u, *self._frozen)
 
-    def _undo_compression(self, backend, volume, obs):
-        """Estimate ``k`` from the grey levels of this observation, then read
-        the observation again in the intensity domain."""
-        from dataclasses import replace
-
+    def estimate_nepers(self, backend, volume, obs) -> float:
+        """``k`` from the spread of the grey levels in the outer band at
+        voxel centres, bounded below by the contrast (50 dB at most)."""
         d = backend.discretisation
         rows = d.band_rows
-        # at voxel centres: interpolation averages the log and narrows its spread
         outer = backend.samples_along(volume, obs, self.band_offsets, rows, order=0)  # (rows, offsets)
-        self.nepers = speckle_nepers(outer, patch_of_rows(d.grid, d.order, rows))
-        # a blood-tissue contrast beyond 50 dB of intensity is not echo: where
-        # the grey levels have no speckle spread, the contrast bounds k
-        contrast = np.nanmedian(obs.outside - obs.inside) if obs.inside is not None else np.nan
+        nepers = speckle_nepers(outer, patch_of_rows(d.grid, d.order, rows))
+        contrast = np.nanmedian(obs.outside - obs.inside)
         if np.isfinite(contrast) and contrast > 0:
-            self.nepers = max(self.nepers, float(contrast) / np.log(10.0**5))
-        self.exponent = 1.0 / self.nepers
-        u, _ = backend.mean_along(volume, obs, np.zeros(1), np.arange(d.n_samples), exponent=self.exponent)
-        inside, _ = backend.mean_along(volume, obs, -self.band_offsets, rows, exponent=self.exponent)
-        outside, _ = backend.mean_along(volume, obs, self.band_offsets, rows, exponent=self.exponent)
-        return replace(obs, u=u, inside=inside, outside=outside)
+            nepers = max(nepers, float(contrast) / np.log(10.0**5))
+        return nepers
 
 
 def patch_of_rows(grid, order: int, rows: np.ndarray) -> np.ndarray:
@@ -317,8 +326,8 @@ def speckle_nepers(samples: np.ndarray, patch: np.ndarray, *, min_rays: int = 6)
         raise ValueError("no speckle around the surface to estimate the log compression from "
                          "(use mode='local' for images that are not log-compressed echo)")
     typical = variances[variances <= 3 * np.median(variances)]
-    return float(np.sqrt(typical.mean())) / LocalIntensityMeans.LOG_SPREAD
+    return float(np.sqrt(typical.mean())) / IntensityInterface.LOG_SPREAD
 
 
 #: the data term of each ``mode``
-DATA_TERMS = {"intensity": LocalIntensityMeans, "local": LocalMeans, "chan-vese": GlobalMeans, "fast": FixedInterface}
+DATA_TERMS = {"intensity": IntensityInterface, "local": LocalMeans, "chan-vese": GlobalMeans, "fast": FixedInterface}

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, LocalMeans, band_offsets
+from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, band_offsets
 from .descent import Descent
 from .options import SegmentOptions, format_point
 from .results import STATUS_MESSAGES, Intermediate, SegmentationResult
@@ -43,17 +43,22 @@ class Level:
 def schedule(options: SegmentOptions, *, coarse_to_fine: bool | None = None) -> list[Level]:
     """The levels of a segmentation: ``options.patches`` halved while both
     stay even and at least 2 (coarse to fine, unless disabled), each capped
-    at ``options.max_iterations``.  The local data term runs on the finest
-    level only; the coarser ones use the global means, which bring the
-    surface to the walls from afar."""
+    at ``options.max_iterations``.  The local data terms run on the finest
+    patches only; the coarser ones use the global means, which bring the
+    surface to the walls from afar.  :class:`IntensityInterface` runs after
+    :class:`LocalMeans` on the finest patches (it measures its statistics
+    where the local means put the wall)."""
     coarse_to_fine = options.coarse_to_fine if coarse_to_fine is None else coarse_to_fine
     patches = [tuple(options.patches)]
     while coarse_to_fine and min(patches[0]) >= 4 and patches[0][0] % 2 == 0 and patches[0][1] % 2 == 0:
         patches.insert(0, (patches[0][0] // 2, patches[0][1] // 2))
     term = DATA_TERMS[options.mode]
     coarse = GlobalMeans if issubclass(term, LocalMeans) else term
-    return [Level(p, term if k == len(patches) - 1 else coarse, options.max_iterations)
-            for k, p in enumerate(patches)]
+    levels = [Level(p, term if k == len(patches) - 1 else coarse, options.max_iterations)
+              for k, p in enumerate(patches)]
+    if term is IntensityInterface:  # found by the local means first, then moved to the interface
+        levels.insert(-1, Level(levels[-1].patches, LocalMeans, options.max_iterations))
+    return levels
 
 
 def _check_volume(volume) -> None:
@@ -245,6 +250,7 @@ class Tracker:
         if self.level + 1 < len(self.levels):
             self.level += 1
             self._level_iterations = 0
+            self._terms[self.levels[self.level].data_term].reset()
             self._descent = self._new_descent(self._descent.surface, self._reference)
             self._skip_empty_levels()
         else:
@@ -297,6 +303,7 @@ class Tracker:
         cap = self.options.max_iterations if max_iterations is None else int(max_iterations)
         self.levels[-1] = Level(self.levels[-1].patches, self.levels[-1].data_term, cap)
         self.level = len(self.levels) - 1
+        self._terms[self.levels[-1].data_term].reset()
         self.volume = volume
         self._descent.set_surface(surface)
         self._descent.set_reference(surface)
