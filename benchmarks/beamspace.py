@@ -128,14 +128,17 @@ def agreement(seeds=(1, 2, 3, 4)) -> list[dict]:
         converted_volume = scan_convert(beam)
         direct = segment(beam, ph.apex, ph.base)
         converted = segment(converted_volume, ph.apex, ph.base)
+        converted_1mm = segment(scan_convert(beam, beam.geometry.cartesian_grid(1.0)), ph.apex, ph.base)
         cartesian = segment(ph.volume, ph.apex, ph.base)
         a, b = direct.mesh()[0], converted.mesh()[0]
         msd = 0.5 * (cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
         rows.append({"data": data, "convention": convention, "seed": seed, "beam_shape": list(beam.shape),
                      "converted_spacing_mm": float(converted_volume.spacing[0]), "mean_distance_mm": msd,
                      "direct_ml": direct.volume_ml, "converted_ml": converted.volume_ml,
+                     "converted_1mm_ml": converted_1mm.volume_ml,
                      "original_cartesian_ml": cartesian.volume_ml, "truth_ml": ph.truth_volume_ml,
-                     "volume_difference_percent": 100 * (direct.volume_ml / converted.volume_ml - 1)})
+                     "volume_difference_percent": 100 * (direct.volume_ml / converted.volume_ml - 1),
+                     "volume_difference_1mm_percent": 100 * (direct.volume_ml / converted_1mm.volume_ml - 1)})
     return rows
 
 

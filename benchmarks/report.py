@@ -260,11 +260,13 @@ def _beamspace(bs) -> list[str]:
             "beam_space=True)`, 1.5 mm Cartesian image); 'resampled': the legacy 1 mm phantom resampled on the "
             "1 mm x 1 deg sector above, so that both routes interpolate it once more than the original.", "",
             "| data | convention | seed | mean distance mm | beam space mL | scan-converted mL | difference % | "
-            "phantom's Cartesian mL | truth mL |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+            "converted to 1 mm: mL | difference % | phantom's Cartesian mL | truth mL |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for row in bs["agreement"]:
         out.append(f"| {row.get('data', 'resampled')} | {row['convention']} | {row['seed']} | "
                    f"{_fmt(row['mean_distance_mm'])} | {_fmt(row['direct_ml'], 1)} | {_fmt(row['converted_ml'], 1)} | "
-                   f"{_fmt(row['volume_difference_percent'], 1)} | {_fmt(row['original_cartesian_ml'], 1)} | "
+                   f"{_fmt(row['volume_difference_percent'], 1)} | {_fmt(row.get('converted_1mm_ml'), 1)} | "
+                   f"{_fmt(row.get('volume_difference_1mm_percent'), 1)} | {_fmt(row['original_cartesian_ml'], 1)} | "
                    f"{_fmt(row['truth_ml'], 1)} |")
     return out
 
