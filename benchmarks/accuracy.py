@@ -35,6 +35,7 @@ from report import write_markdown  # noqa: E402
 
 from spheroseg.metrics import mask_volume_ml  # noqa: E402
 from spheroseg.phantom import FAMILIES, FORMATIONS, make_phantom, make_sequence, sweep_cases  # noqa: E402
+from spheroseg.options import SegmentOptions  # noqa: E402
 from spheroseg.segment import segment, track  # noqa: E402
 from spheroseg.volume import Volume  # noqa: E402
 
@@ -140,6 +141,7 @@ def formation_sweep(label: str) -> None:
     t0 = time.perf_counter()
     run = {"command": f"python benchmarks/accuracy.py --sweep --label {label}", "commit": git_commit(),
            "machine": machine(), "method": "spheroseg.segment / track with default options",
+           "default_mode": SegmentOptions().mode,
            "cases": formation_cases(), "sequences": formation_sequences()}
     run["wall_seconds"] = time.perf_counter() - t0
     run["summary"] = summarise(run["cases"])
@@ -157,14 +159,16 @@ def summarise(cases) -> dict:
         return {"n": len(r), "median_dice": float(np.median([x["dice"] for x in r])),
                 "worst_dice": float(min(x["dice"] for x in r)),
                 "median_msd_mm": float(np.nanmedian([x["msd_mm"] for x in r])),
-                "median_volume_error_pct": float(np.median(ve)), "worst_volume_error_pct": float(ve[np.argmax(abs(ve))]),
+                "median_volume_error_pct": float(np.median(ve)),
+                "worst_volume_error_pct": float(ve[np.argmax(abs(ve))]),
                 "median_volume_error_ml": float(np.median([x["volume_error_ml"] for x in r])),
                 "median_iterations": float(np.median([x["iterations"] for x in r])),
                 "median_seconds": float(np.median([x["seconds"] for x in r]))}
 
-    return {"formation": {n: stats([c for c in cases if c["formation"] == n]) for n in dict.fromkeys(c["formation"] for c in cases)},
-            "family": {n: stats([c for c in cases if c["family"] == n]) for n in dict.fromkeys(c["family"] for c in cases)},
-            "all": stats(cases)}
+    def by(key):
+        return {n: stats([c for c in cases if c[key] == n]) for n in dict.fromkeys(c[key] for c in cases)}
+
+    return {"formation": by("formation"), "family": by("family"), "all": stats(cases)}
 
 
 def cetus(peers: bool) -> dict | None:

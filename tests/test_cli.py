@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from spheroseg.io import load
+from spheroseg.fit import annulus_of_open_mesh
+from spheroseg.io import load, write_markups
 from spheroseg.phantom import make_phantom, make_sequence
 from spheroseg.segment import segment
 
@@ -87,6 +88,33 @@ def test_points_from_markups_and_landmarks(case, tmp_path):
     assert proc.returncode == 0, proc.stderr
     results = json.loads((tmp_path / "o" / "results.json").read_text())
     assert len(results["landmarks"]) == 1
+
+
+def test_annulus_from_the_command_line_and_markups(case, tmp_path):
+    # the mitral plane from --annulus (base omitted), and the same points
+    # from a markups file: the results of the Python API
+    folder, image, ph = case
+    path = folder / "case.mha"
+    sitk.WriteImage(image, str(path))
+    shift = np.array(image.GetOrigin())
+    ring = annulus_of_open_mesh(*ph.truth_mesh)
+    annulus = ring[:: len(ring) // 5][:5] + shift
+    api = segment(load(path), ph.apex + shift, annulus=annulus)
+    flags = [a for p in annulus for a in ("--annulus", *p)]
+    proc = run("segment", path, "--apex", *(ph.apex + shift), *flags, "--out", tmp_path / "a", "--quiet", "--no-report")
+    assert proc.returncode == 0, proc.stderr
+    write_markups(tmp_path / "p.mrk.json", apex=ph.apex + shift, annulus=annulus)
+    proc = run("segment", path, "--points", tmp_path / "p.mrk.json", "--out", tmp_path / "b", "--quiet", "--no-report")
+    assert proc.returncode == 0, proc.stderr
+    for out in ("a", "b"):
+        results = json.loads((tmp_path / out / "results.json").read_text())
+        assert results["volume_ml"] == pytest.approx(api.volume_ml, rel=1e-9)
+        np.testing.assert_allclose(results["annulus"], annulus)
+        np.testing.assert_allclose(results["base"], annulus.mean(0), atol=1e-9)
+        np.testing.assert_allclose(results["long_axis"], api.surface.pose.axis, atol=1e-12)
+    two = flags[:8]
+    assert_one_line_error(run("segment", path, "--apex", *(ph.apex + shift), *two, "--out", tmp_path / "c"),
+                          "at least 3 annulus points, got 2")
 
 
 def test_track_4d_image_and_frames(tmp_path):

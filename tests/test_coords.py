@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from spheroseg.coords import Cylindrical, Pose, ProlateSpheroidal, Spherical, coordinate_system
+from spheroseg.coords import Cylindrical, Pose, ProlateSpheroidal, Spherical, annulus_plane, coordinate_system
 
 SYSTEMS = [ProlateSpheroidal(37.0), Spherical(), Cylindrical(90.0)]
 
@@ -113,3 +113,83 @@ def test_pose_from_apex_base(rng):
 def test_pose_bad_points(apex, base, message):
     with pytest.raises(ValueError, match=message):
         Pose.from_apex_base(apex, base)
+
+
+def random_rotation(rng):
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def tilted_ring(rng, *, k=8, radius=22.0, start=0.0):
+    """k points evenly spaced on a circle in a random plane: (points, centre, normal)."""
+    rotation = random_rotation(rng)
+    centre = rng.uniform(-50, 50, 3)
+    t = start + np.arange(k) * (2 * np.pi / k)
+    local = np.stack([0 * t, radius * np.cos(t), radius * np.sin(t)], 1)
+    return local @ rotation.T + centre, centre, rotation[:, 0]
+
+
+@pytest.mark.parametrize("k", [3, 5, 40])
+def test_annulus_plane_of_tilted_circle(k, rng):
+    points, centre, normal = tilted_ring(rng, k=k, start=0.3)
+    c, n = annulus_plane(points)
+    np.testing.assert_allclose(c, centre, atol=1e-10)  # evenly spaced: the centroid is the centre
+    np.testing.assert_allclose(abs(n @ normal), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(n), 1.0, atol=1e-12)
+
+
+def test_annulus_plane_is_least_squares(rng):
+    # a saddle (+-h out of the plane, alternating) keeps the plane; the
+    # normal of three points is their cross product
+    points, centre, normal = tilted_ring(rng, k=6)
+    saddle = points + np.array([1, -1, 1, -1, 1, -1])[:, None] * 2.0 * normal
+    c, n = annulus_plane(saddle)
+    np.testing.assert_allclose(c, centre, atol=1e-10)
+    np.testing.assert_allclose(abs(n @ normal), 1.0, atol=1e-12)
+    a, b, d = rng.normal(size=(3, 3))
+    cross = np.cross(b - a, d - a)
+    np.testing.assert_allclose(abs(annulus_plane([a, b, d])[1] @ cross), np.linalg.norm(cross), rtol=1e-10)
+
+
+def test_pose_from_annulus(rng):
+    points, centre, normal = tilted_ring(rng)
+    lateral = np.cross(normal, rng.normal(size=3))
+    lateral /= np.linalg.norm(lateral)
+    apex = centre - 85.0 * normal + 9.0 * lateral  # on the side opposite to the normal given
+    pose = Pose.from_annulus(apex, points)
+    np.testing.assert_allclose(pose.origin, centre, atol=1e-10)
+    np.testing.assert_allclose(pose.axis, -normal, atol=1e-12)
+    np.testing.assert_allclose(pose.rotation.T @ pose.rotation, np.eye(3), atol=1e-12)
+    assert np.linalg.det(pose.rotation) > 0
+    np.testing.assert_allclose(pose.to_local(apex), [85.0, 9.0, 0.0], atol=1e-10)
+    np.testing.assert_allclose(pose.to_local(points)[:, 0], 0.0, atol=1e-10)  # the ring is the plane x1 = 0
+    x = rng.normal(size=(10, 3)) * 50
+    np.testing.assert_allclose(pose.to_world(pose.to_local(x)), x, atol=1e-10)
+    again = Pose.from_dict(pose.to_dict())
+    np.testing.assert_array_equal(again.rotation, pose.rotation)
+    # a base point given is projected on the plane
+    base = centre + 3.0 * lateral + 4.0 * normal
+    moved = Pose.from_annulus(apex, points, base=base)
+    np.testing.assert_allclose(moved.origin, centre + 3.0 * lateral, atol=1e-10)
+    np.testing.assert_allclose(moved.axis, -normal, atol=1e-12)
+    # an apex on the axis gives the apex-base frame
+    on_axis = centre + 70.0 * normal
+    np.testing.assert_allclose(Pose.from_annulus(on_axis, points).rotation,
+                               Pose.from_apex_base(on_axis, centre).rotation, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "annulus, apex, message",
+    [
+        ([[0, 0, 0], [1, 0, 0]], [0, 0, 50], "at least 3"),
+        ([[0, 0, 0], [1, 0, 0], [2, 0, 0], [5, 0, 0]], [0, 0, 50], "line"),
+        ([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]], [0, 0, 50], "finite"),
+        ([[0, 0], [1, 0], [0, 1]], [0, 0, 50], "shape"),
+        ([[0, 0, 0], [10, 0, 0], [0, 10, 0]], [5, 5, 0], "apex lies in the mitral plane"),
+        ([[0, 0, 0], [10, 0, 0], [0, 10, 0]], [5, 5, np.inf], "apex"),
+    ],
+)
+def test_pose_from_annulus_bad_points(annulus, apex, message):
+    with pytest.raises(ValueError, match=message):
+        Pose.from_annulus(apex, annulus)

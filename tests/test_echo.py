@@ -1,10 +1,11 @@
 import numpy as np
 import pytest
 
+from spheroseg.beamspace import BeamGeometry, BeamVolume, scan_convert
 from spheroseg.echo import (
-    RAYLEIGH_DB_STD, TOP_DB, BeamGrid, ImageFormation, beam_to_probe, log_compress, probe_to_beam, scan_convert,
-    speckle_envelope,
+    RAYLEIGH_DB_STD, TOP_DB, ImageFormation, form_image, log_compress, sector_geometry, speckle_envelope,
 )
+from spheroseg.volume import ImageGrid
 
 # no depth dependence and no noise: the speckle alone
 FLAT = dict(attenuation_db_per_cm=0.0, tgc_db_per_cm=0.0, noise_db=-200.0, clutter_db=None)
@@ -13,7 +14,8 @@ FLAT = dict(attenuation_db_per_cm=0.0, tgc_db_per_cm=0.0, noise_db=-200.0, clutt
 def grid_for(formation, *, r0=30.0, r1=110.0, n_angle=61, refine=1):
     dr, de, da = formation.sampling()
     nr = int((r1 - r0) / (dr / refine)) + 1
-    return BeamGrid((nr, n_angle, n_angle), dr / refine, r0, de / refine, da / refine)
+    return BeamGeometry((nr, n_angle, n_angle), dr / refine, r0, azimuth_angular_separation=da / refine,
+                        elevation_angular_separation=de / refine)
 
 
 def test_rayleigh_statistics_of_uniform_speckle():
@@ -77,7 +79,7 @@ def test_attenuation_and_tgc_set_the_depth_slope():
                        dynamic_range_db=70.0, gain_db=-5.0)
     g = grid_for(f, r0=20.0, r1=120.0)
     grey = log_compress(speckle_envelope(np.ones(g.shape, np.float32), g, f, np.random.default_rng(3)), f)
-    radius = g.axes()[0]
+    radius = g.first_sample_distance + np.arange(g.shape[0]) * g.radius_sample_size
     profile = grey[:, 10:-10, 10:-10].reshape(len(radius), -1).mean(1)
     slope = np.polyfit(radius, profile, 1)[0]  # grey levels per mm
     assert slope == pytest.approx((0.8 - 2.0) / 10 * 254 / 70, rel=0.03)
@@ -90,32 +92,27 @@ def test_noise_floor():
     assert np.mean(env.astype(float) ** 2) == pytest.approx(10 ** (-3.0), rel=0.03)
 
 
-def test_tan_convention_off_plane():
-    # r = 100 mm at azimuth = elevation = 30 deg: z = 100 / sqrt(1 + 2 tan^2 30) (ITK's formula by hand)
-    p = beam_to_probe(100.0, np.radians(30), np.radians(30))
-    z = 100 / np.sqrt(1 + 2 / 3)
-    np.testing.assert_allclose(p, [z / np.sqrt(3), z / np.sqrt(3), z], rtol=1e-12)
-    rng = np.random.default_rng(5)
-    r, e, a = rng.uniform(5, 150, 50), rng.uniform(-0.8, 0.8, 50), rng.uniform(-0.8, 0.8, 50)
-    back = probe_to_beam(beam_to_probe(r, e, a))
-    np.testing.assert_allclose(np.stack(back), np.stack([r, e, a]), atol=1e-10)
-    assert np.isnan(probe_to_beam([[0.0, 1.0, -1.0]])[2]).all()
-
-
-def test_scan_convert_linear_in_radius_and_zero_outside():
+def test_sector_geometry_and_scan_conversion():
     f = ImageFormation()
-    g = BeamGrid((120, 41, 41), 1.0, 10.0, np.radians(1.0), np.radians(1.0))
-    radius = g.axes()[0]
-    image = np.broadcast_to(radius[:, None, None], g.shape).astype(np.float32)
-    rng = np.random.default_rng(6)
-    r, e, a = rng.uniform(12, 125, 200), rng.uniform(-0.3, 0.3, 200), rng.uniform(-0.3, 0.3, 200)
-    inside = beam_to_probe(r, e, a)
-    np.testing.assert_allclose(scan_convert(image, g, inside), r, rtol=1e-5)
-    outside = beam_to_probe(np.full(3, 60.0), np.radians([25.0, 0.0, 0.0]), np.radians([0.0, 0.0, 0.0]))
-    outside[1] = [0, 0, 5.0]  # before the first sample
-    outside[2] = [0, 0, -50.0]  # behind the probe
-    assert np.all(scan_convert(image, g, outside) == 0)
-    assert f.sampling()[0] == f.axial_psf_mm / 2
+    g = sector_geometry(f, half_angle_deg=38.0, max_radius_mm=120.0)
+    dr, de, da = f.sampling()
+    assert g.radius_sample_size == dr and g.convention == "tan" and g.first_sample_distance == 0
+    assert g.azimuth_angular_separation <= da and g.elevation_angular_separation <= de  # at least as fine
+    # the sector's edge beams at +-38 degrees, the last sample at (or just beyond) 120 mm
+    a_max = g.azimuth_angular_separation * (g.shape[2] - 1) / 2
+    assert np.degrees(a_max) == pytest.approx(38.0) and 120.0 <= (g.shape[0] - 1) * dr < 120.0 + dr
+    # every sample is data: a scan-converted image is >= 1 inside the sector and 0 outside
+    rng = np.random.default_rng(7)
+    beam = form_image(np.ones(g.shape, np.float32), g, f, rng)
+    assert isinstance(beam, BeamVolume) and beam.array.min() >= 1
+    grid = ImageGrid((40, 30, 30), (4.0, 4.0, 4.0), (-58.0, -58.0, 0.0), np.eye(3))
+    cart = scan_convert(beam, grid).array
+    k, j, i = np.indices(grid.shape)
+    x, y, z = i * 4.0 - 58.0, j * 4.0 - 58.0, k * 4.0
+    inside = (z > 0) & (np.abs(np.arctan2(x, z)) < np.radians(37)) & (np.abs(np.arctan2(y, z)) < np.radians(37)) \
+        & (np.sqrt(x**2 + y**2 + z**2) < 119)
+    outside = (np.abs(np.arctan2(x, np.maximum(z, 1e-9))) > np.radians(39)) | (np.sqrt(x**2 + y**2 + z**2) > 121)
+    assert np.all(cart[inside] >= 1) and np.all(cart[outside] == 0)
 
 
 @pytest.mark.parametrize("bad", [dict(axial_psf_mm=0.0), dict(dynamic_range_db=-40.0), dict(gain_db=np.nan),
@@ -127,7 +124,7 @@ def test_formation_validation(bad):
 
 def test_envelope_input_validation():
     f = ImageFormation()
-    g = BeamGrid((10, 5, 5), 0.4, 10.0, 0.02, 0.02)
+    g = BeamGeometry((10, 5, 5), 0.4, 10.0, 0.02, 0.02)
     with pytest.raises(ValueError, match="shape"):
         speckle_envelope(np.ones((9, 5, 5)), g, f, np.random.default_rng(0))
     with pytest.raises(ValueError, match=">= 0"):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from spheroseg.io import ImageFileError, image_format, load, load_sequence, read_markups, save_mask
+from spheroseg.io import ImageFileError, image_format, load, load_sequence, read_markups, save_mask, write_markups
 from spheroseg.volume import Volume
 
 DIRECTION = (0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
@@ -133,9 +133,37 @@ def test_markups(tmp_path):
     marks = read_markups(tmp_path / "p.mrk.json")
     np.testing.assert_array_equal(marks["apex"], [-1.0, -2.0, 3.0])  # RAS -> LPS
     np.testing.assert_array_equal(marks["landmarks"], [[-7.0, -8.0, 9.0]])
+    assert marks["annulus"].shape == (0, 3)
     (tmp_path / "bad.mrk.json").write_text("{\"markups\": 3}")
     with pytest.raises(ValueError, match="markups"):
         read_markups(tmp_path / "bad.mrk.json")
+
+
+def test_markups_annulus_round_trip(tmp_path, rng):
+    # Slicer labels as a user would type them; RAS converted to LPS
+    doc = {"markups": [{"type": "Fiducial", "coordinateSystem": "RAS", "controlPoints": [
+        {"label": "apex", "position": [1.0, 2.0, 3.0]},
+        {"label": "Annulus", "position": [10.0, 0.0, 50.0]},
+        {"label": "annulus-2", "position": [0.0, 10.0, 52.0]},
+        {"label": "annulus 3", "position": [-10.0, 0.0, 51.0]},
+        {"label": "annulus", "position": [0.0, -10.0, 49.0]},
+    ]}]}
+    (tmp_path / "p.mrk.json").write_text(json.dumps(doc))
+    marks = read_markups(tmp_path / "p.mrk.json")
+    np.testing.assert_array_equal(marks["annulus"], [[-10.0, 0, 50], [0, -10.0, 52], [10.0, 0, 51], [0, 10.0, 49]])
+    assert marks["base"] is None and marks["landmarks"].shape == (0, 3)
+    # written back (LPS) and read again: the same points, bit for bit
+    annulus = rng.normal(size=(5, 3)) * 20
+    write_markups(tmp_path / "out.mrk.json", apex=marks["apex"], annulus=annulus, landmarks=annulus[:2] + 1)
+    again = read_markups(tmp_path / "out.mrk.json")
+    np.testing.assert_array_equal(again["apex"], marks["apex"])
+    np.testing.assert_array_equal(again["annulus"], annulus)
+    np.testing.assert_array_equal(again["landmarks"], annulus[:2] + 1)
+    assert again["base"] is None
+    assert json.loads((tmp_path / "out.mrk.json").read_text())["markups"][0]["coordinateSystem"] == "LPS"
+    with pytest.raises(ValueError, match="annulus"):
+        write_markups(tmp_path / "bad.mrk.json", annulus=[[0, 0, np.nan]])
+    assert not (tmp_path / "bad.mrk.json").exists()
 
 
 def test_load_finds_the_sector_padding(tmp_path):

@@ -115,7 +115,8 @@ def test_legacy_sequence_unchanged():
 
 from dataclasses import replace  # noqa: E402
 
-from spheroseg.echo import BeamImage, ImageFormation  # noqa: E402
+from spheroseg.beamspace import BeamVolume  # noqa: E402
+from spheroseg.echo import ImageFormation  # noqa: E402
 from spheroseg.phantom import FORMATIONS, sweep_cases  # noqa: E402
 
 # coarse voxels keep these fast; a wide PSF keeps the beam grid small
@@ -146,8 +147,18 @@ def test_formed_image_looks_like_apical_echo(formed):
     assert (a == 0).mean() > 0.2
     assert np.all(a[ph.truth_mask] > 0)
     assert np.median(a[ph.truth_mask]) < np.median(a[(a > 0) & ~ph.truth_mask]) - 60
-    assert isinstance(ph.beam, BeamImage) and ph.beam.array.shape == ph.beam.grid.shape
-    assert ph.beam.array.dtype == np.uint8 and ph.beam.array.min() >= 1
+    beam = ph.beam_volume
+    assert isinstance(beam, BeamVolume) and beam.array.min() >= 1 and np.array_equal(beam.array, np.round(beam.array))
+    # the probe at the top centre of the Cartesian volume, the centre beam down its z axis
+    probe = np.array([(ph.volume.shape[2] - 1) / 2, (ph.volume.shape[1] - 1) / 2, 0.0]) * ph.volume.spacing
+    np.testing.assert_allclose(beam.geometry.apex, probe)
+    on_axis = beam.geometry.index_to_world([[10.0, *beam.geometry.centre_index]])
+    np.testing.assert_allclose(on_axis, [probe + [0, 0, 10 * beam.geometry.radius_sample_size]])
+    # the Cartesian image is the beam image sampled at the voxel centres, rounded
+    k, j, i = np.nonzero(a > 0)
+    pick = np.random.default_rng(0).choice(len(i), 500, replace=False)
+    world = np.stack([i[pick], j[pick], k[pick]], 1) * ph.volume.spacing
+    np.testing.assert_array_equal(a[k[pick], j[pick], i[pick]], np.round(beam.sample(world)))
 
 
 def test_formation_deterministic_and_seeded():
@@ -256,3 +267,14 @@ def test_dropout_darkens_a_wall_region_only():
     k, j, i = np.nonzero(np.abs(diff) > 1)
     assert np.linalg.norm(np.stack([i, j, k], 1) * 3.0 - centre, axis=1).max() < 30
     assert diff[np.abs(diff) > 1].mean() > 20, "darker there"
+
+
+def test_sequence_with_formation_keeps_the_truth():
+    formed = make_sequence(seed=5, n_frames=2, spacing=3.0, base_descent=9.0, formation=WIDE)
+    plain = make_sequence(seed=5, n_frames=2, spacing=3.0, base_descent=9.0)
+    for a, b in zip(formed.frames, plain.frames, strict=True):
+        np.testing.assert_array_equal(a.truth_mask, b.truth_mask)
+        np.testing.assert_array_equal(a.base, b.base)
+        assert a.params["formation"] == WIDE and not np.array_equal(a.volume.array, b.volume.array)
+    # speckle changes from frame to frame
+    assert not np.array_equal(formed.frames[0].volume.array, formed.frames[1].volume.array)

@@ -125,3 +125,75 @@ def test_bad_input():
         Surface.from_apex_base(APEX, BASE, radius_ratio=0)
     with pytest.raises(ValueError, match="apex"):
         Surface.from_apex_base([np.nan, 0, 0], BASE)
+
+
+def ring(centre, e2, e3, radius=21.0, k=9):
+    t = np.arange(k) * (2 * np.pi / k) + 0.2
+    return centre + radius * (np.cos(t)[:, None] * e2 + np.sin(t)[:, None] * e3)
+
+
+@pytest.mark.parametrize("system", ["prolate", "spherical"])
+@pytest.mark.parametrize("offset", [0.0, 8.0, 16.0])
+def test_from_annulus_is_sheared_half_ellipsoid_through_apex(system, offset):
+    # a mitral plane tilted 20 degrees from the xy plane, the apex 80 mm above
+    # it and offset from the axis
+    tilt = np.radians(20.0)
+    n = np.array([0.0, -np.sin(tilt), np.cos(tilt)])
+    e2, centre = np.array([1.0, 0, 0]), np.array([5.0, -3, 12])
+    annulus = ring(centre, e2, np.cross(n, e2))
+    height, ratio = 80.0, 0.3
+    apex = centre + height * n + offset * e2
+    s = Surface.from_annulus(apex, annulus, system=system, radius_ratio=ratio)
+    b = ratio * height
+    # through the apex, exactly
+    _, v1, v2 = s.model_coordinates(apex)
+    np.testing.assert_allclose(s.points(v1, v2), apex, atol=1e-9)
+    # the base ring lies in the plane of the annulus, a circle of radius b about its centre
+    th = np.linspace(0, 2 * np.pi, 50)
+    base_ring = s.points(th, np.full(50, s.grid.v2_range[1]))
+    np.testing.assert_allclose((base_ring - centre) @ n, 0.0, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(base_ring - centre, axis=1), b, rtol=3e-3)
+    # the wall satisfies the implicit equation of the sheared half-ellipsoid:
+    # distance to it ~ |g| / |grad g| within the interpolation error at 8 x 8
+    # patches (0.04 mm for the upright half-ellipsoid, 0.2 mm with the apex 16 mm off)
+    th, mu = np.meshgrid(np.linspace(0, 2 * np.pi, 40), np.linspace(0, np.pi / 2, 30))
+    local = s.pose.to_local(s.points(th.ravel(), mu.ravel()))
+    lateral = local[:, 1:] - local[:, :1] * np.array([offset / height, 0.0])
+    g = (local[:, 0] / height) ** 2 + (lateral**2).sum(1) / b**2 - 1
+    grad = np.stack([2 * local[:, 0] / height**2 - 2 * lateral[:, 0] * offset / height / b**2,
+                     2 * lateral[:, 0] / b**2, 2 * lateral[:, 1] / b**2], 1)
+    assert np.max(np.abs(g) / np.linalg.norm(grad, axis=1)) < 0.25
+    # a shear keeps the volume: 2 pi h b^2 / 3; the closed mesh and a voxel
+    # count agree
+    exact = 2 / 3 * np.pi * height * b**2 / 1000
+    np.testing.assert_allclose(s.volume_ml(), exact, rtol=2e-3)
+    np.testing.assert_allclose(signed_volume(*s.mesh(128, 64)) / 1000, exact, rtol=3e-3)
+    if offset == 16.0:
+        lo, hi = s.bounding_box()
+        grid = ImageGrid(tuple(np.ceil(hi - lo)[::-1].astype(int) + 1), spacing=(1.0,) * 3, origin=lo)
+        assert abs(s.mask(grid).sum() / 1000 - exact) < 0.01 * exact
+
+
+def test_from_annulus_on_axis_is_from_apex_base():
+    annulus = ring(BASE, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
+    apex = BASE + np.array([0, 0, 85.0])
+    a = Surface.from_apex_base(apex, BASE)
+    s = Surface.from_annulus(apex, annulus)
+    np.testing.assert_array_equal(s.pose.rotation, a.pose.rotation)
+    np.testing.assert_allclose(s.pose.origin, BASE, atol=1e-12)
+    assert s.system == a.system
+    th, mu = np.meshgrid(np.linspace(0, 2 * np.pi, 30), np.linspace(0, np.pi / 2, 30))
+    assert np.abs(s.points(th, mu) - a.points(th, mu)).max() < 1e-5
+
+
+def test_from_annulus_bad_input():
+    annulus = ring(BASE, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
+    apex = BASE + np.array([0, 0, 80.0])
+    with pytest.raises(ValueError, match="no apex pole"):
+        Surface.from_annulus(apex, annulus, system="cylindrical")
+    with pytest.raises(ValueError, match="from the normal of the mitral plane"):
+        Surface.from_annulus(apex + [30.0, 0, 0], annulus)
+    with pytest.raises(ValueError, match="radius_ratio"):
+        Surface.from_annulus(apex, annulus, radius_ratio=1.5)
+    with pytest.raises(ValueError, match="at least 3"):
+        Surface.from_annulus(apex, annulus[:2])

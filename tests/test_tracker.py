@@ -20,6 +20,7 @@ DATA = Path(__file__).parent / "data"
 SRC = Path(spheroseg.__file__).parent
 # options added after the reference was recorded, as they reproduce the descent it recorded
 LEGACY = dict(adaptive_step=False)
+KERNEL_MODULES = ("_kernels", "_beam_kernels")
 NAMEDTUPLE_API = ("_replace", "_asdict", "_fields", "_make")  # public, despite the underscore
 
 
@@ -122,8 +123,8 @@ def test_landmarks_set_while_running_pull_the_surface(phantom):
 def test_no_private_name_is_used_across_modules():
     """A private name (leading underscore) is used only by its own module and
     class: no ``from .x import _y`` and no ``obj._y`` but on ``self`` or
-    ``cls``, in the package, the tests or the benchmarks (the compiled
-    kernels' modules, ``_kernels`` and ``_beam_kernels``, are reached
+    ``cls`` (or ``other`` of the same class, in a comparison), in the package,
+    the tests or the benchmarks (the compiled kernels' modules are reached
     through their public functions)."""
     offences = []
     for root in (SRC, SRC.parents[1] / "tests", SRC.parents[1] / "benchmarks"):
@@ -131,10 +132,10 @@ def test_no_private_name_is_used_across_modules():
             for node in ast.walk(ast.parse(path.read_text())):
                 if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("spheroseg")):
                     offences += [f"{path.name}:{node.lineno} imports {a.name}" for a in node.names
-                                 if a.name.startswith("_") and not a.name.startswith("__") and a.name not in ("_kernels", "_beam_kernels")]
+                                 if a.name.startswith("_") and not a.name.startswith("__") and a.name not in KERNEL_MODULES]
                 if (isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")
                         and node.attr not in NAMEDTUPLE_API
-                        and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"))):
+                        and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls", "other"))):
                     offences.append(f"{path.name}:{node.lineno} {ast.unparse(node)}")
     assert not offences, offences
 

@@ -46,7 +46,11 @@ def _no_data(text: str):
 def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--apex", nargs=3, type=float, metavar=("X", "Y", "Z"), help="apex point, world mm (LPS)")
     p.add_argument("--base", nargs=3, type=float, metavar=("X", "Y", "Z"), help="centre of the mitral plane, world mm")
-    p.add_argument("--points", metavar="MRK_JSON", help="3D Slicer markups with points labelled apex, base, landmark...")
+    p.add_argument("--annulus", nargs=3, type=float, action="append", default=[], metavar=("X", "Y", "Z"),
+                   help="a point of the mitral annulus, world mm (repeatable, 3 or more): the cavity is closed at "
+                        "their plane, whose normal is the long axis; --base may then be omitted")
+    p.add_argument("--points", metavar="MRK_JSON",
+                   help="3D Slicer markups with points labelled apex, base, annulus..., landmark...")
     p.add_argument("--landmark", nargs=3, type=float, action="append", default=[], metavar=("X", "Y", "Z"),
                    help="a point the surface must pass through (repeatable)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
@@ -128,6 +132,7 @@ def _points(args):
     apex = None if args.apex is None else _point(args.apex)
     base = None if args.base is None else _point(args.base)
     landmarks = [_point(p) for p in args.landmark]
+    annulus = [_point(p) for p in args.annulus]
     if args.points:
         from .io import read_markups
 
@@ -135,9 +140,11 @@ def _points(args):
         apex = marks["apex"] if apex is None else apex
         base = marks["base"] if base is None else base
         landmarks += list(marks["landmarks"])
-    if apex is None or base is None:
-        raise CliError("give the apex and the base: --apex X Y Z --base X Y Z, or --points with labels apex and base")
-    return apex, base, (np.array(landmarks) if landmarks else None)
+        annulus = annulus or list(marks["annulus"])
+    if apex is None or (base is None and not annulus):
+        raise CliError("give the apex and the base (--apex X Y Z --base X Y Z) or the apex and 3 or more points of "
+                       "the mitral annulus (--annulus X Y Z, repeated), or --points with those labels")
+    return apex, base, (np.array(landmarks) if landmarks else None), (np.array(annulus) if annulus else None)
 
 
 def _segment_kwargs(args) -> dict:
@@ -169,6 +176,10 @@ def _write_json(path: Path, data: dict) -> None:
     from .io import write_atomically
 
     write_atomically(path, lambda tmp: tmp.write_text(json.dumps(data, indent=1, default=_json_default)))
+
+
+def _or_empty(points):
+    return [] if points is None else points
 
 
 def _json_default(value):
@@ -206,13 +217,13 @@ def cmd_segment(args) -> int:
     suffix = _mask_suffix(args, source)
     names = ["mask" + suffix, "mesh.vtk", "mesh.ply", "surface.json", "surface.exnode", "surface.exelem", "results.json",
              "report.png"] + (["mesh.stl"] if args.stl else [])
-    apex, base, landmarks = _points(args)
+    apex, base, landmarks, annulus = _points(args)
     _prepare_out(Path(args.out), names, args.force, [source])
     out = Path(args.out)
     t0 = time.perf_counter()
     volume = load(source, spacing=args.spacing, no_data_value=args.no_data)
     t_load = time.perf_counter() - t0
-    result = segment(volume, apex, base, landmarks=landmarks, **_segment_kwargs(args))
+    result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, **_segment_kwargs(args))
     mask = result.mask(volume)
     save_mask(out / ("mask" + suffix), mask, volume)
     files = {"mask": "mask" + suffix, **_write_surface_outputs(out, "mesh", "surface.json", result, args.stl)}
@@ -226,8 +237,9 @@ def cmd_segment(args) -> int:
         "input": str(source), "volume_ml": result.volume_ml, "iterations": result.iterations,
         "converged": result.converged, "status": result.status, "message": result.message,
         "c_in": result.c_in, "c_out": result.c_out,
-        "seconds": {"load": t_load, "segment": result.seconds}, "apex": apex, "base": base,
-        "landmarks": landmarks if landmarks is not None else [], "parameters": result.parameters,
+        "seconds": {"load": t_load, "segment": result.seconds}, "apex": apex,
+        "base": base if base is not None else result.surface.pose.origin, "annulus": _or_empty(annulus),
+        "long_axis": result.surface.pose.axis, "landmarks": _or_empty(landmarks), "parameters": result.parameters,
         "units": {"points": "mm, LPS (ITK physical space)", "volume": "mL"}, "files": files, "versions": _versions(),
     }
     _write_json(out / "results.json", results)
@@ -268,7 +280,7 @@ def cmd_track(args) -> int:
 
     source = Path(args.sequence)
     suffix = _mask_suffix(args, source)
-    apex, base, landmarks = _points(args)
+    apex, base, landmarks, annulus = _points(args)
     names = ["masks", "meshes", "results.json", "report.png"]
     _prepare_out(Path(args.out), names, args.force, [source])
     out = Path(args.out)
@@ -282,8 +294,8 @@ def cmd_track(args) -> int:
         bar = tqdm(total=len(volumes), unit="frame", desc="tracking", file=sys.stderr)
     progress = (lambda done, total: bar.update(done - bar.n)) if bar is not None else None
     try:
-        result = track(volumes, apex, base, landmarks=landmarks, iterations_per_frame=args.iterations_per_frame,
-                       progress=progress, **_segment_kwargs(args))
+        result = track(volumes, apex, base, annulus=annulus, landmarks=landmarks,
+                       iterations_per_frame=args.iterations_per_frame, progress=progress, **_segment_kwargs(args))
     finally:
         if bar is not None:
             bar.close()
@@ -293,7 +305,9 @@ def cmd_track(args) -> int:
         "input": str(source), "frames": len(volumes), "volumes_ml": result.volumes_ml, "edv_ml": result.edv_ml,
         "esv_ml": result.esv_ml, "ef_percent": result.ef, "ed_frame": result.ed_frame, "es_frame": result.es_frame,
         "iterations": [f.iterations for f in result.frames],
-        "seconds": {"load": t_load, "segment": [f.seconds for f in result.frames]}, "apex": apex, "base": base,
+        "seconds": {"load": t_load, "segment": [f.seconds for f in result.frames]}, "apex": apex,
+        "base": base if base is not None else result.frames[0].surface.pose.origin, "annulus": _or_empty(annulus),
+        "long_axis": result.frames[0].surface.pose.axis,
         "parameters": {**result.frames[0].parameters, "iterations_per_frame": args.iterations_per_frame},
         "units": {"points": "mm, LPS (ITK physical space)", "volume": "mL", "ef": "percent"}, "versions": _versions(),
     }

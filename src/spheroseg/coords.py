@@ -38,6 +38,7 @@ __all__ = [
     "Cylindrical",
     "Pose",
     "coordinate_system",
+    "annulus_plane",
 ]
 
 _TWO_PI = 2.0 * np.pi
@@ -316,6 +317,51 @@ def coordinate_system(spec: dict | str | CoordinateSystem) -> CoordinateSystem:
     return classes[name](**spec)
 
 
+def annulus_plane(annulus) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares plane of points of the mitral annulus.
+
+    The plane through the centroid ``c`` of the ``k >= 3`` points whose
+    normal ``n`` is the right singular vector of the centred points with the
+    smallest singular value: it minimises ``sum_i ((a_i - c) . n)^2``.
+
+    Parameters
+    ----------
+    annulus : array (k, 3)
+        World points (mm) on the mitral ring, ``k >= 3``, not all on a line.
+
+    Returns
+    -------
+    centre : array (3,)
+        The centroid of the points (it lies on the plane), mm.
+    normal : array (3,)
+        Unit normal, unoriented (sign as the decomposition gives it).
+    """
+    try:
+        points = np.asarray(annulus, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"annulus must be points (x, y, z in mm), got {annulus!r}") from None
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"annulus must have shape (k, 3), got {points.shape}")
+    if len(points) < 3:
+        raise ValueError(f"the mitral plane needs at least 3 annulus points, got {len(points)}")
+    if not np.all(np.isfinite(points)):
+        raise ValueError("annulus points must be finite")
+    centre = points.mean(0)
+    _, spread, vt = np.linalg.svd(points - centre, full_matrices=False)
+    if spread[1] <= 1e-3 * spread[0]:
+        raise ValueError("the annulus points lie on a line (or on one point): they do not define the mitral plane")
+    return centre, vt[2]
+
+
+def _frame(e1: np.ndarray) -> np.ndarray:
+    """A proper rotation whose first column is the unit vector ``e1``; the
+    other two are a fixed, deterministic completion."""
+    helper = np.eye(3)[np.argmin(np.abs(e1))]
+    e2 = helper - (helper @ e1) * e1
+    e2 /= np.linalg.norm(e2)
+    return np.column_stack([e1, e2, np.cross(e1, e2)])
+
+
 @dataclass(frozen=True)
 class Pose:
     """Places the model's local frame in world space (ITK physical space, mm).
@@ -347,12 +393,47 @@ class Pose:
         length = float(np.linalg.norm(axis))
         if length < 1e-6:
             raise ValueError("apex and base must be distinct points")
-        e1 = axis / length
-        helper = np.eye(3)[np.argmin(np.abs(e1))]
-        e2 = helper - (helper @ e1) * e1
-        e2 /= np.linalg.norm(e2)
-        e3 = np.cross(e1, e2)
-        return cls(base, np.column_stack([e1, e2, e3]))
+        return cls(base, _frame(axis / length))
+
+    @classmethod
+    def from_annulus(cls, apex, annulus, *, base=None) -> "Pose":
+        """Frame of the mitral plane: its origin on the plane, its first axis
+        the plane's normal towards ``apex``.
+
+        The plane is the least-squares plane of the annulus points
+        (:func:`annulus_plane`); the origin is ``base`` projected on it, or
+        the points' centroid when ``base`` is None.  The apex need not lie
+        on the axis: the second axis points towards its offset from it
+        (when it has one), so ``apex`` has local coordinates
+        ``(h, s, 0)``, ``h > 0`` its height above the plane and ``s >= 0``
+        its distance from the axis.
+
+        Parameters
+        ----------
+        apex : (x, y, z)
+            World point (mm) on the apex side of the plane.
+        annulus : array (k, 3)
+            ``k >= 3`` world points (mm) of the mitral ring.
+        base : (x, y, z), optional
+            A centre of the ring other than the centroid (projected on the
+            plane).
+        """
+        apex = _check_points(apex, "apex").reshape(3)
+        centre, normal = annulus_plane(annulus)
+        if base is not None:
+            base = _check_points(base, "base").reshape(3)
+            centre = base - ((base - centre) @ normal) * normal
+        offset = apex - centre
+        height = float(offset @ normal)
+        spread = np.linalg.norm(np.asarray(annulus, float) - centre, axis=1).max()
+        if abs(height) <= 1e-6 * max(spread, 1.0):
+            raise ValueError("the apex lies in the mitral plane of the annulus points")
+        e1 = normal if height > 0 else -normal
+        lateral = offset - (offset @ e1) * e1
+        if np.linalg.norm(lateral) <= 1e-9 * abs(height):
+            return cls(centre, _frame(e1))
+        e2 = lateral / np.linalg.norm(lateral)
+        return cls(centre, np.column_stack([e1, e2, np.cross(e1, e2)]))
 
     @property
     def axis(self) -> np.ndarray:

@@ -21,12 +21,13 @@ sample, this module forms what a scanner displays:
 Levels are in dB of power relative to the reference tissue (the tissue
 around the heart) at the transducer: echogenicity 1 is 0 dB.
 
-Beam space is ``[radius, elevation, azimuth]`` with ITK's
-``PhasedArray3DSpecialCoordinatesImage`` "tan" convention (azimuth
-``atan(x / z)``, elevation ``atan(y / z)``, radius ``|p|``; probe at the
-origin, the centre beam along +z).  :func:`beam_to_probe` and
-:func:`probe_to_beam` are the mapping; :func:`scan_convert` resamples to
-Cartesian points.  Nothing here knows what is being imaged.
+Beam space is a :class:`spheroseg.beamspace.BeamGeometry` (``[radius,
+elevation, azimuth]``, ITK's ``PhasedArray3DSpecialCoordinatesImage`` terms);
+:func:`sector_geometry` samples a sector as finely as a scanner would for a
+given PSF, :func:`form_image` returns a
+:class:`~spheroseg.beamspace.BeamVolume`, and
+:func:`spheroseg.beamspace.scan_convert` takes it to a Cartesian grid.
+Nothing here knows what is being imaged.
 """
 
 from __future__ import annotations
@@ -36,8 +37,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["ImageFormation", "BeamGrid", "BeamImage", "beam_to_probe", "probe_to_beam", "speckle_envelope", "log_compress",
-           "form_image", "scan_convert", "RAYLEIGH_DB_STD"]
+from .beamspace import BeamGeometry, BeamVolume
+
+__all__ = ["ImageFormation", "sector_geometry", "speckle_envelope", "log_compress", "form_image", "RAYLEIGH_DB_STD"]
 
 #: standard deviation of ``20 log10`` of a Rayleigh amplitude (fully
 #: developed speckle), dB: ``(20 / ln 10) * pi / (2 sqrt 6)``
@@ -175,79 +177,36 @@ class ImageFormation:
         return self.axial_psf_mm / 2, narrowest["elevation"] / 2, narrowest["lateral"] / 2
 
 
-@dataclass(frozen=True)
-class BeamGrid:
-    """A beam-space sampling ``[radius, elevation, azimuth]`` (tan convention).
+def sector_geometry(formation: ImageFormation, *, half_angle_deg: float, max_radius_mm: float,
+                    probe_to_world=None) -> BeamGeometry:
+    """A square pyramidal sector of ``+-half_angle_deg`` from the probe to
+    ``max_radius_mm``, sampled at :meth:`ImageFormation.sampling` (tan
+    convention, the first sample at the probe).
 
-    ``radius = first_sample_distance + i * radius_sample_size`` (mm);
-    elevation and azimuth ``(j - (ne - 1) / 2) * separation`` (radians),
-    centred on the middle index as ITK's ``PhasedArray3DSpecialCoordinatesImage``.
+    Parameters
+    ----------
+    formation : ImageFormation
+    half_angle_deg : float
+        Half opening angle in azimuth and in elevation, degrees (< 90).
+    max_radius_mm : float
+        Depth of the last sample along each beam, mm.
+    probe_to_world : 4x4 array, optional
+        Rigid placement of the probe frame in the world (default identity).
     """
-
-    shape: tuple[int, int, int]
-    radius_sample_size: float
-    first_sample_distance: float
-    elevation_angular_separation: float
-    azimuth_angular_separation: float
-
-    @classmethod
-    def covering(cls, formation: ImageFormation, *, half_angle_deg: float, max_radius_mm: float) -> "BeamGrid":
-        """The sampling of :meth:`ImageFormation.sampling` over a square
-        pyramidal sector of ``+-half_angle_deg`` to ``max_radius_mm``."""
-        dr, de, da = formation.sampling()
-        half = np.radians(half_angle_deg)
-        ne, na = (2 * int(np.ceil(half / step)) + 1 for step in (de, da))
-        nr = int(np.ceil(max_radius_mm / dr)) + 1
-        return cls((nr, ne, na), float(dr), 0.0, float(half / ((ne - 1) / 2)), float(half / ((na - 1) / 2)))
-
-    def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Radius (mm), elevation and azimuth (rad) of the samples."""
-        nr, ne, na = self.shape
-        return (self.first_sample_distance + np.arange(nr) * self.radius_sample_size,
-                (np.arange(ne) - (ne - 1) / 2) * self.elevation_angular_separation,
-                (np.arange(na) - (na - 1) / 2) * self.azimuth_angular_separation)
-
-    def probe_points(self) -> np.ndarray:
-        """Probe-frame points (x, y, z) mm of every sample, shape ``shape + (3,)``."""
-        r, e, a = np.meshgrid(*self.axes(), indexing="ij")
-        return beam_to_probe(r, e, a)
-
-    def index(self, radius, elevation, azimuth) -> np.ndarray:
-        """Continuous indices ``(i, j, k)`` of beam coordinates, stacked last."""
-        nr, ne, na = self.shape
-        return np.stack([(radius - self.first_sample_distance) / self.radius_sample_size,
-                         elevation / self.elevation_angular_separation + (ne - 1) / 2,
-                         azimuth / self.azimuth_angular_separation + (na - 1) / 2], -1)
+    if not 0 < half_angle_deg < 90 or not max_radius_mm > 0:
+        raise ValueError(f"need 0 < half_angle_deg < 90 and max_radius_mm > 0, got {half_angle_deg!r}, "
+                         f"{max_radius_mm!r}")
+    dr, de, da = formation.sampling()
+    half = np.radians(half_angle_deg)
+    ne, na = (2 * int(np.ceil(half / step)) + 1 for step in (de, da))
+    nr = int(np.ceil(max_radius_mm / dr)) + 1
+    return BeamGeometry((nr, ne, na), dr, 0.0, azimuth_angular_separation=half / ((na - 1) / 2),
+                        elevation_angular_separation=half / ((ne - 1) / 2),
+                        probe_to_world=np.eye(4) if probe_to_world is None else probe_to_world)
 
 
-@dataclass(frozen=True)
-class BeamImage:
-    """A beam-space image: grey levels ``array`` on ``grid``, with the probe
-    at world point ``probe`` (mm) and the centre beam along world +z."""
-
-    array: np.ndarray
-    grid: BeamGrid
-    probe: np.ndarray
-
-
-def beam_to_probe(radius, elevation, azimuth) -> np.ndarray:
-    """Probe-frame ``(x, y, z)`` mm of beam coordinates (tan convention):
-    ``z = r / sqrt(1 + tan^2 a + tan^2 e)``, ``x = z tan a``, ``y = z tan e``."""
-    ta, te = np.tan(azimuth), np.tan(elevation)
-    z = radius / np.sqrt(1 + ta**2 + te**2)
-    return np.stack([z * ta, z * te, z], -1)
-
-
-def probe_to_beam(points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(radius, elevation, azimuth)`` of probe-frame points (tan
-    convention); points at ``z <= 0`` get NaN angles."""
-    p = np.asarray(points, dtype=float)
-    x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ahead = z > 0
-        azimuth = np.where(ahead, np.arctan(x / z), np.nan)
-        elevation = np.where(ahead, np.arctan(y / z), np.nan)
-    return np.sqrt(x**2 + y**2 + z**2), elevation, azimuth
+def _radii(geometry: BeamGeometry) -> np.ndarray:
+    return geometry.first_sample_distance + np.arange(geometry.shape[0]) * geometry.radius_sample_size
 
 
 def _unit_energy_kernel(sigma: float) -> np.ndarray:
@@ -260,7 +219,7 @@ def _unit_energy_kernel(sigma: float) -> np.ndarray:
     return k / np.sqrt(np.sum(k**2))
 
 
-def speckle_envelope(echogenicity: np.ndarray, grid: BeamGrid, formation: ImageFormation,
+def speckle_envelope(echogenicity: np.ndarray, geometry: BeamGeometry, formation: ImageFormation,
                      rng: np.random.Generator) -> np.ndarray:
     """Received envelope (linear amplitude) of a scene in beam space.
 
@@ -272,40 +231,42 @@ def speckle_envelope(echogenicity: np.ndarray, grid: BeamGrid, formation: ImageF
 
     Parameters
     ----------
-    echogenicity : array, shape ``grid.shape``
+    echogenicity : array, shape ``geometry.shape``
         Backscattered power per sample relative to the reference tissue.
-    grid : BeamGrid
+    geometry : BeamGeometry
     formation : ImageFormation
     rng : numpy.random.Generator
 
     Returns
     -------
-    envelope : float32 array, shape ``grid.shape``
+    envelope : float32 array, shape ``geometry.shape``
         Its square has mean ``echogenicity * 10^((tgc - att) r / 10) * gain``
         in uniform regions (plus the noise).
     """
     echogenicity = np.asarray(echogenicity, dtype=np.float32)
-    if echogenicity.shape != grid.shape:
-        raise ValueError(f"echogenicity has shape {echogenicity.shape}, the beam grid {grid.shape}")
+    if not isinstance(geometry, BeamGeometry):
+        raise TypeError(f"geometry must be a BeamGeometry, got {type(geometry).__name__}")
+    if echogenicity.shape != geometry.shape:
+        raise ValueError(f"echogenicity has shape {echogenicity.shape}, the beam geometry {geometry.shape}")
     if np.any(echogenicity < 0) or not np.all(np.isfinite(echogenicity)):
         raise ValueError("echogenicity must be finite and >= 0")
-    radius, _, _ = grid.axes()
+    radius = _radii(geometry)
 
     def complex_normal(shape):
         return ((rng.standard_normal(shape, dtype=np.float32)
                  + 1j * rng.standard_normal(shape, dtype=np.float32)) / np.sqrt(2)).astype(np.complex64)
 
-    field = complex_normal(grid.shape) * np.sqrt(echogenicity)
-    steps = {"elevation": grid.elevation_angular_separation, "lateral": grid.azimuth_angular_separation}
+    field = complex_normal(geometry.shape) * np.sqrt(echogenicity)
+    steps = {"elevation": geometry.elevation_angular_separation, "lateral": geometry.azimuth_angular_separation}
     sigmas = {d: formation.angular_width(radius, direction=d) / FWHM_PER_SIGMA / steps[d] for d in steps}
-    for i in range(grid.shape[0]):
+    for i in range(geometry.shape[0]):
         field[i] = ndimage.correlate1d(field[i], _unit_energy_kernel(sigmas["elevation"][i]), axis=0, mode="constant")
         field[i] = ndimage.correlate1d(field[i], _unit_energy_kernel(sigmas["lateral"][i]), axis=1, mode="constant")
-    axial = _unit_energy_kernel(formation.axial_psf_mm / FWHM_PER_SIGMA / grid.radius_sample_size)
+    axial = _unit_energy_kernel(formation.axial_psf_mm / FWHM_PER_SIGMA / geometry.radius_sample_size)
     field = ndimage.correlate1d(field, axial, axis=0, mode="constant")
     cm = (radius / 10.0)[:, None, None]
     field *= (10 ** (-formation.attenuation_db_per_cm * cm / 20)).astype(np.float32)
-    noise = ndimage.correlate1d(complex_normal(grid.shape), axial, axis=0, mode="constant")
+    noise = ndimage.correlate1d(complex_normal(geometry.shape), axial, axis=0, mode="constant")
     field += np.float32(10 ** (formation.noise_db / 20)) * noise
     field *= (10 ** ((formation.tgc_db_per_cm * cm + formation.gain_db) / 20)).astype(np.float32)
     return np.abs(field).astype(np.float32)
@@ -320,24 +281,9 @@ def log_compress(envelope: np.ndarray, formation: ImageFormation) -> np.ndarray:
     return np.round(1 + 254 * np.clip((level - TOP_DB + dr) / dr, 0, 1)).astype(np.uint8)
 
 
-def form_image(echogenicity: np.ndarray, grid: BeamGrid, formation: ImageFormation,
-               rng: np.random.Generator) -> np.ndarray:
-    """Beam-space 8-bit B-mode of a scene: :func:`speckle_envelope` then
-    :func:`log_compress`."""
-    return log_compress(speckle_envelope(echogenicity, grid, formation, rng), formation)
-
-
-def scan_convert(image: np.ndarray, grid: BeamGrid, probe_points: np.ndarray) -> np.ndarray:
-    """Trilinear resampling of a beam-space image at probe-frame points.
-
-    Returns float32 grey levels, shape ``probe_points.shape[:-1]``; 0 outside
-    the sector (the scanner's black) and wherever the image is 0.
-    """
-    radius, elevation, azimuth = probe_to_beam(probe_points)
-    index = grid.index(radius, elevation, azimuth)
-    upper = np.array(grid.shape) - 1
-    inside = np.all((index >= -1e-9) & (index <= upper + 1e-9), axis=-1)
-    coords = np.where(inside[..., None], np.clip(np.nan_to_num(index), 0, upper), 0.0)
-    values = ndimage.map_coordinates(np.asarray(image, dtype=np.float32), np.moveaxis(coords, -1, 0), order=1,
-                                     mode="nearest")
-    return np.where(inside, values, 0).astype(np.float32)
+def form_image(echogenicity: np.ndarray, geometry: BeamGeometry, formation: ImageFormation,
+               rng: np.random.Generator) -> BeamVolume:
+    """Beam-space 8-bit B-mode of a scene (:func:`speckle_envelope` then
+    :func:`log_compress`), every sample data (grey >= 1)."""
+    grey = log_compress(speckle_envelope(echogenicity, geometry, formation, rng), formation)
+    return BeamVolume(grey, geometry)

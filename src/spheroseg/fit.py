@@ -9,11 +9,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .coords import CoordinateSystem, Pose
+from .coords import CoordinateSystem, Pose, annulus_plane
 from .hermite import HermiteGrid
 from .surface import Surface
 
-__all__ = ["fit_surface", "apex_base_of_open_mesh", "surface_sample", "point_to_surface_distance"]
+__all__ = [
+    "fit_surface", "annulus_of_open_mesh", "apex_base_of_open_mesh", "surface_sample", "point_to_surface_distance",
+]
 
 
 def fit_surface(
@@ -38,7 +40,8 @@ def fit_surface(
     points : array (n, 3)
         World points (mm) on the target surface.
     system, pose : CoordinateSystem, Pose
-        The model frame (e.g. from :meth:`Surface.from_apex_base`).
+        The model frame (e.g. from :meth:`Surface.from_annulus` or
+        :meth:`Surface.from_apex_base`).
     patches : (int, int)
     v2_range : (float, float), optional
         Defaults to the system's range for the cavity.
@@ -69,13 +72,11 @@ def fit_surface(
     return Surface(system, pose, grid, a @ params)
 
 
-def apex_base_of_open_mesh(points, faces) -> tuple[np.ndarray, np.ndarray]:
-    """Apex and base points of a cavity mesh open at the mitral plane.
-
-    The base is the centroid of the boundary loop (edges used by one
-    triangle); the apex the mesh point farthest from the base along the
-    loop's normal.
-    """
+def annulus_of_open_mesh(points, faces) -> np.ndarray:
+    """The mitral ring of a cavity mesh open at the mitral plane: the
+    vertices of its open boundary (edges used by one triangle), as the
+    CETUS reference meshes have, shape ``(k, 3)``, in vertex order.  Their
+    plane is :func:`spheroseg.coords.annulus_plane`."""
     points = np.asarray(points, dtype=float)
     faces = np.asarray(faces)
     edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
@@ -83,8 +84,18 @@ def apex_base_of_open_mesh(points, faces) -> tuple[np.ndarray, np.ndarray]:
     ring = np.unique(unique[counts == 1])
     if len(ring) < 3:
         raise ValueError("the mesh has no open boundary (mitral ring)")
-    base = points[ring].mean(0)
-    normal = np.linalg.svd(points[ring] - base)[2][2]
+    return points[ring]
+
+
+def apex_base_of_open_mesh(points, faces) -> tuple[np.ndarray, np.ndarray]:
+    """Apex and base points of a cavity mesh open at the mitral plane.
+
+    The base is the centroid of the boundary loop
+    (:func:`annulus_of_open_mesh`); the apex the mesh point farthest from
+    the loop's least-squares plane.
+    """
+    points = np.asarray(points, dtype=float)
+    base, normal = annulus_plane(annulus_of_open_mesh(points, faces))
     along = (points - base) @ normal
     if abs(along.min()) > abs(along.max()):
         along = -along
@@ -107,9 +118,49 @@ def surface_sample(points, faces, spacing: float = 0.5, seed: int = 0) -> np.nda
     return np.concatenate([np.asarray(points, float)[np.unique(faces)], samples])
 
 
-def point_to_surface_distance(points, surface: Surface, *, n_v1: int = 512, n_v2: int = 256) -> np.ndarray:
-    """Distance (mm) from world points to the surface's wall, to the nearest
-    of a dense sampling of the wall (spacing well under 0.5 mm for a
-    ventricle)."""
-    wall = surface_sample(*surface.mesh(n_v1, n_v2, closed=False), spacing=0.25)
-    return cKDTree(wall).query(np.asarray(points, dtype=float))[0]
+def point_to_surface_distance(points, surface: Surface, *, n_v1: int = 512, n_v2: int = 256,
+                              iterations: int = 10) -> np.ndarray:
+    """Distance (mm) from world points to the surface's wall.
+
+    The nearest of a dense sampling of the wall (about 0.25 mm apart) is
+    refined by damped Gauss-Newton steps on the wall's parameters
+    ``(v1, v2)``, minimising ``|S(v1, v2) - p|^2`` with ``S`` the wall
+    point and ``v2`` kept in the model's range (a point beyond the base
+    plane gets its distance to the base ring).  The sampling alone would
+    overstate a distance by up to the sample spacing (some 0.1 mm on
+    average); the refinement makes it exact to ~1e-6 mm on a smooth wall.
+    """
+    points = np.asarray(points, dtype=float)
+    n1, n2 = n_v1, n_v2
+    v2s, v1s = np.meshgrid(np.linspace(*surface.grid.v2_range, n2 + 1), np.arange(n1) * (2 * np.pi / n1),
+                           indexing="ij")
+    v1s, v2s = v1s.ravel(), v2s.ravel()
+    _, nearest = cKDTree(surface.points(v1s, v2s)).query(points)
+    v1, v2 = v1s[nearest], v2s[nearest]
+    local = surface.pose.to_local(points)
+    lo, hi = surface.grid.v2_range
+
+    def residual(v1, v2):
+        f = surface.evaluate(v1, v2)
+        return local - surface.system.to_cartesian(f, v1, v2), f
+
+    r, f = residual(v1, v2)
+    best = np.linalg.norm(r, axis=1)
+    damping = np.full(len(points), 1e-3)
+    for _ in range(iterations):
+        jac = surface.system.jacobian(f, v1, v2)
+        t1 = jac[..., 0] * surface.evaluate(v1, v2, d1=1)[:, None] + jac[..., 1]
+        t2 = jac[..., 0] * surface.evaluate(v1, v2, d2=1)[:, None] + jac[..., 2]
+        a11, a12, a22 = (t1 * t1).sum(1), (t1 * t2).sum(1), (t2 * t2).sum(1)
+        b1, b2 = (t1 * r).sum(1), (t2 * r).sum(1)
+        mu = damping * (a11 + a22) + 1e-300
+        det = (a11 + mu) * (a22 + mu) - a12**2
+        new_v1 = v1 + ((a22 + mu) * b1 - a12 * b2) / det
+        new_v2 = np.clip(v2 + ((a11 + mu) * b2 - a12 * b1) / det, lo, hi)
+        new_r, new_f = residual(new_v1, new_v2)
+        d = np.linalg.norm(new_r, axis=1)
+        better = d < best
+        v1, v2, f = np.where(better, new_v1, v1), np.where(better, new_v2, v2), np.where(better, new_f, f)
+        r, best = np.where(better[:, None], new_r, r), np.where(better, d, best)
+        damping = np.where(better, damping / 10, damping * 10)
+    return best

@@ -27,8 +27,8 @@ import numpy as np
 from .beamspace import CONVENTIONS, BeamGeometry, BeamVolume
 from .volume import ImageGrid, Volume, outside_sector
 
-__all__ = ["load", "load_sequence", "save_mask", "save_volume", "read_markups", "image_format", "IMAGE_SUFFIXES",
-           "MASK_SUFFIXES", "BEAM_SUFFIXES", "BEAM_KEYS", "BEAM_OPTIONAL_KEYS", "beam_header",
+__all__ = ["load", "load_sequence", "save_mask", "save_volume", "read_markups", "write_markups", "image_format",
+           "IMAGE_SUFFIXES", "MASK_SUFFIXES", "BEAM_SUFFIXES", "BEAM_KEYS", "BEAM_OPTIONAL_KEYS", "beam_header",
            "beam_geometry_from_header", "write_atomically", "ImageFileError"]
 
 IMAGE_SUFFIXES = (".mhd", ".mha", ".nii", ".nii.gz", ".nrrd", ".nhdr", ".npy")
@@ -412,13 +412,15 @@ def read_markups(path: str | os.PathLike) -> dict:
     """Points from a 3D Slicer markups file (``.mrk.json``), in LPS mm.
 
     Control points labelled ``apex`` and ``base`` (any case) give those;
-    every other label starting with ``landmark`` is a landmark.  RAS files
-    are converted to LPS.
+    every label starting with ``annulus`` is a point of the mitral annulus
+    (three or more define the mitral plane), every label starting with
+    ``landmark`` a landmark.  RAS files are converted to LPS.
 
     Returns
     -------
     dict
-        ``{"apex": array or None, "base": array or None, "landmarks": array (k, 3)}``
+        ``{"apex": array or None, "base": array or None, "annulus": array (k, 3),
+        "landmarks": array (k, 3)}``
     """
     import json
 
@@ -427,7 +429,7 @@ def read_markups(path: str | os.PathLike) -> dict:
         raise _missing(path)
     try:
         doc = json.loads(path.read_text())
-        out = {"apex": None, "base": None, "landmarks": []}
+        out = {"apex": None, "base": None, "annulus": [], "landmarks": []}
         for markup in doc["markups"]:
             ras = str(markup.get("coordinateSystem", "LPS")).upper() == "RAS"
             for point in markup.get("controlPoints", []):
@@ -437,6 +439,8 @@ def read_markups(path: str | os.PathLike) -> dict:
                 label = str(point.get("label", "")).strip().lower()
                 if label in ("apex", "base"):
                     out[label] = position
+                elif label.startswith("annulus"):
+                    out["annulus"].append(position)
                 elif label.startswith("landmark"):
                     out["landmarks"].append(position)
     except OSError as exc:
@@ -444,4 +448,37 @@ def read_markups(path: str | os.PathLike) -> dict:
     except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ValueError(f"{path}: not a 3D Slicer markups file with control points ({type(exc).__name__}: {exc})") from None
     out["landmarks"] = np.array(out["landmarks"]).reshape(-1, 3)
+    out["annulus"] = np.array(out["annulus"]).reshape(-1, 3)
     return out
+
+
+def write_markups(path: str | os.PathLike, *, apex=None, base=None, annulus=None, landmarks=None) -> None:
+    """Write points as a 3D Slicer markups file (``.mrk.json``, LPS mm) that
+    :func:`read_markups` reads back: control points labelled ``apex``,
+    ``base``, ``annulus`` (each annulus point) and ``landmark-1``, ...
+
+    Parameters
+    ----------
+    path : str or Path
+    apex, base : (x, y, z), optional
+    annulus, landmarks : array (k, 3), optional
+    """
+    import json
+
+    named = [("apex", apex), ("base", base)]
+    named += [("annulus", p) for p in ([] if annulus is None else annulus)]
+    named += [(f"landmark-{k + 1}", p) for k, p in enumerate([] if landmarks is None else landmarks)]
+    points = []
+    for label, position in named:
+        if position is None:
+            continue
+        position = np.asarray(position, dtype=float)
+        if position.shape != (3,) or not np.all(np.isfinite(position)):
+            raise ValueError(f"{label} must be 3 finite numbers (x, y, z in mm), got {position.tolist()!r}")
+        points.append({"id": str(len(points) + 1), "label": label, "position": position.tolist(),
+                       "positionStatus": "defined"})
+    doc = {"@schema": "https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/Resources/"
+                      "Schema/markups-schema-v1.0.3.json#",
+           "markups": [{"type": "Fiducial", "coordinateSystem": "LPS", "coordinateUnits": "mm",
+                        "controlPoints": points}]}
+    write_atomically(path, lambda tmp: Path(tmp).write_text(json.dumps(doc, indent=1)))

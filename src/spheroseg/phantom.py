@@ -34,8 +34,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import ndimage
 
-from .echo import BeamGrid, BeamImage, ImageFormation, form_image, scan_convert
-from .volume import Volume
+from .beamspace import BeamVolume, scan_convert
+from .echo import ImageFormation, form_image, sector_geometry
+from .volume import ImageGrid, Volume
 
 __all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES", "FORMATIONS", "sweep_cases"]
 
@@ -69,7 +70,8 @@ FORMATIONS = {
     "contrast_high": replace(_DEFAULT, contrast_db=_DEFAULT.contrast_db + 7),
     "contrast_low": replace(_DEFAULT, contrast_db=_DEFAULT.contrast_db - 10),
     "clutter_none": replace(_DEFAULT, clutter_db=None),
-    "clutter_strong": replace(_DEFAULT, clutter_db=-12.0),
+    # haze nearly as bright as tissue over the apical third of the cavity (a poor window)
+    "clutter_strong": replace(_DEFAULT, clutter_db=-3.0, clutter_depth_mm=40.0),
     "dropout": replace(_DEFAULT, dropout_db=30.0),
 }
 
@@ -92,7 +94,7 @@ class Phantom:
     truth_mesh: tuple[np.ndarray, np.ndarray]
     params: dict = field(default_factory=dict)
     #: the beam-space image before scan conversion (``make_phantom(beam_space=True)``)
-    beam: BeamImage | None = None
+    beam_volume: BeamVolume | None = None
 
 
 @dataclass
@@ -203,20 +205,24 @@ def _texture(shape, spacing, rng):
     return texture / (texture.std() + 1e-12)
 
 
-def _formed_image(formation, *, world, probe, seed, speckle_seed, half_angle_deg, scene):
-    """The scene imaged by ``formation`` in beam space, then scan-converted to
-    the Cartesian points ``world``: ``(grey levels, BeamImage)``."""
-    # the probe is at the top centre: the far corner is the farthest point
-    corner = np.asarray(world[-1, -1, -1], dtype=float) - probe
-    grid = BeamGrid.covering(formation, half_angle_deg=half_angle_deg, max_radius_mm=float(np.linalg.norm(corner)))
-    points = grid.probe_points()
-    anatomy = _anatomy((points + probe).astype(np.float32), **scene)
+def _formed_image(formation, *, grid, probe, seed, speckle_seed, half_angle_deg, scene):
+    """The scene imaged by ``formation`` in beam space from a probe at world
+    point ``probe`` (centre beam along +z), scan-converted to the Cartesian
+    ``grid``: ``(grey levels, BeamVolume)``."""
+    # the probe is at the top centre of the grid: its far corner is the farthest point
+    corner = grid.index_to_world(np.array(grid.shape[::-1]) - 1.0) - probe
+    to_world = np.eye(4)
+    to_world[:3, 3] = probe
+    geometry = sector_geometry(formation, half_angle_deg=half_angle_deg, max_radius_mm=float(np.linalg.norm(corner)),
+                               probe_to_world=to_world)
+    index = np.stack(np.meshgrid(*(np.arange(n, dtype=float) for n in geometry.shape), indexing="ij"), -1)
+    points = geometry.index_to_world(index)
+    anatomy = _anatomy(points.astype(np.float32), **scene)
     # myocardial and tissue inhomogeneity: a smooth random field (1.5 mm grid) sampled at the beams
     step = 1.5
-    box = np.abs(np.asarray(world[-1, -1, -1], dtype=float)) + 2 * step
+    box = corner + probe + 2 * step
     tex = _texture(tuple(int(np.ceil(b / step)) + 1 for b in box[::-1]), step, np.random.default_rng(seed + 1_000_003))
-    world_idx = (points + probe)[..., ::-1] / step
-    texture = ndimage.map_coordinates(tex, np.moveaxis(world_idx, -1, 0), order=1, mode="nearest")
+    texture = ndimage.map_coordinates(tex, np.moveaxis(points[..., ::-1] / step, -1, 0), order=1, mode="nearest")
 
     f = formation
     tissue = 10 ** (0.2 * texture)  # 2 dB spread
@@ -231,12 +237,12 @@ def _formed_image(formation, *, world, probe, seed, speckle_seed, half_angle_deg
         d = np.linalg.norm(anatomy["local"] - centre, axis=-1)
         echo = echo * 10 ** (-f.dropout_db / 10 * np.clip((16.0 - d) / 6.0, 0, 1))
     if f.clutter_db is not None:
-        depth = np.linalg.norm(points, axis=-1)
+        depth = np.linalg.norm(points - probe, axis=-1)
         haze = np.exp(-(((depth - f.clutter_depth_mm) / 12.0) ** 2)) * 10 ** ((f.clutter_db + 3.0 * texture) / 10)
         echo = echo + haze
-    beam = form_image(echo.astype(np.float32), grid, f, np.random.default_rng(speckle_seed))
-    image = np.round(scan_convert(beam, grid, np.asarray(world, dtype=float) - probe)).astype(np.uint8)
-    return image, BeamImage(beam, grid, probe.copy())
+    beam = form_image(echo.astype(np.float32), geometry, f, np.random.default_rng(speckle_seed))
+    image = np.round(scan_convert(beam, grid).array).astype(np.uint8)
+    return image, beam
 
 
 def make_phantom(
@@ -290,8 +296,10 @@ def make_phantom(
         then keep their defaults (the formation holds its own).  ``None``:
         the legacy image, unchanged since round 1.
     beam_space : bool
-        With a formation, also return the beam-space image
-        (:attr:`Phantom.beam`, a :class:`spheroseg.echo.BeamImage`).
+        With a formation, also return the beam-space image before scan
+        conversion (:attr:`Phantom.beam_volume`, a
+        :class:`spheroseg.beamspace.BeamVolume`; probe at the top centre of
+        the Cartesian volume, centre beam along +z, tan convention).
     """
     if spacing <= 0:
         raise ValueError(f"spacing must be positive, got {spacing!r}")
@@ -366,7 +374,8 @@ def make_phantom(
         angle = np.degrees(np.arctan2(np.hypot(v[..., 0], v[..., 1]), v[..., 2]))
         image = np.where(angle <= 38.0 + tilt_deg * 0.6, np.round(image), 0).astype(np.uint8)
     else:
-        image, beam = _formed_image(formation, world=world, probe=probe, seed=seed,
+        grid = ImageGrid((nz, ny, nx), (spacing,) * 3, (0.0, 0.0, 0.0), np.eye(3))
+        image, beam = _formed_image(formation, grid=grid, probe=probe, seed=seed,
                                     speckle_seed=seed if _speckle_seed is None else _speckle_seed,
                                     half_angle_deg=38.0 + tilt_deg * 0.6,
                                     scene=dict(base=base, frame=frame, shape_fn=shape_fn, wall=wall, length=length,
@@ -384,7 +393,7 @@ def make_phantom(
                     speckle=speckle, dropout=dropout, clutter=clutter, contrast=contrast,
                     **({} if formation is None else dict(formation=formation)),
                     **({} if _base_descent == 0 else dict(base_descent=_base_descent))),
-        beam=beam if beam_space else None,
+        beam_volume=beam if beam_space else None,
     )
 
 

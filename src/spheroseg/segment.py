@@ -23,9 +23,10 @@ from .tracker import Tracker
 __all__ = ["segment", "track", "SegmentationResult", "TrackingResult", "Intermediate", "MODES"]
 
 
-def segment(volume, apex, base, *, landmarks=None, init: Surface | None = None,
+def segment(volume, apex, base=None, *, annulus=None, landmarks=None, init: Surface | None = None,
             iter_callback: Callable[[Intermediate], None] | None = None, **options) -> SegmentationResult:
-    """Segment the left-ventricular cavity from an apex and a base point.
+    """Segment the left-ventricular cavity from an apex and a base point
+    (or the mitral annulus).
 
     Parameters
     ----------
@@ -34,7 +35,12 @@ def segment(volume, apex, base, *, landmarks=None, init: Surface | None = None,
     apex, base : (x, y, z)
         World points (mm, ITK physical space): the endocardial apex and the
         centre of the mitral plane.  The cavity is closed at the plane
-        through ``base`` perpendicular to the apex-base axis.
+        through ``base`` perpendicular to the apex-base axis, unless
+        ``annulus`` is given (then ``base`` may be None).
+    annulus : array (k, 3), optional
+        ``k >= 3`` world points (mm) of the mitral annulus: the cavity is
+        closed at their least-squares plane, whose normal is the long axis;
+        the apex may lie off it (see :class:`spheroseg.Tracker`).
     landmarks : array (k, 3), optional
         World points the surface must pass through (to stop a leak).
     init : Surface, optional
@@ -118,14 +124,15 @@ def segment(volume, apex, base, *, landmarks=None, init: Surface | None = None,
     >>> bool(abs(res.volume_ml - ph.truth_volume_ml) < 0.15 * ph.truth_volume_ml)
     True
     """
-    return Tracker(volume, apex, base, landmarks=landmarks, init=init, **options).run(iter_callback)
+    return Tracker(volume, apex, base, annulus=annulus, landmarks=landmarks, init=init, **options).run(iter_callback)
 
 
 def track(
     volumes: Sequence,
     apex,
-    base,
+    base=None,
     *,
+    annulus=None,
     iterations_per_frame: int = 20,
     progress: Callable[[int, int], None] | None = None,
     landmarks=None,
@@ -142,12 +149,13 @@ def track(
     iterations: the paper used 3 to 5; on the 10-frame phantom cycles, where
     the wall moves up to 4 mm between frames, 4 to 7 are run.  The model, its
     matrices and the region statistics of the first frame are reused.  The
-    apex and base points, so the base plane, stay those of the first frame.
+    apex and base points (or the annulus), so the base plane, stay those of
+    the first frame.
 
     Parameters
     ----------
     volumes : sequence of Volume
-    apex, base, landmarks, init, iter_callback, **options
+    apex, base, annulus, landmarks, init, iter_callback, **options
         As :func:`segment`.
     iterations_per_frame : int
         Cap on iterations of every frame after the first.
@@ -164,7 +172,7 @@ def track(
         raise ValueError(f"a sequence needs at least 2 frames, got {len(volumes)}")
     if not (isinstance(iterations_per_frame, (int, np.integer)) and iterations_per_frame >= 1):
         raise ValueError(f"iterations_per_frame must be a positive integer, got {iterations_per_frame!r}")
-    tracker = Tracker(volumes[0], apex, base, landmarks=landmarks, init=init, **options)
+    tracker = Tracker(volumes[0], apex, base, annulus=annulus, landmarks=landmarks, init=init, **options)
     frames = []
     for volume in volumes:
         if frames:

@@ -90,6 +90,113 @@ class Surface:
         return cls.from_function(system, pose, grid, v0)
 
     @classmethod
+    def from_annulus(
+        cls,
+        apex,
+        annulus,
+        *,
+        base=None,
+        system: str | CoordinateSystem = "prolate",
+        patches: tuple[int, int] = (8, 8),
+        radius_ratio: float = DEFAULT_RADIUS_RATIO,
+    ) -> "Surface":
+        r"""The initial surface, closed at the mitral plane of annulus points.
+
+        The local frame is :meth:`Pose.from_annulus`: origin at the ring's
+        centre (or ``base`` projected on the plane), long axis along the
+        plane's normal.  The apex lies at height ``h`` above the plane and
+        ``s`` mm off the axis; the surface is the half-ellipsoid of
+        semi-axes ``(h, b, b)``, ``b = radius_ratio * h``, sheared parallel
+        to the plane so that its tip is the apex:
+
+        .. math::
+
+            \left(\frac{x_1}{h}\right)^2 + \frac{|x_\perp - x_1 s / h|^2}{b^2} \le 1,
+            \quad x_1 \ge 0,
+
+        with ``s`` the apex's offset vector.  A shear keeps the volume,
+        ``2 pi h b^2 / 3``, and the base ring, the circle of radius ``b``
+        in the plane.  The Hermite surface interpolates the shape's
+        ``v0(v1, v2)`` at the nodes (values and slopes, as
+        :meth:`from_apex_base`; the second local axis points towards the
+        apex, so the nodes at ``v1 = 0`` and ``pi`` catch the tilt), then
+        takes the smallest change in the L2 norm that makes it pass through
+        the apex exactly: the apex pole stays on the axis and its tilted
+        tangent plane lets the tip lie off it.  With the apex on the axis
+        this is the surface of :meth:`from_apex_base`.
+
+        Parameters
+        ----------
+        apex : (x, y, z)
+            World point (mm).
+        annulus : array (k, 3)
+            ``k >= 3`` world points (mm) on the mitral ring.
+        base : (x, y, z), optional
+            Centre of the ring, if not the points' centroid.
+        system : {"prolate", "spherical"} or CoordinateSystem
+            A system with an apex pole (the cylindrical one has none).
+        patches : (int, int)
+        radius_ratio : float
+            ``b / h`` in (0, 1); the apex must lie less than ``b`` from the axis.
+        """
+        if not 0 < radius_ratio < 1:
+            raise ValueError(f"radius_ratio must be in (0, 1), got {radius_ratio!r}")
+        pose = Pose.from_annulus(apex, annulus, base=base)
+        height, offset = pose.to_local(np.asarray(apex, float))[:2]
+        radius = radius_ratio * height
+        if offset >= radius:
+            raise ValueError(f"the apex lies {offset:.1f} mm from the normal of the mitral plane through its centre, "
+                             f"more than the initial base radius ({radius:.1f} mm = radius_ratio x the apex's "
+                             f"height {height:.1f} mm above the plane)")
+        system = coordinate_system(system)
+        if not system.poles:
+            raise ValueError(f"the {system.name} system has no apex pole: a tilted mitral plane needs "
+                             "'prolate' or 'spherical'")
+        system, _ = system.initial_v0(height, radius)
+        grid = HermiteGrid(*patches, v2_range=system.default_v2_range(height), poles=system.poles)
+
+        def inside(local):  # < 0 inside the sheared half-ellipsoid, > 0 outside
+            lateral = local[..., 1] - local[..., 0] * (offset / height)
+            return (local[..., 0] / height) ** 2 + (lateral**2 + local[..., 2] ** 2) / radius**2 - 1.0
+
+        def v0(v1, v2):
+            # the one crossing of the coordinate curve from v0 = 0 (on the
+            # axis, inside) outwards, by bisection to machine precision
+            lo, hi = np.zeros(np.shape(v1)), np.ones(np.shape(v1))
+            for _ in range(64):  # an upper bracket: the shape is bounded
+                within = inside(system.to_cartesian(hi, v1, v2)) <= 0
+                if not within.any():
+                    break
+                hi = np.where(within, 2 * hi, hi)
+            for _ in range(64):
+                mid = 0.5 * (lo + hi)
+                below = inside(system.to_cartesian(mid, v1, v2)) <= 0
+                lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+            return 0.5 * (lo + hi)
+
+        # Hermite interpolation at the nodes, as from_apex_base (values and
+        # slopes by central differences), onto the well-formed surfaces
+        v2, v1 = np.meshgrid(grid.node_v2, grid.node_v1, indexing="ij")
+        e1, e2 = 1e-5, 1e-5 * (grid.v2_range[1] - grid.v2_range[0])
+        nodal = np.stack([
+            v0(v1, v2),
+            (v0(v1 + e1, v2) - v0(v1 - e1, v2)) / (2 * e1),
+            (v0(v1, v2 + e2) - v0(v1, v2 - e2)) / (2 * e2),
+            (v0(v1 + e1, v2 + e2) - v0(v1 - e1, v2 + e2) - v0(v1 + e1, v2 - e2) + v0(v1 - e1, v2 - e2)) / (4 * e1 * e2),
+        ], axis=-1)
+        params = grid.parameters(nodal)
+        # then the smallest change in the L2 norm (mass matrix M of the
+        # parameters) that puts the apex on the surface: p += M^-1 c r / (c M^-1 c)
+        a = grid.constraints
+        q1, q2, w = grid.quadrature(6)
+        b = (grid.basis_matrix(q1, q2) @ a).toarray()
+        apex_v0, apex_v1, apex_v2 = system.from_cartesian(pose.to_local(np.asarray(apex, float)))
+        c = (grid.basis_matrix(apex_v1, apex_v2) @ a).toarray()[0]
+        x = np.linalg.solve(b.T @ (b * w[:, None]), c)
+        params = params + x * (apex_v0 - c @ params) / (c @ x)
+        return cls(system, pose, grid, a @ params)
+
+    @classmethod
     def from_function(
         cls, system: CoordinateSystem, pose: Pose, grid: HermiteGrid, v0: float | Callable
     ) -> "Surface":

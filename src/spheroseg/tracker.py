@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .coords import Pose
 from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, band_offsets
 from .descent import Descent
 from .options import SegmentOptions, format_point
@@ -80,6 +81,20 @@ def _check_point(volume, point, name: str) -> np.ndarray:
     return p
 
 
+def _check_annulus(volume, annulus) -> np.ndarray:
+    try:
+        points = np.asarray(annulus, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"annulus must be points (x, y, z in mm), got {annulus!r}") from None
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"annulus must be an array of points (k, 3), got shape {points.shape}")
+    if len(points) < 3:
+        raise ValueError(f"the mitral plane needs at least 3 annulus points, got {len(points)}")
+    for k, point in enumerate(points):
+        _check_point(volume, point, f"annulus point {k}")
+    return points
+
+
 class Tracker:
     """A segmentation that steps: iteration by iteration, frame by frame.
 
@@ -89,12 +104,22 @@ class Tracker:
         The first (or only) frame: a 3D echo image, blood dark, tissue bright.
     apex, base : (x, y, z)
         World points (mm, ITK physical space): the endocardial apex and the
-        centre of the mitral plane.
+        centre of the mitral plane.  ``base`` may be None when ``annulus``
+        is given.
+    annulus : array (k, 3), optional
+        ``k >= 3`` world points (mm) of the mitral annulus.  The model is
+        then posed by the mitral plane (:meth:`Surface.from_annulus`): the
+        cavity is closed at the annulus points' least-squares plane, the
+        long axis is its normal and the apex may lie off it; ``base``
+        defaults to the points' centroid (a ``base`` given is projected on
+        the plane).  Without it the base plane is perpendicular to the
+        apex-base line through ``base``.
     landmarks : array (k, 3), optional
         World points the surface must pass through (to stop a leak).
     init : Surface, optional
         Start from this surface instead of the half-ellipsoid (no
-        coarse-to-fine then); ``apex`` and ``base`` are still checked.
+        coarse-to-fine then); ``apex``, ``base`` and ``annulus`` are still
+        checked.
     **options
         :class:`spheroseg.SegmentOptions`.
 
@@ -122,20 +147,32 @@ class Tracker:
     True
     """
 
-    def __init__(self, volume, apex, base, *, landmarks=None, init: Surface | None = None, **options):
+    def __init__(self, volume, apex, base=None, *, annulus=None, landmarks=None, init: Surface | None = None,
+                 **options):
         started = time.perf_counter()
         self.options = opts = SegmentOptions(**options)
         _check_volume(volume)
         self.apex = _check_point(volume, apex, "apex")
-        self.base = _check_point(volume, base, "base")
-        if np.linalg.norm(self.apex - self.base) < 1e-6:
-            raise ValueError("apex and base must be distinct points")
+        self.annulus = None if annulus is None else _check_annulus(volume, annulus)
+        if base is None and self.annulus is None:
+            raise ValueError("give the base point (the centre of the mitral plane) or the annulus "
+                             "(3 or more points of the mitral ring)")
+        given_base = None if base is None else _check_point(volume, base, "base")
+        if self.annulus is None:
+            self.base = given_base
+            if np.linalg.norm(self.apex - self.base) < 1e-6:
+                raise ValueError("apex and base must be distinct points")
+        else:
+            self.base = Pose.from_annulus(self.apex, self.annulus, base=given_base).origin
         if init is not None and not isinstance(init, Surface):
             raise TypeError(f"init must be a spheroseg.Surface, got {type(init).__name__}")
         self.volume = volume
         self.landmarks = self._check_landmarks(landmarks)
         self.levels = schedule(opts, coarse_to_fine=opts.coarse_to_fine and init is None)
-        if init is None:
+        if init is None and self.annulus is not None:
+            surface = Surface.from_annulus(self.apex, self.annulus, base=given_base, system=opts.system,
+                                           patches=self.levels[0].patches, radius_ratio=opts.radius_ratio)
+        elif init is None:
             surface = Surface.from_apex_base(self.apex, self.base, system=opts.system, patches=self.levels[0].patches,
                                              radius_ratio=opts.radius_ratio)
         else:
