@@ -243,10 +243,13 @@ def _beamspace(bs) -> list[str]:
            f"Beam space: {' x '.join(map(str, tr['beam_shape']))} samples [r, e, a] (1 mm x 1 deg x 1 deg); "
            f"scan-converted: the Cartesian grid covering the sector, "
            f"{' x '.join(map(str, tr['cartesian_shape']))} voxels of {tr['cartesian_spacing_mm']:g} mm.", "",
+           "Medians over the repeats (the fastest run in brackets), the routes interleaved repeat by repeat.", "",
            "| route | scan conversion ms/frame | tracking ms/frame | frames per second |", "| --- | --- | --- | --- |",
-           f"| beam space, sampled directly | - | {_fmt(tr['direct_ms_per_frame'], 1)} | {_fmt(tr['direct_fps'], 0)} |",
-           f"| scan-convert, then track | {_fmt(tr['scan_convert_ms_per_frame'], 1)} | "
-           f"{_fmt(tr['track_converted_ms_per_frame'], 1)} | {_fmt(tr['converted_fps'], 1)} "
+           f"| beam space, sampled directly | - | {_fmt(tr['direct_ms_per_frame'], 1)} "
+           f"({_fmt(tr.get('direct_ms_per_frame_min'), 1)}) | {_fmt(tr['direct_fps'], 0)} |",
+           f"| scan-convert, then track | {_fmt(tr['scan_convert_ms_per_frame'], 1)} "
+           f"({_fmt(tr.get('scan_convert_ms_per_frame_min'), 1)}) | {_fmt(tr['track_converted_ms_per_frame'], 1)} "
+           f"({_fmt(tr.get('track_converted_ms_per_frame_min'), 1)}) | {_fmt(tr['converted_fps'], 1)} "
            f"({_fmt(tr['converted_fps_excluding_conversion'], 0)} without the conversion) |", "",
            "Per trilinear sample (4096 points around the cavity, 9 samples along each normal, "
            "`sample_along` kernels; the Cartesian kernel reads the scan-converted sector):", "",
