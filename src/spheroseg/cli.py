@@ -90,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("image", help="beam-space .mha/.nrrd (ITK PhasedArray3D header keys), 3D or 3D+t")
     sc.add_argument("output", help="Cartesian image to write (.mha, .mhd, .nrrd, .nii, .nii.gz)")
     sc.add_argument("--voxel-size", type=float, metavar="MM",
-                    help="isotropic voxel size in mm (default: the finest beam spacing)")
+                    help="isotropic voxel size in mm (default: the beams' spacing at mid depth)")
     sc.add_argument("--nearest", action="store_true", help="nearest sample instead of trilinear in [r, e, a]")
     sc.add_argument("--force", action="store_true", help="overwrite an existing output")
     sc.add_argument("--quiet", action="store_true")
@@ -230,7 +230,8 @@ def cmd_segment(args) -> int:
     if not args.no_report:
         from .report import save_report
 
-        save_report(out / "report.png", _displayable(volume), result.surface, mask=mask, title=f"{source.name}: {result.volume_ml:.1f} mL")
+        save_report(out / "report.png", _displayable(volume), result.surface, mask=mask,
+                    title=f"{source.name}: {result.volume_ml:.1f} mL")
         files["report"] = "report.png"
     results = {
         "input": str(source), "volume_ml": result.volume_ml, "iterations": result.iterations,
@@ -268,8 +269,9 @@ def _write_tracking_outputs(out: Path, volumes, result, suffix: str, stl: bool, 
         from .report import save_report
 
         ed = result.ed_frame
-        save_report(out / "report.png", _displayable(volumes[ed]), result.frames[ed].surface, volumes_ml=result.volumes_ml,
-                    ed_frame=ed, es_frame=result.es_frame, title=title, truth_mask=truth_mask)
+        save_report(out / "report.png", _displayable(volumes[ed]), result.frames[ed].surface,
+                    volumes_ml=result.volumes_ml, ed_frame=ed, es_frame=result.es_frame, title=title,
+                    truth_mask=truth_mask)
 
 
 def cmd_track(args) -> int:
