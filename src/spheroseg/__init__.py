@@ -12,6 +12,7 @@ __version__ = "0.1.0"
 from .beamspace import BeamGeometry, BeamVolume, scan_convert, to_beam_space
 from .coords import Cylindrical, Pose, ProlateSpheroidal, Spherical
 from .hermite import HermiteGrid
+from .batch import segment_many
 from .io import ImageFileError, load, load_sequence, save_mask, save_volume
 from .options import SegmentOptions
 from .results import Intermediate, SegmentationResult, TrackingResult
@@ -24,5 +25,5 @@ __all__ = [
     "load", "load_sequence", "save_mask", "segment", "track", "Tracker", "SegmentOptions", "Intermediate",
     "Volume", "Surface", "ImageGrid", "Pose", "ProlateSpheroidal", "Spherical", "Cylindrical", "HermiteGrid",
     "SegmentationResult", "TrackingResult", "ImageFileError", "BeamGeometry", "BeamVolume", "scan_convert",
-    "to_beam_space", "save_volume",
+    "to_beam_space", "save_volume", "segment_many",
 ]
