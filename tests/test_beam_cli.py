@@ -57,7 +57,8 @@ def test_scan_convert_verb(case, tmp_path):
     np.testing.assert_allclose(out.origin, expected.origin, atol=1e-4)
     # never over an existing output without --force, never over the input
     assert_one_line_error(run("scan-convert", folder / "beam.mha", tmp_path / "cart.nii.gz"), "exists")
-    assert_one_line_error(run("scan-convert", folder / "beam.mha", folder / "beam.mha", "--force"), "overwrite the input")
+    assert_one_line_error(run("scan-convert", folder / "beam.mha", folder / "beam.mha", "--force"),
+                          "overwrite the input")
     assert run("scan-convert", folder / "beam.mha", tmp_path / "cart.nii.gz", "--force", "--nearest",
                "--quiet").returncode == 0
 

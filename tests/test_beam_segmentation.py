@@ -7,8 +7,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from spheroseg import _beam_kernels, segment, track
-from spheroseg.beamspace import BeamGeometry, scan_convert, to_beam_space
-from spheroseg.phantom import make_phantom, make_sequence
+from spheroseg.beamspace import BeamGeometry, beam_mask, beam_mask_volume_ml, scan_convert, to_beam_space
+from spheroseg.phantom import FORMATIONS, make_phantom, make_sequence
 
 
 def phantom_geometry(volume, convention="tan"):
@@ -31,7 +31,10 @@ def mean_distance(a, b):
 def test_beam_space_and_scan_converted_segmentations_agree(convention):
     ph = make_phantom(seed=1, spacing=1.5)
     beam = to_beam_space(ph.volume, phantom_geometry(ph.volume, convention))
-    cartesian = scan_convert(beam)
+    # a 1 mm grid: the default (the beams' 1.4 mm spacing at mid depth) blurs
+    # the edge more and moves the converted volume up by 1.9 % here, 2-3 %
+    # on other phantoms (docs/benchmarks.md, "Beam space")
+    cartesian = scan_convert(beam, beam.geometry.cartesian_grid(1.0))
     direct = segment(beam, ph.apex, ph.base)
     converted = segment(cartesian, ph.apex, ph.base)
     assert direct.status == converted.status == 0
@@ -42,6 +45,24 @@ def test_beam_space_and_scan_converted_segmentations_agree(convention):
     mask = direct.mask(beam)
     assert mask.shape == beam.grid.shape
     assert mask.sum() * np.prod(beam.grid.spacing) / 1000 == pytest.approx(direct.volume_ml, rel=0.02)
+    # or in beam space, each sample weighted by its cell's volume (the Jacobian)
+    in_beams = beam_mask(direct.surface, beam.geometry)
+    assert beam_mask_volume_ml(in_beams, beam.geometry) == pytest.approx(direct.volume_ml, rel=0.005)
+
+
+def test_phantom_formed_in_beam_space():
+    """Echo formed in beam space (speckle, PSF, attenuation), segmented there
+    and after scan conversion to 1 mm: the surfaces agree to under 0.5 mm;
+    the volumes differ by 1.4-2.2 % on seeds 1-4 (the converted one larger:
+    its image went through one more interpolation; docs/benchmarks.md,
+    "Beam space"), so this checks 2.5 %, not the 2 % the issue hoped for."""
+    ph = make_phantom(seed=1, spacing=1.5, formation=FORMATIONS["default"], beam_space=True)
+    beam = ph.beam_volume
+    direct = segment(beam, ph.apex, ph.base)
+    converted = segment(scan_convert(beam, beam.geometry.cartesian_grid(1.0)), ph.apex, ph.base)
+    assert mean_distance(direct, converted) < 0.5
+    assert direct.volume_ml == pytest.approx(converted.volume_ml, rel=0.025)
+    assert direct.volume_ml == pytest.approx(ph.truth_volume_ml, rel=0.03)
 
 
 @pytest.mark.skipif(not _beam_kernels.AVAILABLE, reason="numba not installed")
@@ -60,7 +81,8 @@ def test_tracking_a_beam_space_sequence():
     geometry = phantom_geometry(seq.volumes[0])
     frames = [to_beam_space(v, geometry) for v in seq.volumes]
     result = track(frames, apex, base)
-    reference = track([scan_convert(f) for f in frames], apex, base)
+    fine = geometry.cartesian_grid(1.0)  # finer than the default: less blur added by the conversion
+    reference = track([scan_convert(f, fine) for f in frames], apex, base)
     np.testing.assert_allclose(result.volumes_ml, reference.volumes_ml, rtol=0.03)
     # the cycle is seen: end-diastole and end-systole where the truth has them
     assert np.argmax(result.volumes_ml) == np.argmax(seq.truth_volumes_ml)

@@ -12,7 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from spheroseg.beamspace import BeamGeometry, BeamVolume, scan_convert, to_beam_space
+from spheroseg.beamspace import (BeamGeometry, BeamVolume, beam_mask, beam_mask_volume_ml, scan_convert,
+                                 to_beam_space)
 from spheroseg.volume import ImageGrid, Volume
 
 SHAPE = (60, 21, 25)  # [r, e, a]
@@ -154,7 +155,8 @@ def linear_in_index(g):
     """Samples that are an affine function of the index: trilinear
     interpolation in [r, e, a] reproduces it exactly at any point."""
     r, e, a = np.meshgrid(*[np.arange(n, dtype=float) for n in g.shape], indexing="ij")
-    return 2.0 * r - 3.0 * e + 0.5 * a + 7.0, lambda idx: 2.0 * idx[..., 0] - 3.0 * idx[..., 1] + 0.5 * idx[..., 2] + 7.0
+    values = 2.0 * r - 3.0 * e + 0.5 * a + 7.0
+    return values, lambda idx: 2.0 * idx[..., 0] - 3.0 * idx[..., 1] + 0.5 * idx[..., 2] + 7.0
 
 
 @pytest.mark.parametrize("convention", ["tan", "sin"])
@@ -231,7 +233,7 @@ def test_scan_convert_default_grid_and_type_errors():
     vol = BeamVolume(np.ones(g.shape), g)
     cart = scan_convert(vol)
     assert cart.shape == vol.grid.shape and np.allclose(cart.origin, vol.grid.origin)
-    assert np.allclose(cart.spacing, 2.0)  # the radial sample size: finer than 4 deg at mid depth (29 mm)
+    assert np.allclose(cart.spacing, 29.0 * math.radians(4))  # the beams' spacing at mid depth (29 mm)
     with pytest.raises(TypeError):
         scan_convert(cart)
     with pytest.raises(TypeError):
@@ -239,3 +241,27 @@ def test_scan_convert_default_grid_and_type_errors():
     with pytest.raises(TypeError):
         scan_convert(vol, grid=(10, 10, 10))
     assert isinstance(vol.grid, ImageGrid)
+
+
+class Ball:
+    """A region with an exact volume: 4/3 pi R^3."""
+
+    def __init__(self, centre, radius):
+        self.centre, self.radius = np.asarray(centre, float), float(radius)
+
+    def contains(self, world):
+        return np.linalg.norm(np.asarray(world) - self.centre, axis=-1) <= self.radius
+
+
+@pytest.mark.parametrize("convention", ["tan", "sin"])
+def test_beam_mask_volume_with_the_jacobian(convention):
+    g = BeamGeometry((140, 45, 45), 0.5, 20.0, math.radians(1.0), math.radians(1.0), convention=convention)
+    # off the central planes: the conventions' cells differ there
+    ball = Ball(g.index_to_world([70.0, 32.0, 12.0]), 9.0)
+    mask = beam_mask(ball, g)
+    exact = 4 / 3 * math.pi * 9.0**3 / 1000
+    assert beam_mask_volume_ml(mask, g) == pytest.approx(exact, rel=0.005)
+    # counting samples without the Jacobian is far off (cells grow with depth and angle)
+    assert mask.sum() * 0.5 * math.radians(1) ** 2 / 1000 != pytest.approx(exact, rel=0.5)
+    with pytest.raises(ValueError, match="not the geometry"):
+        beam_mask_volume_ml(mask[1:], g)

@@ -7,7 +7,7 @@ of :meth:`BeamVolume.sampling_view` (flat samples, strides, last index,
 the probe's rotation and apex, the index step and offset, the convention)
 instead of a Cartesian image's.  Each sample is taken in the probe frame
 (a point and a normal are rotated once per row; along the normal the probe
-frame is still linear) and then costs one ``sqrt`` and two ``atan2`` (a
+frame is still linear) and then costs one ``sqrt`` and two ``atan`` (a
 second ``sqrt`` in the "sin" convention) before the trilinear interpolation
 in ``[r, e, a]``.  :meth:`BeamVolume.sample` is the reference; the tests
 require equal values.
@@ -34,22 +34,24 @@ AVAILABLE = njit is not None
 def _sample(values, strides, upper, separations, index_offset, sin_convention, x, y, z):
     """Trilinear sample in ``[r, e, a]`` at the probe-frame point ``(x, y, z)``,
     as :meth:`spheroseg.beamspace.BeamVolume.sample`: NaN outside the
-    sector (behind the probe in the "tan" convention) and on no-data."""
+    sector (which lies in z > 0) and on no-data."""
+    # the sector lies in z > 0 in both conventions (half-angles under 90
+    # degrees), where atan2(u, z) = atan(u / z), the cheaper call
+    if not z > 0.0:
+        return np.nan
     rho = math.sqrt(x * x + y * y + z * z)
-    if sin_convention:
-        if rho == 0.0:
-            return np.nan
-        alpha = math.atan2(x, math.sqrt(y * y + z * z))
-    else:
-        if not z > 0.0:
-            return np.nan
-        alpha = math.atan2(x, z)
-    beta = math.atan2(y, z)
     fr = (rho - index_offset[0]) / separations[0]
+    if not (fr >= -_EDGE and fr <= upper[0] + _EDGE):  # off the range: no angles needed
+        return np.nan
+    inv_z = 1.0 / z
+    beta = math.atan(y * inv_z)
+    if sin_convention:
+        alpha = math.atan(x / math.sqrt(y * y + z * z))
+    else:
+        alpha = math.atan(x * inv_z)
     fe = (beta - index_offset[1]) / separations[1]
     fa = (alpha - index_offset[2]) / separations[2]
-    if not (fr >= -_EDGE and fe >= -_EDGE and fa >= -_EDGE
-            and fr <= upper[0] + _EDGE and fe <= upper[1] + _EDGE and fa <= upper[2] + _EDGE):
+    if not (fe >= -_EDGE and fa >= -_EDGE and fe <= upper[1] + _EDGE and fa <= upper[2] + _EDGE):
         return np.nan
     fr = min(max(fr, 0.0), upper[0])
     fe = min(max(fe, 0.0), upper[1])

@@ -504,9 +504,8 @@ def run_study(study: Study, out: str | os.PathLike, *, options: dict | None = No
             _test_hook(study.id)
             apex, base, landmarks, annulus = _points(study)
             sequence = _is_sequence(study.image) if study.track is None else study.track
-            common = dict(source=study.image, apex=apex, base=base, landmarks=landmarks, mask_suffix=suffix,
-                          extra={"id": study.id, "checksum": checksum, "study": study.as_entry(),
-                                 **({"annulus": annulus} if annulus is not None else {}),
+            common = dict(source=study.image, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
+                          mask_suffix=suffix, extra={"id": study.id, "checksum": checksum, "study": study.as_entry(),
                                  "options": {**options, "iterations_per_frame": per_frame, "no_data_value": no_data,
                                              "mask_suffix": suffix, **writer}}, **writer)
             t0 = time.perf_counter()

@@ -33,9 +33,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from . import _beam_kernels
 from .volume import INDEX_TOLERANCE, ImageGrid, Volume
 
-__all__ = ["BeamGeometry", "BeamVolume", "BeamSamplingView", "CONVENTIONS", "scan_convert", "to_beam_space"]
+__all__ = ["BeamGeometry", "BeamVolume", "BeamSamplingView", "CONVENTIONS", "scan_convert", "to_beam_space",
+           "beam_mask", "beam_mask_volume_ml"]
 
 #: the angle conventions :class:`BeamGeometry` knows
 CONVENTIONS = ("tan", "sin")
@@ -117,16 +119,17 @@ class BeamGeometry:
         m.flags.writeable = False
         object.__setattr__(self, "probe_to_world", m)
 
-    def _key(self) -> tuple:
+    def key(self) -> tuple:
+        """The fields as a hashable tuple (equality and hashing)."""
         return (self.shape, self.radius_sample_size, self.first_sample_distance, self.azimuth_angular_separation,
                 self.elevation_angular_separation, self.convention, self.centre_index,
                 tuple(self.probe_to_world.ravel()))
 
     def __eq__(self, other) -> bool:
-        return isinstance(other, BeamGeometry) and self._key() == other._key()
+        return isinstance(other, BeamGeometry) and self.key() == other.key()
 
     def __hash__(self) -> int:
-        return hash(self._key())
+        return hash(self.key())
 
     # --- angles ----------------------------------------------------------
 
@@ -254,12 +257,12 @@ class BeamGeometry:
         return w.min(0), w.max(0)
 
     def default_spacing(self) -> float:
-        """The finest beam spacing (mm): the radial sample size, or the
-        distance between neighbouring beams at the sector's mid depth if
-        smaller."""
+        """The finest distance between neighbouring beams at the sector's
+        mid depth (mm): the lateral sampling a Cartesian grid needs there.
+        (The radial sample size is usually finer than the beams' resolution;
+        a grid that fine would hold ~100 times the samples.)"""
         mid = self.first_sample_distance + 0.5 * self.upper[0] * self.radius_sample_size
-        lateral = mid * min(self.azimuth_angular_separation, self.elevation_angular_separation)
-        return float(min(self.radius_sample_size, lateral))
+        return float(mid * min(self.azimuth_angular_separation, self.elevation_angular_separation))
 
     def cartesian_grid(self, spacing=None) -> ImageGrid:
         """A Cartesian grid covering the sector, axes along the probe's.
@@ -315,8 +318,8 @@ class BeamVolume:
     Notes
     -----
     Masks and volumes stay in world space: :attr:`grid` is the Cartesian grid
-    covering the sector at :meth:`BeamGeometry.default_spacing`, on which
-    ``result.mask(beam_volume)`` is drawn.
+    covering the sector at :meth:`BeamGeometry.default_spacing` (the beams'
+    spacing at mid depth), on which ``result.mask(beam_volume)`` is drawn.
     """
 
     def __init__(self, array, geometry: BeamGeometry, *, no_data_value=None, no_data_mask=None):
@@ -425,10 +428,24 @@ class BeamVolume:
                 f"first_sample_distance={g.first_sample_distance:g}, convention={g.convention!r})")
 
 
-def _grid_points(grid: ImageGrid) -> np.ndarray:
-    nz, ny, nx = grid.shape
-    k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
-    return grid.index_to_world(np.stack([i, j, k], axis=-1).reshape(-1, 3).astype(float))
+def _grid_slice_points(grid: ImageGrid, k: int) -> np.ndarray:
+    """World points of the voxels of slice ``k`` (x fastest), (ny * nx, 3)."""
+    _, ny, nx = grid.shape
+    j, i = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
+    index = np.stack([i.ravel(), j.ravel(), np.full(i.size, k)], axis=-1).astype(float)
+    return grid.index_to_world(index)
+
+
+def _sample_points(volume: BeamVolume, points: np.ndarray, order: int) -> np.ndarray:
+    """``volume.sample(points, order=order)``, trilinear through the compiled
+    kernel when numba is installed (tested equal)."""
+    if order != 1 or not _beam_kernels.AVAILABLE:
+        return volume.sample(points, order=order)
+    n = len(points)
+    out, count = np.empty(n), np.empty(n, np.int64)
+    _beam_kernels.sample_along(*volume.sampling_view(), np.ascontiguousarray(points.T), np.zeros((3, n)),
+                               np.arange(n), np.zeros(1), 0.0, out, count)
+    return out
 
 
 def scan_convert(volume: BeamVolume, grid: ImageGrid | None = None, *, order: int = 1) -> Volume:
@@ -438,7 +455,8 @@ def scan_convert(volume: BeamVolume, grid: ImageGrid | None = None, *, order: in
     ----------
     volume : BeamVolume
     grid : ImageGrid, optional
-        Default: ``volume.grid``, covering the sector at the finest beam spacing.
+        Default: ``volume.grid``, covering the sector at the beams' spacing at
+        mid depth.
     order : {0, 1}
         Nearest sample or trilinear in ``[r, e, a]``.
 
@@ -453,7 +471,10 @@ def scan_convert(volume: BeamVolume, grid: ImageGrid | None = None, *, order: in
     grid = volume.grid if grid is None else grid
     if not isinstance(grid, ImageGrid):
         raise TypeError(f"grid must be an ImageGrid, got {type(grid).__name__}")
-    values = volume.sample(_grid_points(grid), order=order).reshape(grid.shape)
+    if order not in (0, 1):
+        raise ValueError(f"order must be 0 (nearest sample) or 1 (trilinear), got {order!r}")
+    values = np.stack([_sample_points(volume, _grid_slice_points(grid, k), order) for k in range(grid.shape[0])])
+    values = values.reshape(grid.shape)
     missing = np.isnan(values)
     return Volume(np.where(missing, 0.0, values), spacing=grid.spacing, origin=grid.origin, direction=grid.direction,
                   no_data_mask=missing)
@@ -471,3 +492,27 @@ def to_beam_space(volume: Volume, geometry: BeamGeometry, *, order: int = 1) -> 
     values = volume.sample(geometry.index_to_world(index.reshape(-1, 3)), order=order).reshape(geometry.shape)
     missing = np.isnan(values)
     return BeamVolume(np.where(missing, 0.0, values), geometry, no_data_mask=missing if missing.any() else None)
+
+
+def beam_mask(region, geometry: BeamGeometry) -> np.ndarray:
+    """Boolean mask ``[r, e, a]`` of the samples inside ``region`` (anything
+    with ``contains(world_points)``, e.g. a :class:`~spheroseg.Surface`):
+    the beam-space alternative to a mask on a Cartesian grid."""
+    if not isinstance(geometry, BeamGeometry):
+        raise TypeError(f"geometry must be a BeamGeometry, got {type(geometry).__name__}")
+    n_r, n_e, n_a = geometry.shape
+    index = np.stack(np.meshgrid(np.arange(n_e, dtype=float), np.arange(n_a, dtype=float), indexing="ij"), -1)
+    out = np.empty(geometry.shape, dtype=bool)
+    for r in range(n_r):  # a shell at a time: bounded memory
+        shell = np.concatenate([np.full(index.shape[:-1] + (1,), float(r)), index], axis=-1)
+        out[r] = region.contains(geometry.index_to_world(shell))
+    return out
+
+
+def beam_mask_volume_ml(mask, geometry: BeamGeometry) -> float:
+    """Volume (mL) of a beam-space mask: each sample counts the volume of its
+    index cell, ``geometry.jacobian`` (mm^3) at the sample (midpoint rule)."""
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != geometry.shape:
+        raise ValueError(f"the mask's shape {mask.shape} is not the geometry's {geometry.shape}")
+    return float(geometry.jacobian(np.argwhere(mask).astype(float)).sum()) / 1000.0

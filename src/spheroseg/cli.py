@@ -114,12 +114,20 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("sequence", help="4D image, .seq.nrrd, folder or glob of 3D frames, DICOM folder")
     _add_common(tr)
     tr.add_argument("--iterations-per-frame", type=int, default=20)
+    sc = sub.add_parser("scan-convert", help="resample a beam-space image or 3D+t sequence on a Cartesian grid")
+    sc.add_argument("image", help="beam-space .mha/.nrrd (ITK PhasedArray3D header keys), 3D or 3D+t")
+    sc.add_argument("output", help="Cartesian image to write (.mha, .mhd, .nrrd, .nii, .nii.gz)")
+    sc.add_argument("--voxel-size", type=float, metavar="MM",
+                    help="isotropic voxel size in mm (default: the beams' spacing at mid depth)")
+    sc.add_argument("--nearest", action="store_true", help="nearest sample instead of trilinear in [r, e, a]")
+    sc.add_argument("--force", action="store_true", help="overwrite an existing output")
+    sc.add_argument("--quiet", action="store_true")
     batch = sub.add_parser("batch", help="segment or track every study of a manifest (JSON or CSV), resumably",
                            description="Segment or track every study of a manifest; DIR/<id>/ per study, "
                                        "DIR/summary.json and .csv. Exit status: 0 every study ok, 1 some failed, "
                                        "2 a bad manifest or bad options (nothing run); 130 interrupted.")
-    batch.add_argument("manifest", help="JSON (a list of studies) or CSV; keys id, image, apex, base, annulus, "
-                                        "landmarks, points, spacing, track")
+    batch.add_argument("manifest", help="JSON (a list of studies) or CSV; keys id, image, apex, base, landmarks, "
+                                        "points, spacing, track")
     batch.add_argument("--out", required=True, metavar="DIR", help="cohort folder (created if missing)")
     where = batch.add_mutually_exclusive_group()
     where.add_argument("--workers", type=_positive(int), metavar="N", help="local worker processes (default: one per core)")
@@ -129,14 +137,6 @@ def build_parser() -> argparse.ArgumentParser:
     batch.add_argument("--timeout", type=_positive(float), metavar="S", help="seconds a study may take")
     batch.add_argument("--iterations-per-frame", type=int, default=20)
     _add_options(batch)
-    sc = sub.add_parser("scan-convert", help="resample a beam-space image or 3D+t sequence on a Cartesian grid")
-    sc.add_argument("image", help="beam-space .mha/.nrrd (ITK PhasedArray3D header keys), 3D or 3D+t")
-    sc.add_argument("output", help="Cartesian image to write (.mha, .mhd, .nrrd, .nii, .nii.gz)")
-    sc.add_argument("--voxel-size", type=float, metavar="MM",
-                    help="isotropic voxel size in mm (default: the finest beam spacing)")
-    sc.add_argument("--nearest", action="store_true", help="nearest sample instead of trilinear in [r, e, a]")
-    sc.add_argument("--force", action="store_true", help="overwrite an existing output")
-    sc.add_argument("--quiet", action="store_true")
     demo = sub.add_parser("demo", help="track a built-in synthetic sequence and compare with its truth")
     demo.add_argument("--out", metavar="DIR", help="output folder (default: a new ./spheroseg-demo*)")
     demo.add_argument("--force", action="store_true")
@@ -226,9 +226,8 @@ def cmd_segment(args) -> int:
     volume = load(source, spacing=args.spacing, no_data_value=args.no_data)
     t_load = time.perf_counter() - t0
     result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, **_segment_kwargs(args))
-    write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base, landmarks=landmarks,
-                               mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load},
-                               extra={"annulus": annulus} if annulus is not None else None)
+    write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
+                               mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
     _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
     return 0
 
@@ -259,9 +258,8 @@ def cmd_track(args) -> int:
     finally:
         if bar is not None:
             bar.close()
-    write_tracking_outputs(out, volumes, result, source=source, apex=apex, base=base, landmarks=landmarks,
-                           mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load},
-                           extra={"annulus": annulus} if annulus is not None else None)
+    write_tracking_outputs(out, volumes, result, source=source, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
+                           mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
     _say(args, f"EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
                f"(frame {result.es_frame}), EF {result.ef:.1f} %; outputs in {out}")
     return 0

@@ -176,7 +176,7 @@ def beam_geometry_from_header(keys: dict, shape, *, source="header") -> tuple[Be
     if any(given):
         if not all(given):
             raise ImageFileError(f"{source}: give both ElevationCenterIndex and AzimuthCenterIndex, or neither")
-        centre = (_numbers(keys, "ElevationCenterIndex", 1, source)[0], _numbers(keys, "AzimuthCenterIndex", 1, source)[0])
+        centre = tuple(_numbers(keys, k, 1, source)[0] for k in ("ElevationCenterIndex", "AzimuthCenterIndex"))
     pose = np.eye(4) if "ProbeToWorldTransform" not in keys else \
         _numbers(keys, "ProbeToWorldTransform", 16, source).reshape(4, 4)
     no_data = _numbers(keys, "NoDataValue", 1, source)[0] if "NoDataValue" in keys else None

@@ -112,15 +112,15 @@ def _displayable(volume):
     return scan_convert(volume) if isinstance(volume, BeamVolume) else volume
 
 
-def _geometry(apex, base, surface) -> dict:
-    """The points given and the model's axis; without ``base`` (an annulus
-    given instead) the base is the model's origin, the annulus plane's centre."""
-    return {"apex": np.asarray(apex, dtype=float),
-            "base": np.asarray(base, dtype=float) if base is not None else surface.pose.origin,
-            "annulus": [], "long_axis": surface.pose.axis}
+def _placement(result, apex, base, annulus) -> dict:
+    """The points given and the plane the cavity was closed at (the base used
+    is the model's origin: the annulus's centre when only that was given)."""
+    pose = result.surface.pose
+    return {"apex": np.asarray(apex, dtype=float), "base": pose.origin if base is None else np.asarray(base, float),
+            "annulus": _points(annulus), "long_axis": pose.rotation[:, 0]}
 
 
-def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, base, landmarks=None,
+def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, base=None, annulus=None, landmarks=None,
                                mask_suffix: str = ".nii.gz", stl: bool = False, report: bool = True,
                                seconds: dict | None = None, extra: dict | None = None) -> dict:
     """Write the outputs of :func:`spheroseg.segment` into the folder ``out``.
@@ -140,10 +140,10 @@ def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, 
     source : str or Path, optional
         The input's path, recorded as ``input`` and named in the report title.
     apex, base : array_like (3,)
-        The points given, world mm (LPS), recorded; ``base`` may be None
-        when the mitral annulus was given instead (pass it as
-        ``extra={"annulus": points}``): the base recorded is then the
-        model's origin.
+        The points given, world mm (LPS), recorded (``base`` may be None
+        with an ``annulus``: the model's origin is recorded).
+    annulus : array_like (k, 3), optional
+        Points of the mitral annulus given, recorded with the long axis.
     landmarks : array_like (k, 3), optional
     mask_suffix : str
         Image type of the mask, e.g. ``.nii.gz``, ``.mha``, ``.npy``.
@@ -177,14 +177,14 @@ def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, 
         "input": None if source is None else str(source), "volume_ml": result.volume_ml,
         "iterations": result.iterations, "converged": result.converged, **_outcome(result),
         "c_in": result.c_in, "c_out": result.c_out, "seconds": timings,
-        **_geometry(apex, base, result.surface), "landmarks": _points(landmarks),
+        **_placement(result, apex, base, annulus), "landmarks": _points(landmarks),
         "parameters": result.parameters, "units": dict(_UNITS), "files": files, "versions": versions(),
         **(extra or {}),
     }
     return write_json(out / "results.json", results)
 
 
-def write_tracking_outputs(out: Path, volumes, result, *, source=None, apex, base, landmarks=None,
+def write_tracking_outputs(out: Path, volumes, result, *, source=None, apex, base=None, annulus=None, landmarks=None,
                            mask_suffix: str = ".nii.gz", stl: bool = False, report: bool = True,
                            seconds: dict | None = None, extra: dict | None = None) -> dict:
     """Write the outputs of :func:`spheroseg.track` into the folder ``out``.
@@ -218,7 +218,8 @@ def write_tracking_outputs(out: Path, volumes, result, *, source=None, apex, bas
 
         name = Path(source).name if source is not None else "sequence"
         ed = result.ed_frame
-        save_report(out / "report.png", _displayable(volumes[ed]), result.frames[ed].surface, volumes_ml=result.volumes_ml,
+        save_report(out / "report.png", _displayable(volumes[ed]), result.frames[ed].surface,
+                    volumes_ml=result.volumes_ml,
                     ed_frame=ed, es_frame=result.es_frame,
                     title=f"{name}: EDV {result.edv_ml:.1f} mL, ESV {result.esv_ml:.1f} mL, EF {result.ef:.1f} %")
     timings = dict(seconds or {})
@@ -229,7 +230,8 @@ def write_tracking_outputs(out: Path, volumes, result, *, source=None, apex, bas
         "volumes_ml": result.volumes_ml, "edv_ml": result.edv_ml, "esv_ml": result.esv_ml, "ef_percent": result.ef,
         "ed_frame": result.ed_frame, "es_frame": result.es_frame, **_outcome(result),
         "iterations": [f.iterations for f in result.frames], "seconds": timings,
-        **_geometry(apex, base, result.frames[0].surface), "landmarks": _points(landmarks),
+        **_placement(result.frames[0], apex, base, annulus), "landmarks": _points(landmarks),
+        "bases": [f.surface.pose.origin for f in result.frames],
         "parameters": {**result.frames[0].parameters, "iterations_per_frame": later.get("max_iterations")},
         "units": {**_UNITS, "ef": "percent"}, "versions": versions(),
         **(extra or {}),

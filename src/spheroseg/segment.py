@@ -134,6 +134,7 @@ def track(
     *,
     annulus=None,
     iterations_per_frame: int = 20,
+    follow_base: bool = True,
     progress: Callable[[int, int], None] | None = None,
     landmarks=None,
     init: Surface | None = None,
@@ -147,10 +148,12 @@ def track(
     the previous frame's surface (:meth:`Tracker.step`) and runs until the
     surface stops moving (``tol``), at most ``iterations_per_frame``
     iterations: the paper used 3 to 5; on the 10-frame phantom cycles, where
-    the wall moves up to 4 mm between frames, 4 to 7 are run.  The model, its
-    matrices and the region statistics of the first frame are reused.  The
-    apex and base points (or the annulus), so the base plane, stay those of
-    the first frame.
+    the wall moves up to 4 mm between frames, 4 to 7 are run.  The matrices
+    of the first frame are reused.  The apex stays where it was clicked; the
+    base (mitral) plane keeps its orientation and follows the annulus along
+    the long axis from frame to frame (``follow_base``, see
+    :mod:`spheroseg.annulus`: it moves 8-15 mm towards the apex in systole;
+    kept still, the end-systolic cavity reaches into the atrium).
 
     Parameters
     ----------
@@ -159,6 +162,9 @@ def track(
         As :func:`segment`.
     iterations_per_frame : int
         Cap on iterations of every frame after the first.
+    follow_base : bool
+        Move the base plane with the mitral annulus (False: the first
+        frame's plane throughout, as round 1 did).
     progress : callable, optional
         ``progress(frames_done, frames)`` after each frame.
 
@@ -176,7 +182,8 @@ def track(
     frames = []
     for volume in volumes:
         if frames:
-            frames.append(tracker.step(volume, max_iterations=iterations_per_frame, iter_callback=iter_callback))
+            frames.append(tracker.step(volume, max_iterations=iterations_per_frame, iter_callback=iter_callback,
+                                       follow_base=follow_base))
         else:
             frames.append(tracker.run(iter_callback))
         if progress is not None:

@@ -199,12 +199,16 @@ class Tracker:
             _check_point(self.volume, point, f"landmark {k}")
         return points
 
-    def _held_points(self):
-        """The landmarks and, when it has a weight, the clicked apex: a point
-        of the endocardium the user gave (near-field clutter would otherwise
-        push it down)."""
+    def _held_points(self, pose):
+        """The landmarks on the cavity's side of ``pose``'s base plane (a
+        followed annulus can leave one beyond it) and, when it has a weight,
+        the clicked apex: a point of the endocardium the user gave
+        (near-field clutter would otherwise push it down)."""
         opts = self.options
         points, weights = self.landmarks, np.full(len(self.landmarks), opts.landmark_weight)
+        if len(points):
+            inside = pose.to_local(points)[:, 0] >= 0
+            points, weights = points[inside], weights[inside]
         if opts.apex_weight > 0:
             points = np.concatenate([points, self.apex[None]])
             weights = np.concatenate([weights, [opts.apex_weight]])
@@ -218,7 +222,7 @@ class Tracker:
                                  f"{patches[0]} x {patches[1]} or refine to it")
             surface, reference = surface.refine(), reference.refine()
         self._reference = reference
-        points, weights = self._held_points()
+        points, weights = self._held_points(surface.pose)
         opts = self.options
         return Descent(surface, reference, order=opts.order, step=opts.step, smoothness=opts.smoothness, nu=opts.nu,
                        landmarks=points, landmark_weights=weights, backend=opts.backend,
@@ -322,13 +326,17 @@ class Tracker:
                     self.stop(2)
         return self.result()
 
-    def step(self, volume, *, max_iterations: int | None = None, iter_callback=None) -> SegmentationResult:
+    def step(self, volume, *, max_iterations: int | None = None, iter_callback=None,
+             follow_base: bool = False) -> SegmentationResult:
         """Segment a new frame, starting from the current surface.
 
-        The finest level continues on ``volume``: same model, matrices and
-        region statistics; the current surface is the start and the
-        reference shape of the smoothing prior; at most ``max_iterations``
-        (default: the options') until the surface stops moving.
+        The finest level continues on ``volume``: same matrices and data
+        term (its statistics measured again); the current surface is the
+        start and the reference shape of the smoothing prior; at most
+        ``max_iterations`` (default: the options') until the surface stops
+        moving.  With ``follow_base``, the mitral plane first moves along the
+        long axis with the annulus (:func:`spheroseg.annulus.annulus_shift`)
+        and the model is posed there.
         """
         _check_volume(volume)
         if max_iterations is not None and not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 1):
@@ -336,27 +344,70 @@ class Tracker:
         if self.status is None:
             self.run()  # the current frame first
         started = time.perf_counter()
+        if follow_base:
+            self._follow_base(volume)
         surface = self.surface
         cap = self.options.max_iterations if max_iterations is None else int(max_iterations)
-        self.levels[-1] = Level(self.levels[-1].patches, self.levels[-1].data_term, cap)
-        self.level = len(self.levels) - 1
-        self._terms[self.levels[-1].data_term].reset()
+        # the levels on the finest patches run again (for the intensity mode:
+        # the local means, then the interface measured where they end)
+        finest = [k for k, level in enumerate(self.levels) if level.patches == self.levels[-1].patches]
+        for k in finest:
+            self.levels[k] = Level(self.levels[k].patches, self.levels[k].data_term, cap)
         self.volume = volume
-        self._descent.set_surface(surface)
-        self._descent.set_reference(surface)
-        self._descent.reset_step(self.options.step)
         self._reference = surface
+        if self.level != finest[0]:
+            self.level = finest[0]
+            self._descent = self._new_descent(surface, surface)
+        else:
+            self._descent.set_surface(surface)
+            self._descent.set_reference(surface)
+            self._descent.reset_step(self.options.step)
+        self._terms[self.levels[self.level].data_term].reset()
         self.iteration, self._level_iterations, self.status, self._converged = 0, 0, None, False
         self._seconds = time.perf_counter() - started
         self._frame_options = {"max_iterations": cap, "coarse_to_fine": False}
         return self.run(iter_callback)
+
+    def _follow_base(self, volume) -> None:
+        """Move the base plane with the annulus from the current frame to
+        ``volume``, and pose the model there: the plane keeps its
+        orientation, the apex stays; the current surface is fitted in the
+        new model (its points, extended a little beyond the old plane)."""
+        from .annulus import annulus_shift
+        from .fit import fit_surface
+
+        surface = self.surface
+        pose, grid = surface.pose, surface.grid
+        axis = pose.rotation[:, 0]  # from the base towards the apex
+        lo, hi = grid.v2_range
+        v1 = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+        ring = surface.points(v1, np.full_like(v1, hi))
+        radius = float(np.mean(np.linalg.norm(ring - pose.origin, axis=1)))
+        shift = annulus_shift(self.volume, volume, pose.origin, axis, radius)
+        if abs(shift) < 0.1:
+            return
+        opts, patches = self.options, (grid.n1, grid.n2)
+        self.base = pose.origin + shift * axis
+        if self.annulus is not None:
+            self.annulus = self.annulus + shift * axis
+            start = Surface.from_annulus(self.apex, self.annulus, base=self.base, system=opts.system,
+                                         patches=patches, radius_ratio=opts.radius_ratio)
+        else:
+            start = Surface.from_apex_base(self.apex, self.base, system=opts.system, patches=patches,
+                                           radius_ratio=opts.radius_ratio)
+        # the old surface, extrapolated a little past its plane (diastole
+        # moves the plane away from the apex, where it had no points)
+        v1, v2 = np.meshgrid(np.linspace(0, 2 * np.pi, 96, endpoint=False), np.linspace(lo, hi + 0.25 * (hi - lo), 48))
+        fitted = fit_surface(surface.points(v1.ravel(), v2.ravel()), system=start.system, pose=start.pose,
+                             patches=patches, v2_range=start.grid.v2_range, smoothness=1e-5)
+        self._descent = self._new_descent(fitted, fitted)
 
     def set_landmarks(self, landmarks) -> None:
         """Replace the user's landmarks (world points ``(k, 3)``) and continue
         the finest level from the current surface (the viewer's edits)."""
         points = self._check_landmarks(landmarks)
         self.landmarks = points
-        self._descent.set_landmarks(*self._held_points())
+        self._descent.set_landmarks(*self._held_points(self._descent.model.pose))
         self._descent.reset_step(self.options.step)
         self.level = len(self.levels) - 1 if self.status is not None else self.level
         self._level_iterations, self.status = 0, None
