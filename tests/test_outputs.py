@@ -58,7 +58,8 @@ def test_tracking_outputs_round_trip(tmp_path):
     written = write_tracking_outputs(tmp_path, seq.volumes, result, apex=first.apex, base=first.base)
     on_disk = json.loads((tmp_path / "results.json").read_text())
     assert written == on_disk and TRACK_KEYS <= set(on_disk)
-    assert on_disk["quality"] is None and on_disk["input"] is None
+    assert on_disk["quality"] == json.loads(json.dumps(result.quality)) and on_disk["input"] is None
+    assert len(on_disk["quality"]["frames"]) == 3 and on_disk["quality"]["poor"] == bool(on_disk["quality"]["warnings"])
     assert on_disk["parameters"]["iterations_per_frame"] == 7
     np.testing.assert_allclose(on_disk["volumes_ml"], result.volumes_ml, rtol=1e-12)
     assert on_disk["ef_percent"] == pytest.approx(100 * (1 - on_disk["esv_ml"] / on_disk["edv_ml"]))

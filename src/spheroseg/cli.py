@@ -229,7 +229,17 @@ def cmd_segment(args) -> int:
     write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
                                mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
     _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
+    _warn_quality([result])
     return 0
+
+
+def _warn_quality(frames) -> None:
+    """One line on stderr when a result is poor (results.json has the report)."""
+    from .quality import quality_warning
+
+    line = quality_warning(frames)
+    if line:
+        print(f"spheroseg: warning: {line}", file=sys.stderr)
 
 
 def cmd_track(args) -> int:
@@ -262,6 +272,7 @@ def cmd_track(args) -> int:
                            mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
     _say(args, f"EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
                f"(frame {result.es_frame}), EF {result.ef:.1f} %; outputs in {out}")
+    _warn_quality(result.frames)
     return 0
 
 

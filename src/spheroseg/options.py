@@ -74,7 +74,10 @@ class SegmentOptions:
         How strongly the landmarks hold the surface (1: a landmark
         outweighs the data over 5 % of the surface, about a patch at 4 x 4).
     apex_weight : float
-        The apex point is a landmark of this weight (0: free apex).
+        The apex point is a landmark of this weight (0: free apex).  The
+        default 10 holds the clicked apex against near-field clutter, which
+        fills the apical cavity with haze and pulled the surface tens of mm
+        towards the base at weight 1.
     order : int
         Sample points per patch and direction (paper: 8).
     radius_ratio : float
@@ -99,7 +102,7 @@ class SegmentOptions:
     nu: float = 0.0
     smoothness: float = 1.0
     landmark_weight: float = 1.0
-    apex_weight: float = 1.0
+    apex_weight: float = 10.0
     order: int = 8
     radius_ratio: float = DEFAULT_RADIUS_RATIO
     backend: str = "auto"

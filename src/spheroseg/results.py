@@ -40,6 +40,11 @@ class SegmentationResult:
         2 ``iter_callback`` raised ``StopIteration``.
     message : str
         The same in words.
+    quality : dict
+        How far the result can be trusted (:mod:`spheroseg.quality`):
+        ``contrast``, ``low_contrast_fraction``, ``no_data_fraction``,
+        ``converged``, ``apex_shift_mm``, ``volume_ratio``, ``warnings`` and
+        ``poor``.
     """
 
     surface: Surface
@@ -51,6 +56,7 @@ class SegmentationResult:
     parameters: dict = field(default_factory=dict)
     status: int = 0
     message: str = STATUS_MESSAGES[0]
+    quality: dict | None = None
 
     @property
     def volume_ml(self) -> float:
@@ -98,6 +104,14 @@ class TrackingResult:
     def ef(self) -> float:
         """Ejection fraction in percent, ``100 (EDV - ESV) / EDV``."""
         return 100.0 * (self.edv_ml - self.esv_ml) / self.edv_ml
+
+    @property
+    def quality(self) -> dict:
+        """The frames' quality reports: ``poor`` if any frame's is, their
+        ``warnings`` prefixed with the frame, and ``frames`` (one each)."""
+        reports = [f.quality or {} for f in self.frames]
+        warnings = [f"frame {t}: {w}" for t, q in enumerate(reports) for w in q.get("warnings", [])]
+        return {"poor": bool(warnings), "warnings": warnings, "frames": reports}
 
 
 @dataclass(frozen=True)

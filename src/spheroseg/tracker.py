@@ -26,6 +26,7 @@ from .coords import Pose
 from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, band_offsets
 from .descent import Descent
 from .options import SegmentOptions, format_point
+from .quality import quality_report
 from .results import STATUS_MESSAGES, Intermediate, SegmentationResult
 from .surface import Surface
 
@@ -183,6 +184,7 @@ class Tracker:
         self.iteration, self.motion, self.status = 0, np.nan, None
         self._level_iterations = 0
         self._converged = False
+        self._initial_volume = surface.volume_ml()
         self._seconds = time.perf_counter() - started
         self._skip_empty_levels()
 
@@ -276,6 +278,7 @@ class Tracker:
         obs = self._descent.observe(self.volume, term)
         force = term.force(self._descent.backend, self.volume, obs)
         self.c_in, self.c_out = term.grey_means
+        self._seen = (float(np.mean(~np.isfinite(obs.u))), np.asarray(force.c_out - force.c_in, float), term.spread)
         self.motion = self._descent.iterate(obs, force)
         self.iteration += 1
         self._level_iterations += 1
@@ -304,6 +307,7 @@ class Tracker:
     def stop(self, status: int = 2) -> None:
         """End the current frame now (``status`` 2: stopped from outside)."""
         self.status = status
+        self._converged = False
 
     @property
     def message(self) -> str:
@@ -417,7 +421,19 @@ class Tracker:
         c_in, c_out = getattr(self, "c_in", self._start_means[0]), getattr(self, "c_out", self._start_means[1])
         parameters = {**self.options.as_parameters(), **getattr(self, "_frame_options", {})}
         status = 2 if self.status is None else self.status
+        surface = self.surface
         return SegmentationResult(
-            surface=self.surface, iterations=self.iteration, converged=self._converged,
+            surface=surface, iterations=self.iteration, converged=self._converged,
             c_in=float(np.nanmedian(c_in)), c_out=float(np.nanmedian(c_out)), seconds=self._seconds,
-            parameters=parameters, status=status, message=STATUS_MESSAGES[status])
+            parameters=parameters, status=status, message=STATUS_MESSAGES[status], quality=self._quality(surface))
+
+    def _quality(self, surface: Surface) -> dict:
+        no_data, contrast, spread = getattr(self, "_seen", (np.nan, np.full(1, np.nan), np.nan))
+        v1 = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+        tip = surface.points(v1, np.full_like(v1, surface.grid.v2_range[0])).mean(axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return quality_report(
+                contrast=float(np.nanmedian(contrast) / spread), no_data_fraction=no_data,
+                low_contrast_fraction=float(np.mean(np.broadcast_to(contrast, (1,) + np.shape(contrast)) < 0.1 * spread)),
+                converged=self.status == 0, apex_shift_mm=float(np.linalg.norm(tip - self.apex)),
+                volume_ratio=surface.volume_ml() / self._initial_volume)

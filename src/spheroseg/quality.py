@@ -1,0 +1,74 @@
+"""How far a segmentation can be trusted: a few numbers a user can read.
+
+A descent always returns a surface.  On an image it cannot handle (strong
+clutter, a lost acoustic window, a click far off the ventricle) that surface
+is a shape no heart has, and nothing in the volume says so.  The quality
+report says what the descent saw and did:
+
+``contrast``
+    Median local contrast ``c_out - c_in`` at the end, in units of the
+    grey-level spread around the initial surface (a clear wall gives 1 or
+    more).
+``low_contrast_fraction``
+    Fraction of the surface where the local contrast is under a tenth of
+    that spread: dropout, or both bands in one tissue.
+``no_data_fraction``
+    Fraction of the surface with no image under it (out of the sector).
+``converged``
+    Whether the last level stopped because the surface stopped moving.
+``apex_shift_mm``
+    Distance from the clicked apex to the surface's apex.
+``volume_ratio``
+    Final volume over the initial half-ellipsoid's.
+
+``warnings`` lists what is out of the ordinary, in words, and ``poor`` is
+True when there is any.  The bounds are plausibility bounds, not tuned
+values: a ventricle is not a third or three times the size of the shape the
+clicks describe, its apex not a centimetre from the clicked one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["quality_report", "quality_warning"]
+
+#: the bounds of a plausible result
+LIMITS = {"contrast": 0.5, "low_contrast_fraction": 0.3, "no_data_fraction": 0.1, "apex_shift_mm": 10.0,
+          "volume_ratio": (1 / 3, 3.0)}
+
+
+def quality_report(*, contrast: float, low_contrast_fraction: float, no_data_fraction: float, converged: bool,
+                   apex_shift_mm: float, volume_ratio: float) -> dict:
+    """The report of :mod:`spheroseg.quality` from its measurements (plain
+    floats and bools, ready for JSON), with ``warnings`` and ``poor``."""
+    warnings = []
+    if not converged:
+        warnings.append("the surface was still moving when the descent stopped")
+    if not contrast >= LIMITS["contrast"]:
+        warnings.append(f"low contrast between the cavity and the wall ({contrast:.2f} of the grey-level spread)")
+    if low_contrast_fraction > LIMITS["low_contrast_fraction"]:
+        warnings.append(f"{100 * low_contrast_fraction:.0f} % of the surface has no contrast (dropout?)")
+    if no_data_fraction > LIMITS["no_data_fraction"]:
+        warnings.append(f"{100 * no_data_fraction:.0f} % of the surface lies outside the image's data")
+    if apex_shift_mm > LIMITS["apex_shift_mm"]:
+        warnings.append(f"the apex moved {apex_shift_mm:.0f} mm from the clicked point")
+    low, high = LIMITS["volume_ratio"]
+    if not low <= volume_ratio <= high:
+        warnings.append(f"the volume changed {volume_ratio:.2f}-fold from the initial shape")
+    return {"contrast": float(contrast), "low_contrast_fraction": float(low_contrast_fraction),
+            "no_data_fraction": float(no_data_fraction), "converged": bool(converged),
+            "apex_shift_mm": float(apex_shift_mm), "volume_ratio": float(volume_ratio),
+            "warnings": warnings, "poor": bool(warnings)}
+
+
+def quality_warning(frames) -> str | None:
+    """One line for a user about results whose report is poor (None if none
+    is): the first one's warnings, and which frames of a sequence."""
+    poor = [(t, f.quality["warnings"]) for t, f in enumerate(frames) if f.quality and f.quality["poor"]]
+    if not poor:
+        return None
+    if len(frames) == 1:
+        return f"check this segmentation: {'; '.join(poor[0][1])}"
+    which = ", ".join(str(t) for t, _ in poor)
+    return f"check frame(s) {which}: {'; '.join(poor[0][1])} (see results.json)"
