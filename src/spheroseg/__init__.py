@@ -11,6 +11,7 @@ __version__ = "0.1.0"
 
 from .coords import Cylindrical, Pose, ProlateSpheroidal, Spherical
 from .hermite import HermiteGrid
+from .batch import segment_many
 from .io import ImageFileError, load, load_sequence, save_mask
 from .options import SegmentOptions
 from .results import Intermediate, SegmentationResult, TrackingResult
@@ -22,5 +23,5 @@ from .volume import ImageGrid, Volume
 __all__ = [
     "load", "load_sequence", "save_mask", "segment", "track", "Tracker", "SegmentOptions", "Intermediate",
     "Volume", "Surface", "ImageGrid", "Pose", "ProlateSpheroidal", "Spherical", "Cylindrical", "HermiteGrid",
-    "SegmentationResult", "TrackingResult", "ImageFileError",
+    "SegmentationResult", "TrackingResult", "ImageFileError", "segment_many",
 ]

@@ -1,4 +1,4 @@
-"""The command line: ``spheroseg segment | track | demo``.
+"""The command line: ``spheroseg segment | track | batch | demo``.
 
 Every failure is one line on stderr and a non-zero exit status.  Outputs
 are written to temporary files and renamed; existing outputs are kept
@@ -8,9 +8,7 @@ unless ``--force``; an input is never overwritten.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -21,6 +19,8 @@ from . import __version__
 from .options import MODES, SYSTEMS, SegmentOptions
 
 EXIT_ERROR = 2
+#: thread counts of the linear algebra libraries, set to 1 for batch workers unless given
+BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 class CliError(Exception):
@@ -51,14 +51,19 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                    help="a point the surface must pass through (repeatable)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs in DIR")
+    p.add_argument("--spacing", nargs=3, type=float, metavar=("SX", "SY", "SZ"),
+                   help="voxel spacing in mm (required for .npy, overrides the file's)")
+    _add_options(p)
+
+
+def _add_options(p: argparse.ArgumentParser) -> None:
+    """The segmentation and output options (segment, track, batch)."""
     p.add_argument("--system", default="prolate", choices=SYSTEMS)
     p.add_argument("--patches", nargs=2, type=int, default=(8, 8), metavar=("N_THETA", "N_MU"))
     p.add_argument("--mode", default=SegmentOptions.mode, choices=MODES, help="data term")
     p.add_argument("--step", type=float, default=1.0, help="largest surface motion per iteration, mm")
     p.add_argument("--max-iterations", type=int, default=60, help="per coarse-to-fine level")
     p.add_argument("--smoothness", type=float, default=1.0, help="thin-plate prior weight (0: the paper's method)")
-    p.add_argument("--spacing", nargs=3, type=float, metavar=("SX", "SY", "SZ"),
-                   help="voxel spacing in mm (required for .npy, overrides the file's)")
     p.add_argument("--no-data", default="auto", type=_no_data, metavar="auto|none|VALUE",
                    help="voxels without data: 'auto' (default) the zero padding around an echo sector, "
                         "'none', or a voxel value")
@@ -66,6 +71,29 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stl", action="store_true", help="also write the mesh as STL")
     p.add_argument("--no-report", action="store_true", help="skip the PNG report")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stdout")
+
+
+def _shard(text: str) -> tuple[int, int]:
+    try:
+        i, n = (int(part) for part in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected I/N (e.g. 2/4), got {text!r}") from None
+    if not 1 <= i <= n:
+        raise argparse.ArgumentTypeError(f"expected I/N with 1 <= I <= N, got {text!r}")
+    return i, n
+
+
+def _positive(kind):
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or not value > 0 or value != value:
+            raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+        return value
+
+    return parse
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -82,6 +110,21 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("sequence", help="4D image, .seq.nrrd, folder or glob of 3D frames, DICOM folder")
     _add_common(tr)
     tr.add_argument("--iterations-per-frame", type=int, default=20)
+    batch = sub.add_parser("batch", help="segment or track every study of a manifest (JSON or CSV), resumably",
+                           description="Segment or track every study of a manifest; DIR/<id>/ per study, "
+                                       "DIR/summary.json and .csv. Exit status: 0 every study ok, 1 some failed, "
+                                       "2 a bad manifest or bad options (nothing run); 130 interrupted.")
+    batch.add_argument("manifest", help="JSON (a list of studies) or CSV; keys id, image, apex, base, landmarks, "
+                                        "points, spacing, track")
+    batch.add_argument("--out", required=True, metavar="DIR", help="cohort folder (created if missing)")
+    where = batch.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=_positive(int), metavar="N", help="local worker processes (default: one per core)")
+    where.add_argument("--scheduler", metavar="ADDRESS", help="a Dask scheduler, e.g. tcp://host:8786 (spheroseg[dask])")
+    batch.add_argument("--shard", type=_shard, metavar="I/N", help="run only studies I, I+N, I+2N... (1-based); "
+                                                                  "summary-I-of-N.json/.csv")
+    batch.add_argument("--timeout", type=_positive(float), metavar="S", help="seconds a study may take")
+    batch.add_argument("--iterations-per-frame", type=int, default=20)
+    _add_options(batch)
     demo = sub.add_parser("demo", help="track a built-in synthetic sequence and compare with its truth")
     demo.add_argument("--out", metavar="DIR", help="output folder (default: a new ./spheroseg-demo*)")
     demo.add_argument("--force", action="store_true")
@@ -138,60 +181,23 @@ def _segment_kwargs(args) -> dict:
 
 
 def _mask_suffix(args, source: Path) -> str:
-    from .io import MASK_SUFFIXES, image_format
+    from .io import MASK_SUFFIXES
+    from .outputs import default_mask_suffix
 
     if args.mask_format:
         suffix = args.mask_format if args.mask_format.startswith(".") else "." + args.mask_format
         if suffix.lower() not in MASK_SUFFIXES:
             raise CliError(f"--mask-format must be one of {', '.join(MASK_SUFFIXES)}, got {args.mask_format}")
         return suffix.lower()
-    fmt = image_format(source) if source.is_file() else ".nii.gz"
-    return {".seq.nrrd": ".nrrd", ".nhdr": ".nrrd"}.get(fmt, fmt if fmt in MASK_SUFFIXES else ".nii.gz")
-
-
-def _versions() -> dict:
-    import scipy
-    import SimpleITK
-
-    return {"spheroseg": __version__, "python": platform.python_version(), "numpy": np.__version__,
-            "scipy": scipy.__version__, "SimpleITK": SimpleITK.Version_VersionString()}
-
-
-def _write_json(path: Path, data: dict) -> None:
-    from .io import write_atomically
-
-    write_atomically(path, lambda tmp: tmp.write_text(json.dumps(data, indent=1, default=_json_default)))
-
-
-def _json_default(value):
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
-
-
-def _write_surface_outputs(out: Path, stem: str, surface_name: str, result, args_stl: bool) -> dict:
-    from .surface_io import write_cmiss, write_mesh, write_surface_json
-
-    points, faces = result.mesh()
-    files = {}
-    for suffix in (".vtk", ".ply") + ((".stl",) if args_stl else ()):
-        write_mesh(out / f"{stem}{suffix}", points, faces)
-        files[f"mesh{suffix}"] = f"{stem}{suffix}"
-    write_surface_json(out / surface_name, result.surface, volume_ml=result.volume_ml)
-    files["surface"] = surface_name
-    if result.surface.system.name == "prolate":
-        exnode, exelem = write_cmiss(out / Path(surface_name).stem, result.surface)
-        files["cmiss"] = [exnode.name, exelem.name]
-    return files
+    return default_mask_suffix(source)
 
 
 # -- commands ----------------------------------------------------------------
 
 
 def cmd_segment(args) -> int:
-    from .io import load, save_mask
+    from .io import load
+    from .outputs import write_segmentation_outputs
     from .segment import segment
 
     source = Path(args.image)
@@ -205,47 +211,15 @@ def cmd_segment(args) -> int:
     volume = load(source, spacing=args.spacing, no_data_value=args.no_data)
     t_load = time.perf_counter() - t0
     result = segment(volume, apex, base, landmarks=landmarks, **_segment_kwargs(args))
-    mask = result.mask(volume)
-    save_mask(out / ("mask" + suffix), mask, volume)
-    files = {"mask": "mask" + suffix, **_write_surface_outputs(out, "mesh", "surface.json", result, args.stl)}
-    if not args.no_report:
-        from .report import save_report
-
-        save_report(out / "report.png", volume, result.surface, mask=mask, title=f"{source.name}: {result.volume_ml:.1f} mL")
-        files["report"] = "report.png"
-    results = {
-        "input": str(source), "volume_ml": result.volume_ml, "iterations": result.iterations,
-        "converged": result.converged, "status": result.status, "message": result.message,
-        "c_in": result.c_in, "c_out": result.c_out,
-        "seconds": {"load": t_load, "segment": result.seconds}, "apex": apex, "base": base,
-        "landmarks": landmarks if landmarks is not None else [], "parameters": result.parameters,
-        "units": {"points": "mm, LPS (ITK physical space)", "volume": "mL"}, "files": files, "versions": _versions(),
-    }
-    _write_json(out / "results.json", results)
+    write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base, landmarks=landmarks,
+                               mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
     _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
     return 0
 
 
-def _write_tracking_outputs(out: Path, volumes, result, suffix: str, stl: bool, title: str | None,
-                            truth_mask=None) -> None:
-    """Per-frame masks and surfaces, and the report (unless title is None)."""
-    from .io import save_mask
-
-    (out / "masks").mkdir(exist_ok=True)
-    (out / "meshes").mkdir(exist_ok=True)
-    for t, (frame, volume) in enumerate(zip(result.frames, volumes)):
-        save_mask(out / "masks" / f"frame_{t:03d}{suffix}", frame.mask(volume), volume)
-        _write_surface_outputs(out / "meshes", f"frame_{t:03d}", f"frame_{t:03d}_surface.json", frame, stl)
-    if title is not None:
-        from .report import save_report
-
-        ed = result.ed_frame
-        save_report(out / "report.png", volumes[ed], result.frames[ed].surface, volumes_ml=result.volumes_ml,
-                    ed_frame=ed, es_frame=result.es_frame, title=title, truth_mask=truth_mask)
-
-
 def cmd_track(args) -> int:
     from .io import load_sequence
+    from .outputs import write_tracking_outputs
     from .segment import track
 
     source = Path(args.sequence)
@@ -269,20 +243,70 @@ def cmd_track(args) -> int:
     finally:
         if bar is not None:
             bar.close()
-    _write_tracking_outputs(out, volumes, result, suffix, args.stl, None if args.no_report else
-                            f"{source.name}: EDV {result.edv_ml:.1f} mL, ESV {result.esv_ml:.1f} mL, EF {result.ef:.1f} %")
-    results = {
-        "input": str(source), "frames": len(volumes), "volumes_ml": result.volumes_ml, "edv_ml": result.edv_ml,
-        "esv_ml": result.esv_ml, "ef_percent": result.ef, "ed_frame": result.ed_frame, "es_frame": result.es_frame,
-        "iterations": [f.iterations for f in result.frames],
-        "seconds": {"load": t_load, "segment": [f.seconds for f in result.frames]}, "apex": apex, "base": base,
-        "parameters": {**result.frames[0].parameters, "iterations_per_frame": args.iterations_per_frame},
-        "units": {"points": "mm, LPS (ITK physical space)", "volume": "mL", "ef": "percent"}, "versions": _versions(),
-    }
-    _write_json(out / "results.json", results)
+    write_tracking_outputs(out, volumes, result, source=source, apex=apex, base=base, landmarks=landmarks,
+                           mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
     _say(args, f"EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
                f"(frame {result.es_frame}), EF {result.ef:.1f} %; outputs in {out}")
     return 0
+
+
+def cmd_batch(args) -> int:
+    from tqdm import tqdm
+
+    from .batch import read_manifest, segment_many, select_shard, warm_up, write_summary
+
+    studies = select_shard(read_manifest(args.manifest), args.shard)
+    SegmentOptions(**_segment_kwargs(args))  # bad options: an error before anything runs
+    if args.iterations_per_frame < 1:
+        raise CliError(f"--iterations-per-frame must be a positive integer, got {args.iterations_per_frame}")
+    options = {**_segment_kwargs(args), "iterations_per_frame": args.iterations_per_frame,
+               "no_data_value": args.no_data, "mask_suffix": _mask_suffix(args, Path("")) if args.mask_format else None,
+               "stl": args.stl, "report": not args.no_report}
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"output folder {out} is a file")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CliError(f"cannot create output folder {out}: {exc.strerror}") from None
+    for variable in BLAS_THREADS:  # one worker per core: single-threaded BLAS in each (as Dask's workers)
+        os.environ.setdefault(variable, "1")
+    client = executor = None
+    if args.scheduler:
+        try:
+            from distributed import Client
+        except ImportError:
+            raise CliError('--scheduler needs Dask: pip install "spheroseg[dask]"') from None
+        try:
+            client = Client(args.scheduler, timeout=30)
+        except OSError as exc:
+            raise CliError(f"cannot reach the Dask scheduler {args.scheduler}: {exc}") from None
+        client.run(warm_up)
+        executor = client.get_executor()
+    rows = {}
+    bar = tqdm(total=len(studies), unit="study", desc="batch", file=sys.stderr, disable=args.quiet)
+    outcomes = segment_many(studies, out=out, executor=executor, workers=args.workers, timeout=args.timeout,
+                            options=options)
+    try:
+        for outcome in outcomes:
+            rows[outcome.id] = outcome.row
+            bar.update(1)
+            if outcome.status != "ok":
+                bar.write(f"{outcome.id}: failed: {outcome.row['error']}", file=sys.stderr)
+    except KeyboardInterrupt:
+        outcomes.close()  # running studies finish; no partial folder stays
+        bar.close()
+        print("spheroseg: interrupted; finished studies are complete, run again to go on", file=sys.stderr)
+        return 130
+    finally:
+        bar.close()
+        if client is not None:
+            client.close()
+    name = "summary" if args.shard is None else "summary-{}-of-{}".format(*args.shard)
+    write_summary(out, [rows[s.id] for s in studies], name=name)
+    failed = sum(row["status"] != "ok" for row in rows.values())
+    _say(args, f"{len(rows) - failed} ok, {failed} failed; summary in {out / name}.json and .csv")
+    return 1 if failed else 0
 
 
 def _fresh_demo_folder() -> Path:
@@ -296,7 +320,9 @@ def _fresh_demo_folder() -> Path:
 
 def cmd_demo(args) -> int:
     from .metrics import dice, surface_distances
+    from .outputs import versions, write_frame_files, write_json
     from .phantom import make_sequence
+    from .report import save_report
     from .segment import track
 
     out = Path(args.out) if args.out else _fresh_demo_folder()
@@ -315,18 +341,19 @@ def cmd_demo(args) -> int:
         rows.append({"frame": t, "volume_ml": frame.volume_ml, "truth_ml": truth.truth_volume_ml, "dice": d,
                      "iterations": frame.iterations, "ms": 1000 * frame.seconds})
     sd = surface_distances(result.frames[ed].mesh(closed=False), seq.frames[ed].truth_mesh)
-    _write_tracking_outputs(out, seq.volumes, result, ".nii.gz", False,
-                            f"demo: EF {result.ef:.1f} % (truth {seq.truth_ef:.1f} %); yellow spheroseg, red truth",
-                            truth_mask=seq.frames[ed].truth_mask)
+    write_frame_files(out, seq.volumes, result)
+    save_report(out / "report.png", seq.volumes[ed], result.frames[ed].surface, volumes_ml=result.volumes_ml,
+                ed_frame=ed, es_frame=result.es_frame, truth_mask=seq.frames[ed].truth_mask,
+                title=f"demo: EF {result.ef:.1f} % (truth {seq.truth_ef:.1f} %); yellow spheroseg, red truth")
     seg_ms = 1000 * sum(f.seconds for f in result.frames)
     summary = {
         "frames": rows, "edv_ml": result.edv_ml, "esv_ml": result.esv_ml, "ef_percent": result.ef,
         "truth": {"edv_ml": float(seq.truth_volumes_ml.max()), "esv_ml": float(seq.truth_volumes_ml.min()),
                   "ef_percent": seq.truth_ef},
         "ed_surface_distance_mm": sd, "seconds": {"make_phantom": t_make, "segment_all_frames": seg_ms / 1000},
-        "versions": _versions(),
+        "versions": versions(),
     }
-    _write_json(out / "results.json", summary)
+    write_json(out / "results.json", summary)
     dices = np.array([r["dice"] for r in rows])
     _say(args,
          f"  Dice per frame: median {np.median(dices):.3f}, worst {dices.min():.3f}",
@@ -342,7 +369,7 @@ def cmd_demo(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    handlers = {"segment": cmd_segment, "track": cmd_track, "demo": cmd_demo}
+    handlers = {"segment": cmd_segment, "track": cmd_track, "demo": cmd_demo, "batch": cmd_batch}
     try:
         return handlers[args.command](args)
     except KeyboardInterrupt:

@@ -1,0 +1,217 @@
+"""The files a segmentation or a tracked sequence leaves in a folder.
+
+One writer for the command line (``spheroseg segment | track``), the batch
+runner (:mod:`spheroseg.batch`) and the viewer: a mask image per volume,
+triangle meshes (``.vtk``, ``.ply``, optionally ``.stl``; world mm, LPS), the
+Hermite surface as JSON and as CMISS ``.exnode``/``.exelem`` (prolate
+surfaces), a PNG report and ``results.json``.  Every file is written to a
+temporary name and renamed, so a reader never sees half a file.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .io import save_mask, write_atomically
+
+__all__ = ["write_segmentation_outputs", "write_tracking_outputs", "write_surface_files", "write_frame_files",
+           "write_json", "versions", "default_mask_suffix"]
+
+_UNITS = {"points": "mm, LPS (ITK physical space)", "volume": "mL"}
+
+
+def versions() -> dict:
+    """Versions of spheroseg, Python and the numerical libraries (recorded in results)."""
+    import scipy
+    import SimpleITK
+
+    return {"spheroseg": __version__, "python": platform.python_version(), "numpy": np.__version__,
+            "scipy": scipy.__version__, "SimpleITK": SimpleITK.Version_VersionString()}
+
+
+def default_mask_suffix(source) -> str:
+    """The mask's image type for an input: the input's own (a ``.seq.nrrd``
+    or ``.nhdr`` gives ``.nrrd``), ``.nii.gz`` for folders, globs and DICOM."""
+    from .io import MASK_SUFFIXES, image_format
+
+    source = Path(source)
+    fmt = image_format(source) if source.is_file() else ".nii.gz"
+    return {".seq.nrrd": ".nrrd", ".nhdr": ".nrrd"}.get(fmt, fmt if fmt in MASK_SUFFIXES else ".nii.gz")
+
+
+def _json_default(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def write_json(path: Path, data: dict | list) -> dict | list:
+    """Write ``data`` as indented JSON atomically; return it as read back
+    (plain lists and numbers instead of numpy values)."""
+    text = json.dumps(data, indent=1, default=_json_default)
+    write_atomically(path, lambda tmp: tmp.write_text(text))
+    return json.loads(text)
+
+
+def write_surface_files(out: Path, stem: str, surface_name: str, result, *, stl: bool = False) -> dict:
+    """Meshes ``<stem>.vtk|.ply[|.stl]``, the surface JSON and, for a prolate
+    surface, its CMISS files; returns ``{kind: file name}``."""
+    from .surface_io import write_cmiss, write_mesh, write_surface_json
+
+    points, faces = result.mesh()
+    files = {}
+    for suffix in (".vtk", ".ply") + ((".stl",) if stl else ()):
+        write_mesh(out / f"{stem}{suffix}", points, faces)
+        files[f"mesh{suffix}"] = f"{stem}{suffix}"
+    write_surface_json(out / surface_name, result.surface, volume_ml=result.volume_ml)
+    files["surface"] = surface_name
+    if result.surface.system.name == "prolate":
+        exnode, exelem = write_cmiss(out / Path(surface_name).stem, result.surface)
+        files["cmiss"] = [exnode.name, exelem.name]
+    return files
+
+
+def write_frame_files(out: Path, volumes, result, *, mask_suffix: str = ".nii.gz", stl: bool = False) -> None:
+    """Per-frame masks ``masks/frame_TTT<mask_suffix>`` and surfaces
+    ``meshes/frame_TTT.*`` of a tracked sequence."""
+    (out / "masks").mkdir(exist_ok=True)
+    (out / "meshes").mkdir(exist_ok=True)
+    for t, (frame, volume) in enumerate(zip(result.frames, volumes)):
+        save_mask(out / "masks" / f"frame_{t:03d}{mask_suffix}", frame.mask(volume), volume)
+        write_surface_files(out / "meshes", f"frame_{t:03d}", f"frame_{t:03d}_surface.json", frame, stl=stl)
+
+
+def _outcome(result) -> dict:
+    """``quality`` always (None until results carry it), ``status`` and
+    ``message`` when the result has them."""
+    outcome = {"quality": getattr(result, "quality", None)}
+    for name in ("status", "message"):
+        if hasattr(result, name):
+            outcome[name] = getattr(result, name)
+    return outcome
+
+
+def _points(landmarks):
+    return [] if landmarks is None else np.asarray(landmarks, dtype=float).reshape(-1, 3)
+
+
+def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, base, landmarks=None,
+                               mask_suffix: str = ".nii.gz", stl: bool = False, report: bool = True,
+                               seconds: dict | None = None, extra: dict | None = None) -> dict:
+    """Write the outputs of :func:`spheroseg.segment` into the folder ``out``.
+
+    Files: ``mask<mask_suffix>`` (the cavity on ``volume``'s grid, 8-bit),
+    ``mesh.vtk``, ``mesh.ply`` (and ``mesh.stl`` if ``stl``), ``surface.json``,
+    ``surface.exnode``/``surface.exelem`` (prolate surfaces), ``report.png``
+    (if ``report``) and ``results.json``.
+
+    Parameters
+    ----------
+    out : Path
+        Folder, created if missing.  Existing files of these names are replaced.
+    volume : Volume
+        The image that was segmented (the mask's grid, the report's slices).
+    result : SegmentationResult
+    source : str or Path, optional
+        The input's path, recorded as ``input`` and named in the report title.
+    apex, base : array_like (3,)
+        The points given, world mm (LPS), recorded.
+    landmarks : array_like (k, 3), optional
+    mask_suffix : str
+        Image type of the mask, e.g. ``.nii.gz``, ``.mha``, ``.npy``.
+    stl, report : bool
+        Also write an STL mesh; write the PNG report.
+    seconds : dict, optional
+        Timings to record beside the segmentation's own (e.g. ``{"load": s}``).
+    extra : dict, optional
+        More top-level entries for ``results.json`` (they win over the defaults).
+
+    Returns
+    -------
+    dict
+        The content of ``results.json`` as written (plain JSON values).
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    mask = result.mask(volume)
+    save_mask(out / ("mask" + mask_suffix), mask, volume)
+    files = {"mask": "mask" + mask_suffix, **write_surface_files(out, "mesh", "surface.json", result, stl=stl)}
+    if report:
+        from .report import save_report
+
+        name = Path(source).name if source is not None else "segmentation"
+        save_report(out / "report.png", volume, result.surface, mask=mask, title=f"{name}: {result.volume_ml:.1f} mL")
+        files["report"] = "report.png"
+    timings = dict(seconds or {})
+    timings.setdefault("segment", result.seconds)
+    results = {
+        "input": None if source is None else str(source), "volume_ml": result.volume_ml,
+        "iterations": result.iterations, "converged": result.converged, **_outcome(result),
+        "c_in": result.c_in, "c_out": result.c_out, "seconds": timings,
+        "apex": np.asarray(apex, dtype=float), "base": np.asarray(base, dtype=float), "landmarks": _points(landmarks),
+        "parameters": result.parameters, "units": dict(_UNITS), "files": files, "versions": versions(),
+        **(extra or {}),
+    }
+    return write_json(out / "results.json", results)
+
+
+def write_tracking_outputs(out: Path, volumes, result, *, source=None, apex, base, landmarks=None,
+                           mask_suffix: str = ".nii.gz", stl: bool = False, report: bool = True,
+                           seconds: dict | None = None, extra: dict | None = None) -> dict:
+    """Write the outputs of :func:`spheroseg.track` into the folder ``out``.
+
+    Files: ``masks/frame_TTT<mask_suffix>``, ``meshes/frame_TTT.vtk|.ply[|.stl]``,
+    ``meshes/frame_TTT_surface.json`` and CMISS files per frame, ``report.png``
+    (volume curve and the end-diastolic frame, if ``report``) and
+    ``results.json`` (volumes per frame, EDV, ESV in mL, EF in percent).
+
+    Parameters
+    ----------
+    out : Path
+    volumes : sequence of Volume
+        The frames that were tracked.
+    result : TrackingResult
+    source, apex, base, landmarks, mask_suffix, stl, report, seconds, extra
+        As :func:`write_segmentation_outputs`; ``seconds["segment"]`` defaults
+        to the list of per-frame times.
+
+    Returns
+    -------
+    dict
+        The content of ``results.json`` as written.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    volumes = list(volumes)
+    write_frame_files(out, volumes, result, mask_suffix=mask_suffix, stl=stl)
+    if report:
+        from .report import save_report
+
+        name = Path(source).name if source is not None else "sequence"
+        ed = result.ed_frame
+        save_report(out / "report.png", volumes[ed], result.frames[ed].surface, volumes_ml=result.volumes_ml,
+                    ed_frame=ed, es_frame=result.es_frame,
+                    title=f"{name}: EDV {result.edv_ml:.1f} mL, ESV {result.esv_ml:.1f} mL, EF {result.ef:.1f} %")
+    timings = dict(seconds or {})
+    timings.setdefault("segment", [f.seconds for f in result.frames])
+    later = result.frames[1].parameters if len(result.frames) > 1 else {}
+    results = {
+        "input": None if source is None else str(source), "frames": len(result.frames),
+        "volumes_ml": result.volumes_ml, "edv_ml": result.edv_ml, "esv_ml": result.esv_ml, "ef_percent": result.ef,
+        "ed_frame": result.ed_frame, "es_frame": result.es_frame, **_outcome(result),
+        "iterations": [f.iterations for f in result.frames], "seconds": timings,
+        "apex": np.asarray(apex, dtype=float), "base": np.asarray(base, dtype=float), "landmarks": _points(landmarks),
+        "parameters": {**result.frames[0].parameters, "iterations_per_frame": later.get("max_iterations")},
+        "units": {**_UNITS, "ef": "percent"}, "versions": versions(),
+        **(extra or {}),
+    }
+    return write_json(out / "results.json", results)

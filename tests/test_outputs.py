@@ -1,0 +1,70 @@
+"""The output writers shared by the CLI, the batch runner and the viewer."""
+
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from spheroseg.outputs import write_segmentation_outputs, write_tracking_outputs
+from spheroseg.phantom import make_phantom, make_sequence
+from spheroseg.segment import segment, track
+from spheroseg.surface_io import read_surface_json
+
+SEGMENT_KEYS = {"input", "volume_ml", "iterations", "converged", "status", "message", "quality", "c_in", "c_out",
+                "seconds", "apex", "base", "landmarks", "parameters", "units", "files", "versions"}
+TRACK_KEYS = {"input", "frames", "volumes_ml", "edv_ml", "esv_ml", "ef_percent", "ed_frame", "es_frame", "quality",
+              "iterations", "seconds", "apex", "base", "parameters", "units", "versions"}
+
+
+class WithQuality:
+    """A result that carries ``quality`` (as another issue adds it)."""
+
+    def __init__(self, result, quality):
+        self._result, self.quality = result, quality
+
+    def __getattr__(self, name):
+        return getattr(self._result, name)
+
+
+def test_segmentation_outputs_round_trip(tmp_path):
+    ph = make_phantom(seed=5, spacing=2.5)
+    result = segment(ph.volume, ph.apex, ph.base)
+    landmark = (ph.apex + ph.base) / 2 + [10.0, 0, 0]
+    written = write_segmentation_outputs(
+        tmp_path / "o", ph.volume, WithQuality(result, {"score": 0.5}), source="case.mha", apex=ph.apex,
+        base=ph.base, landmarks=[landmark], mask_suffix=".mha", report=False, seconds={"load": 0.25},
+        extra={"id": "p01"})
+    on_disk = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert written == on_disk
+    assert SEGMENT_KEYS <= set(on_disk) and on_disk["id"] == "p01"
+    assert on_disk["quality"] == {"score": 0.5}
+    assert on_disk["status"] == result.status and on_disk["message"] == result.message
+    assert on_disk["seconds"] == {"load": 0.25, "segment": result.seconds}
+    assert on_disk["volume_ml"] == pytest.approx(result.volume_ml, rel=1e-12)
+    np.testing.assert_allclose(on_disk["landmarks"], [landmark])
+    mask = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "o" / on_disk["files"]["mask"]))).astype(bool)
+    np.testing.assert_array_equal(mask, result.mask(ph.volume))
+    surface = read_surface_json(tmp_path / "o" / "surface.json")
+    assert surface.volume_ml() == pytest.approx(result.volume_ml, rel=1e-9)
+    assert not (tmp_path / "o" / "report.png").exists()
+    assert sorted(p.name for p in (tmp_path / "o").iterdir() if p.name.startswith(".")) == []
+
+
+def test_tracking_outputs_round_trip(tmp_path):
+    seq = make_sequence(seed=6, n_frames=3, spacing=2.5)
+    first = seq.frames[0]
+    result = track(seq.volumes, first.apex, first.base, iterations_per_frame=7)
+    written = write_tracking_outputs(tmp_path, seq.volumes, result, apex=first.apex, base=first.base)
+    on_disk = json.loads((tmp_path / "results.json").read_text())
+    assert written == on_disk and TRACK_KEYS <= set(on_disk)
+    assert on_disk["quality"] is None and on_disk["input"] is None
+    assert on_disk["parameters"]["iterations_per_frame"] == 7
+    np.testing.assert_allclose(on_disk["volumes_ml"], result.volumes_ml, rtol=1e-12)
+    assert on_disk["ef_percent"] == pytest.approx(100 * (1 - on_disk["esv_ml"] / on_disk["edv_ml"]))
+    masks = sorted((tmp_path / "masks").iterdir())
+    assert [m.name for m in masks] == [f"frame_{t:03d}.nii.gz" for t in range(3)]
+    for t, path in enumerate(masks):
+        mask = sitk.GetArrayFromImage(sitk.ReadImage(str(path))).astype(bool)
+        np.testing.assert_array_equal(mask, result.frames[t].mask(seq.volumes[t]))
+    assert (tmp_path / "report.png").read_bytes()[:4] == b"\x89PNG"
