@@ -178,3 +178,34 @@ def test_unwritable_output(case, tmp_path):
     locked.chmod(0o500)
     shift = np.array(image.GetOrigin())
     assert_one_line_error(run("segment", img, *points_args(ph, shift), "--out", locked, "--quiet"), "not writable")
+
+
+def test_profile_and_seconds_block(case, tmp_path):
+    import time
+
+    folder, image, ph = case
+    path = folder / "profiled.mha"
+    sitk.WriteImage(image, str(path))
+    shift = np.array(image.GetOrigin())
+    t0 = time.perf_counter()
+    proc = run("segment", path, *points_args(ph, shift), "--out", tmp_path / "out", "--quiet", "--profile")
+    wall = time.perf_counter() - t0
+    assert proc.returncode == 0, proc.stderr
+    seconds = json.loads((tmp_path / "out" / "results.json").read_text())["seconds"]
+    stages = ["import", "read", "padding", "segment", "descent", "mask", "meshes", "writes", "report"]
+    assert sorted(seconds) == sorted(stages)
+    assert all(seconds[k] > 0 for k in stages)
+    # the stages happen one after the other inside the process's wall time;
+    # the descent is part of the segment stage
+    assert seconds["descent"] <= seconds["segment"]
+    assert sum(seconds[k] for k in stages if k != "descent") < wall
+    lines = proc.stderr.strip().splitlines()
+    assert lines[0] == "spheroseg: seconds by stage"
+    printed = {line.split()[0]: float(line.split()[1]) for line in lines[1:]}
+    for k in stages:
+        assert printed[k] == pytest.approx(1000 * seconds[k], abs=0.051)
+    assert printed["total"] == pytest.approx(sum(printed[k] for k in stages if k != "descent"), abs=0.5)
+    # without --profile nothing is printed, the block is still written
+    proc = run("segment", path, *points_args(ph, shift), "--out", tmp_path / "quiet", "--quiet", "--no-report")
+    assert proc.returncode == 0 and proc.stderr == ""
+    assert "report" not in json.loads((tmp_path / "quiet" / "results.json").read_text())["seconds"]

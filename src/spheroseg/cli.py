@@ -71,6 +71,9 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stl", action="store_true", help="also write the mesh as STL")
     p.add_argument("--no-report", action="store_true", help="skip the PNG report")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stdout")
+    p.add_argument("--profile", action="store_true",
+                   help="print the time of every stage (import, read, padding, segment, mask, meshes, writes, "
+                        "report) on stderr; they are in results.json's seconds block either way")
 
 
 def _shard(text: str) -> tuple[int, int]:
@@ -195,11 +198,31 @@ def _mask_suffix(args, source: Path) -> str:
 # -- commands ----------------------------------------------------------------
 
 
-def cmd_segment(args) -> int:
+def _load_timed(source, args, seconds: dict):
+    """``load`` with the reading and the padding search timed apart."""
     from .io import load
+    from .volume import Volume, outside_sector
+
+    t0 = time.perf_counter()
+    auto = isinstance(args.no_data, str)
+    volume = load(source, spacing=args.spacing, no_data_value=None if auto else args.no_data)
+    seconds["read"] = time.perf_counter() - t0
+    if auto:
+        t0 = time.perf_counter()
+        volume = Volume(volume.array, spacing=volume.spacing, origin=volume.origin, direction=volume.direction,
+                        no_data_mask=outside_sector(volume.array))
+        seconds["padding"] = time.perf_counter() - t0
+    return volume
+
+
+def cmd_segment(args) -> int:
+    # CPU time of the process so far: the interpreter and the package imports
+    seconds = {"import": time.process_time()}
+    t0 = time.perf_counter()
     from .outputs import write_segmentation_outputs
     from .segment import segment
 
+    seconds["import"] += time.perf_counter() - t0
     source = Path(args.image)
     suffix = _mask_suffix(args, source)
     names = ["mask" + suffix, "mesh.vtk", "mesh.ply", "surface.json", "surface.exnode", "surface.exelem", "results.json",
@@ -207,14 +230,28 @@ def cmd_segment(args) -> int:
     apex, base, landmarks = _points(args)
     _prepare_out(Path(args.out), names, args.force, [source])
     out = Path(args.out)
+    volume = _load_timed(source, args, seconds)
     t0 = time.perf_counter()
-    volume = load(source, spacing=args.spacing, no_data_value=args.no_data)
-    t_load = time.perf_counter() - t0
     result = segment(volume, apex, base, landmarks=landmarks, **_segment_kwargs(args))
-    write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base, landmarks=landmarks,
-                               mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
+    seconds["segment"] = time.perf_counter() - t0  # with the process's first-call costs
+    seconds["descent"] = result.seconds
+    written = write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base,
+                                         landmarks=landmarks, mask_suffix=suffix, stl=args.stl,
+                                         report=not args.no_report, seconds=seconds)
+    if args.profile:
+        print(profile_lines(written["seconds"]), file=sys.stderr)
     _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
     return 0
+
+
+def profile_lines(seconds: dict) -> str:
+    """The ``seconds`` block of results.json as a table, milliseconds."""
+    order = ["import", "read", "padding", "segment", "descent", "mask", "meshes", "writes", "report"]
+    stages = [k for k in order if k in seconds] + [k for k in seconds if k not in order]
+    total = sum(v for k, v in seconds.items() if k != "descent")
+    lines = [f"  {k:<8} {1000 * seconds[k]:8.1f} ms" + ("  (inside segment)" if k == "descent" else "")
+             for k in stages]
+    return "\n".join(["spheroseg: seconds by stage"] + lines + [f"  {'total':<8} {1000 * total:8.1f} ms"])
 
 
 def cmd_track(args) -> int:
@@ -243,8 +280,12 @@ def cmd_track(args) -> int:
     finally:
         if bar is not None:
             bar.close()
-    write_tracking_outputs(out, volumes, result, source=source, apex=apex, base=base, landmarks=landmarks,
-                           mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
+    written = write_tracking_outputs(out, volumes, result, source=source, apex=apex, base=base,
+                                     landmarks=landmarks, mask_suffix=suffix, stl=args.stl,
+                                     report=not args.no_report, seconds={"load": t_load})
+    if args.profile:
+        seconds = written["seconds"]
+        print(profile_lines({"load": seconds["load"], "segment": sum(seconds["segment"])}), file=sys.stderr)
     _say(args, f"EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
                f"(frame {result.es_frame}), EF {result.ef:.1f} %; outputs in {out}")
     return 0
