@@ -43,11 +43,12 @@ from __future__ import annotations
 
 import cmath
 import math
+import sys
 
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["cavity_mask", "face_connected_zeros"]
+__all__ = ["cavity_mask", "face_connected_zeros", "compilations"]
 
 
 _PROLATE, _SPHERICAL, _CYLINDRICAL = 0, 1, 2
@@ -251,3 +252,10 @@ def face_connected_zeros(array: np.ndarray) -> tuple[np.ndarray, int]:
     out = np.zeros(array.shape, dtype=bool)
     count = _flood_zeros(np.ascontiguousarray(array), out)
     return out, int(count)
+
+
+def compilations() -> int:
+    """Kernels of this module numba compiled in this process (missed its cache)."""
+    from .warmup import compilations as count
+
+    return count(sys.modules[__name__])
