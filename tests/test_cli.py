@@ -206,3 +206,56 @@ def test_unwritable_output(case, tmp_path):
     locked.chmod(0o500)
     shift = np.array(image.GetOrigin())
     assert_one_line_error(run("segment", img, *points_args(ph, shift), "--out", locked, "--quiet"), "not writable")
+
+
+def test_profile_and_seconds_block(case, tmp_path):
+    import time
+
+    folder, image, ph = case
+    path = folder / "profiled.mha"
+    sitk.WriteImage(image, str(path))
+    shift = np.array(image.GetOrigin())
+    t0 = time.perf_counter()
+    proc = run("segment", path, *points_args(ph, shift), "--out", tmp_path / "out", "--quiet", "--profile")
+    wall = time.perf_counter() - t0
+    assert proc.returncode == 0, proc.stderr
+    seconds = json.loads((tmp_path / "out" / "results.json").read_text())["seconds"]
+    stages = ["import", "read", "kernels", "padding", "segment", "descent", "mask", "meshes", "writes", "report"]
+    assert sorted(seconds) == sorted(stages)
+    assert all(seconds[k] > 0 for k in stages)
+    # the stages happen one after the other inside the process's wall time;
+    # the descent is part of the segment stage
+    assert seconds["descent"] <= seconds["segment"]
+    assert sum(seconds[k] for k in stages if k != "descent") < wall
+    lines = proc.stderr.strip().splitlines()
+    lines = lines[1:] if lines[0].startswith("spheroseg: compiled") else lines  # a first run
+    assert lines[0] == "spheroseg: seconds by stage"
+    printed = {line.split()[0]: float(line.split()[1]) for line in lines[1:]}
+    for k in stages:
+        assert printed[k] == pytest.approx(1000 * seconds[k], abs=0.051)
+    assert printed["total"] == pytest.approx(sum(printed[k] for k in stages if k != "descent"), abs=0.5)
+    # without --profile nothing is printed, the block is still written
+    proc = run("segment", path, *points_args(ph, shift), "--out", tmp_path / "quiet", "--quiet", "--no-report")
+    assert proc.returncode == 0 and proc.stderr == ""  # the kernels were compiled above: no message
+    assert "report" not in json.loads((tmp_path / "quiet" / "results.json").read_text())["seconds"]
+
+
+def test_first_run_says_once_that_it_compiles(case, tmp_path):
+    # an empty numba cache is a first run on a new machine
+    folder, image, ph = case
+    path = folder / "first.mha"
+    sitk.WriteImage(image, str(path))
+    args = ["segment", path, *points_args(ph, np.array(image.GetOrigin())), "--no-report", "--force"]
+    env = {**os.environ, "PYTHONWARNINGS": "ignore", "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    runs = [subprocess.run([sys.executable, "-m", "spheroseg", *map(str, args), "--out", tmp_path / f"out{k}"],
+                           capture_output=True, text=True, env=env, timeout=600) for k in range(2)]
+    assert all(r.returncode == 0 for r in runs), runs[0].stderr
+    first = runs[0].stderr.strip().splitlines()
+    assert len(first) == 1 and first[0].startswith("spheroseg: compiled the numerical kernels"), first
+    assert runs[1].stderr == ""
+    seconds = [json.loads((tmp_path / f"out{k}" / "results.json").read_text())["seconds"] for k in range(2)]
+    said = float(first[0].split(" in ")[1].split(" s ")[0])
+    assert said == pytest.approx(seconds[0]["kernels"], abs=0.051)
+    # compiling is in the kernels stage, not in the segmentation
+    assert seconds[0]["kernels"] > seconds[1]["kernels"]
+    assert seconds[0]["segment"] < seconds[0]["kernels"]

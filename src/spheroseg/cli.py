@@ -75,6 +75,9 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stl", action="store_true", help="also write the mesh as STL")
     p.add_argument("--no-report", action="store_true", help="skip the PNG report")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stdout")
+    p.add_argument("--profile", action="store_true",
+                   help="print the time of every stage (import, read, padding, segment, mask, meshes, writes, "
+                        "report) on stderr; they are in results.json's seconds block either way")
 
 
 def _shard(text: str) -> tuple[int, int]:
@@ -210,11 +213,43 @@ def _mask_suffix(args, source: Path) -> str:
 # -- commands ----------------------------------------------------------------
 
 
-def cmd_segment(args) -> int:
+def _kernels_loaded(seconds: dict) -> None:
+    """Compile or load the kernels before any timed work; a first run says so."""
+    from .warmup import load_kernels
+
+    loaded = load_kernels()
+    seconds["kernels"] = loaded["seconds"]
+    if loaded["compiled"]:
+        print(f"spheroseg: compiled the numerical kernels for this machine in {loaded['seconds']:.1f} s "
+              "(once: later runs load them from numba's cache)", file=sys.stderr)
+
+
+def _load_timed(source, args, seconds: dict):
+    """``load``, the kernels, then the padding search, each timed apart."""
     from .io import load
+    from .volume import Volume, outside_sector
+
+    t0 = time.perf_counter()
+    auto = isinstance(args.no_data, str)
+    volume = load(source, spacing=args.spacing, no_data_value=None if auto else args.no_data)
+    seconds["read"] = time.perf_counter() - t0
+    _kernels_loaded(seconds)
+    if auto:
+        t0 = time.perf_counter()
+        volume = Volume(volume.array, spacing=volume.spacing, origin=volume.origin, direction=volume.direction,
+                        no_data_mask=outside_sector(volume.array))
+        seconds["padding"] = time.perf_counter() - t0
+    return volume
+
+
+def cmd_segment(args) -> int:
+    # CPU time of the process so far: the interpreter and the package imports
+    seconds = {"import": time.process_time()}
+    t0 = time.perf_counter()
     from .outputs import write_segmentation_outputs
     from .segment import segment
 
+    seconds["import"] += time.perf_counter() - t0
     source = Path(args.image)
     suffix = _mask_suffix(args, source)
     names = ["mask" + suffix, "mesh.vtk", "mesh.ply", "surface.json", "surface.exnode", "surface.exelem", "results.json",
@@ -222,12 +257,16 @@ def cmd_segment(args) -> int:
     apex, base, landmarks, annulus = _points(args)
     _prepare_out(Path(args.out), names, args.force, [source])
     out = Path(args.out)
+    volume = _load_timed(source, args, seconds)
     t0 = time.perf_counter()
-    volume = load(source, spacing=args.spacing, no_data_value=args.no_data)
-    t_load = time.perf_counter() - t0
     result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, **_segment_kwargs(args))
-    write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
-                               mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
+    seconds["segment"] = time.perf_counter() - t0
+    seconds["descent"] = result.seconds
+    written = write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base, annulus=annulus,
+                                         landmarks=landmarks, mask_suffix=suffix, stl=args.stl,
+                                         report=not args.no_report, seconds=seconds)
+    if args.profile:
+        print(profile_lines(written["seconds"]), file=sys.stderr)
     _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
     _warn_quality([result])
     return 0
@@ -240,6 +279,16 @@ def _warn_quality(frames) -> None:
     line = quality_warning(frames)
     if line:
         print(f"spheroseg: warning: {line}", file=sys.stderr)
+
+
+def profile_lines(seconds: dict) -> str:
+    """The ``seconds`` block of results.json as a table, milliseconds."""
+    order = ["import", "read", "kernels", "padding", "segment", "descent", "mask", "meshes", "writes", "report"]
+    stages = [k for k in order if k in seconds] + [k for k in seconds if k not in order]
+    total = sum(v for k, v in seconds.items() if k != "descent")
+    lines = [f"  {k:<8} {1000 * seconds[k]:8.1f} ms" + ("  (inside segment)" if k == "descent" else "")
+             for k in stages]
+    return "\n".join(["spheroseg: seconds by stage"] + lines + [f"  {'total':<8} {1000 * total:8.1f} ms"])
 
 
 def cmd_track(args) -> int:
@@ -256,6 +305,8 @@ def cmd_track(args) -> int:
     t0 = time.perf_counter()
     volumes = load_sequence(args.sequence, spacing=args.spacing, no_data_value=args.no_data)
     t_load = time.perf_counter() - t0
+    timings = {"load": t_load}
+    _kernels_loaded(timings)
     bar = None
     if not args.quiet:
         from tqdm import tqdm
@@ -268,8 +319,13 @@ def cmd_track(args) -> int:
     finally:
         if bar is not None:
             bar.close()
-    write_tracking_outputs(out, volumes, result, source=source, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
-                           mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds={"load": t_load})
+    written = write_tracking_outputs(out, volumes, result, source=source, apex=apex, base=base, annulus=annulus,
+                                     landmarks=landmarks, mask_suffix=suffix, stl=args.stl,
+                                     report=not args.no_report, seconds=timings)
+    if args.profile:
+        seconds = written["seconds"]
+        print(profile_lines({"load": seconds["load"], "kernels": seconds["kernels"],
+                             "segment": sum(seconds["segment"])}), file=sys.stderr)
     _say(args, f"EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
                f"(frame {result.es_frame}), EF {result.ef:.1f} %; outputs in {out}")
     _warn_quality(result.frames)
@@ -392,6 +448,8 @@ def cmd_demo(args) -> int:
     t0 = time.perf_counter()
     seq = make_sequence(seed=0, n_frames=10, spacing=1.25)
     t_make = time.perf_counter() - t0
+    timings = {"make_phantom": t_make}
+    _kernels_loaded(timings)
     first = seq.frames[0]
     result = track(seq.volumes, first.apex, first.base)
     ed = result.ed_frame
@@ -410,7 +468,7 @@ def cmd_demo(args) -> int:
         "frames": rows, "edv_ml": result.edv_ml, "esv_ml": result.esv_ml, "ef_percent": result.ef,
         "truth": {"edv_ml": float(seq.truth_volumes_ml.max()), "esv_ml": float(seq.truth_volumes_ml.min()),
                   "ef_percent": seq.truth_ef},
-        "ed_surface_distance_mm": sd, "seconds": {"make_phantom": t_make, "segment_all_frames": seg_ms / 1000},
+        "ed_surface_distance_mm": sd, "seconds": {**timings, "segment_all_frames": seg_ms / 1000},
         "versions": versions(),
     }
     write_json(out / "results.json", summary)

@@ -261,8 +261,12 @@ class Surface:
     def mask(self, grid: ImageGrid) -> np.ndarray:
         """Boolean mask ``[z, y, x]`` of voxel centres inside the closed cavity.
 
-        Only the voxels in the surface's bounding box are tested: each one's
-        centre is converted to model coordinates and compared with ``f``.
+        Only the voxels in the surface's bounding box are tested, each as
+        :meth:`contains` does (``v2`` in range and ``v0 <= f(v1, v2)``).  The
+        compiled rasteriser (:mod:`spheroseg._raster`) evaluates ``f`` along
+        each row of voxels only where the status can change, so its cost
+        grows with the surface's area in voxels, not with the grid; without
+        numba every voxel of the box is converted.
         """
         out = np.zeros(grid.shape, dtype=bool)
         lo, hi = self.bounding_box()
@@ -272,9 +276,38 @@ class Surface:
         stop = np.clip(np.ceil(idx.max(0)).astype(int) + 1, 0, np.array(grid.shape[::-1]))
         if np.any(stop <= start):
             return out
-        k, j, i = np.meshgrid(*(np.arange(a, b) for a, b in zip(start[::-1], stop[::-1])), indexing="ij")
-        world = grid.index_to_world(np.stack([i, j, k], axis=-1).reshape(-1, 3))
-        out[start[2] : stop[2], start[1] : stop[1], start[0] : stop[0]] = self.contains(world).reshape(i.shape)
+        try:
+            from ._raster import cavity_mask
+        except ImportError:  # pragma: no cover - numba is a dependency
+            k, j, i = np.meshgrid(*(np.arange(a, b) for a, b in zip(start[::-1], stop[::-1])), indexing="ij")
+            world = grid.index_to_world(np.stack([i, j, k], axis=-1).reshape(-1, 3))
+            out[start[2] : stop[2], start[1] : stop[1], start[0] : stop[0]] = self.contains(world).reshape(i.shape)
+            return out
+        # local model point of a voxel index: R^T (D diag(spacing) idx + origin - pose origin)
+        rotation_t = self.pose.rotation.T
+        affine = rotation_t @ grid.direction @ np.diag(grid.spacing)
+        offset = rotation_t @ (grid.origin - self.pose.origin)
+        v2_lo, v2_hi = self.grid.v2_range
+        name = self.system.name
+        if name == "cylindrical":
+            param = self.system.height
+            planar = v2_lo == 0 and abs(v2_hi - param) < 1e-12
+        else:
+            param = getattr(self.system, "focal_length", 1.0)
+            planar = v2_lo == 0 and abs(v2_hi - np.pi / 2) < 1e-12
+        # bounds of |df/dv1|, |df/dv2| for the rasteriser's step: the cubic
+        # patches sampled at 12 x 12 points each, with a margin
+        v2, v1 = np.meshgrid(np.linspace(v2_lo, v2_hi, 12 * self.grid.n2 + 1),
+                             np.linspace(0, 2 * np.pi, 12 * self.grid.n1 + 1), indexing="ij")
+        slopes = [1.25 * np.abs(self.evaluate(v1, v2, *d)).max() + 1e-9 for d in ((1, 0), (0, 1))]
+        box = cavity_mask(start, stop, affine, offset, name, param, self.coefficients, (v2_lo, v2_hi), planar,
+                          slopes)
+        inside = box == 1
+        ties = np.argwhere(box == 2)  # (k, j, i) in the box
+        if len(ties):
+            world = grid.index_to_world(ties[:, ::-1] + start)
+            inside[tuple(ties.T)] = self.contains(world)
+        out[start[2] : stop[2], start[1] : stop[1], start[0] : stop[0]] = inside
         return out
 
     def mesh(self, n_v1: int = 64, n_v2: int = 32, *, closed: bool = True) -> tuple[np.ndarray, np.ndarray]:

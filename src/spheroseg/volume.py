@@ -216,15 +216,19 @@ def outside_sector(array: np.ndarray, *, min_fraction: float = 0.01) -> np.ndarr
     the faces and stay data.  Returns ``None`` when that padding is under
     ``min_fraction`` of the image.
     """
-    from scipy import ndimage
+    array = np.asarray(array)
+    n = array.size
+    if n - np.count_nonzero(array) < min_fraction * n:
+        return None
+    try:
+        from ._raster import face_connected_zeros
+    except ImportError:  # pragma: no cover - numba is a dependency
+        from scipy import ndimage
 
-    zero = np.asarray(array) == 0
-    if zero.mean() < min_fraction:
-        return None
-    labels, n = ndimage.label(zero)
-    faces = np.concatenate([labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()])
-    touching = np.unique(faces[faces > 0])
-    if touching.size == 0:
-        return None
-    mask = np.isin(labels, touching)
-    return mask if mask.mean() >= min_fraction else None
+        labels, _ = ndimage.label(array == 0)
+        faces = np.concatenate([labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()])
+        mask = np.isin(labels, np.unique(faces[faces > 0]))
+        count = int(np.count_nonzero(mask))
+    else:
+        mask, count = face_connected_zeros(array)
+    return mask if count > 0 and count >= min_fraction * n else None

@@ -1,0 +1,218 @@
+"""What a user waits for: the whole ``spheroseg segment`` command, stage by stage.
+
+    python benchmarks/userspeed.py --label before   # run on the code to compare against
+    python benchmarks/userspeed.py --label after    # run on this code
+    python benchmarks/userspeed.py --report         # the section in docs/benchmarks.md
+
+Each label measures, with whatever ``spheroseg`` is importable (set
+PYTHONPATH to choose the code), on two volumes written as MetaImage files:
+CETUS Patient 7 ED (201 x 140 x 140, spacing 0.9 mm as its points file
+assumes; skipped when /work/shared/data/cetus is absent) and the same volume
+resampled to 256^3:
+
+- the stages, each in a fresh interpreter (so ``import`` and the first call
+  are what a command sees): import, loading the kernels (this branch's
+  ``spheroseg.warmup``; before it, paid inside the first calls), SimpleITK's own read, spheroseg.load
+  without the padding search, the padding search (``outside_sector``), the
+  segmentation, the mask, the meshes and surface files, the mask and JSON
+  writes, the PNG report;
+- the wall time of ``python -m spheroseg segment`` with and without the
+  report, on a first run (an empty numba cache: ``NUMBA_CACHE_DIR`` set to a
+  new folder) and on later runs.
+
+Medians over ``--repeats`` runs; results in docs/userspeed.json by label.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+CETUS = Path(os.environ.get("SPHEROSEG_CETUS", "/work/shared/data/cetus"))
+WORK = Path(tempfile.gettempdir()) / "spheroseg-userspeed"
+
+STAGES = ["import", "kernels", "sitk_read", "read", "padding", "segment", "mask", "meshes", "writes", "report"]
+
+# one fresh interpreter: every stage of the command, timed
+CHILD = r"""
+import json, sys, time
+t = time.perf_counter(); import spheroseg, spheroseg.cli; s = {"import": time.perf_counter() - t}
+from pathlib import Path
+import numpy as np
+import SimpleITK as sitk
+from spheroseg.volume import Volume, outside_sector
+from spheroseg.surface_io import write_mesh, write_surface_json, write_cmiss
+from spheroseg.io import save_mask
+path, out, apex, base = sys.argv[1], Path(sys.argv[2]), json.loads(sys.argv[3]), json.loads(sys.argv[4])
+t = time.perf_counter()
+try:  # after: the kernels and level matrices loaded up front, as the CLI does
+    from spheroseg.warmup import load_kernels
+    load_kernels()
+except ImportError:  # before: paid by the first call of each stage
+    pass
+s["kernels"] = time.perf_counter() - t
+t = time.perf_counter(); img = sitk.ReadImage(path); a = sitk.GetArrayFromImage(img); s["sitk_read"] = time.perf_counter() - t
+t = time.perf_counter(); v = spheroseg.load(path, no_data_value=None); s["read"] = time.perf_counter() - t
+t = time.perf_counter(); pad = outside_sector(v.array); s["padding"] = time.perf_counter() - t
+vol = Volume(v.array, spacing=v.spacing, origin=v.origin, direction=v.direction, no_data_mask=pad)
+t = time.perf_counter(); r = spheroseg.segment(vol, apex, base); s["segment"] = time.perf_counter() - t
+s["segment_inside"] = r.seconds
+t = time.perf_counter(); m = r.mask(vol); s["mask"] = time.perf_counter() - t
+t = time.perf_counter()
+p, f = r.mesh()
+for suffix in (".vtk", ".ply"):
+    write_mesh(out / ("mesh" + suffix), p, f)
+write_surface_json(out / "surface.json", r.surface, volume_ml=r.volume_ml)
+write_cmiss(out / "surface", r.surface)
+s["meshes"] = time.perf_counter() - t
+t = time.perf_counter(); save_mask(out / "mask.mha", m, vol); (out / "r.json").write_text(json.dumps({"v": r.volume_ml})); s["writes"] = time.perf_counter() - t
+t = time.perf_counter()
+from spheroseg.report import save_report
+save_report(out / "report.png", vol, r.surface, mask=m, title="x"); s["report"] = time.perf_counter() - t
+s["volume_ml"] = r.volume_ml
+print(json.dumps(s))
+"""
+
+
+def cases() -> list[dict]:
+    """The two volumes as .mha files (made once) with their apex and base."""
+    import SimpleITK as sitk
+
+    WORK.mkdir(exist_ok=True)
+    info = json.loads((CETUS / "Patient7_points.json").read_text())
+    array = np.load(CETUS / info["ED"]["file"])
+    spacing = info["assumed_spacing_mm"]
+    apex = np.array(info["ED"]["apex_index"][::-1], float) * spacing
+    base = np.array(info["ED"]["base_index"][::-1], float) * spacing
+    out = []
+    for name, shape in (("cetus", array.shape), ("256", (256, 256, 256))):
+        path = WORK / f"p7_{name}.mha"
+        scale = np.array(array.shape, float) / np.array(shape)  # old voxels per new voxel, z y x
+        sp = spacing * scale[::-1]
+        if not path.is_file():
+            from scipy import ndimage
+
+            a = array if shape == array.shape else ndimage.zoom(array, np.array(shape) / array.shape, order=0)
+            image = sitk.GetImageFromArray(a)
+            image.SetSpacing(tuple(float(x) for x in sp))
+            sitk.WriteImage(image, str(path))
+        out.append({"name": f"{'x'.join(map(str, shape))}", "path": str(path), "apex": apex.tolist(),
+                    "base": base.tolist()})
+    return out
+
+
+def stages(case: dict, env: dict) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        run = subprocess.run([sys.executable, "-c", CHILD, case["path"], tmp, json.dumps(case["apex"]),
+                              json.dumps(case["base"])], capture_output=True, text=True, env=env)
+    if run.returncode:
+        raise RuntimeError(run.stderr)
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def command(case: dict, env: dict, report: bool, extra=()) -> float:
+    with tempfile.TemporaryDirectory() as tmp:
+        cmd = [sys.executable, "-m", "spheroseg", "segment", case["path"], "--apex", *map(str, case["apex"]),
+               "--base", *map(str, case["base"]), "--out", tmp, "--force", "--quiet", *extra]
+        if not report:
+            cmd.append("--no-report")
+        t = time.perf_counter()
+        run = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        wall = time.perf_counter() - t
+    if run.returncode:
+        raise RuntimeError(run.stderr)
+    return wall
+
+
+def measure(repeats: int) -> dict:
+    results = {}
+    with tempfile.TemporaryDirectory() as warm:
+        env_warm = dict(os.environ, NUMBA_CACHE_DIR=warm)
+        for case in cases():
+            entry = {}
+            first = []
+            for _ in range(max(1, repeats // 2)):
+                with tempfile.TemporaryDirectory() as cold:
+                    first.append(command(case, dict(os.environ, NUMBA_CACHE_DIR=cold), report=False))
+            entry["first_run_no_report"] = float(np.median(first))
+            command(case, env_warm, report=True)  # fills the warm cache
+            runs = [stages(case, env_warm) for _ in range(repeats)]
+            entry["stages"] = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
+            entry["later_no_report"] = float(np.median([command(case, env_warm, False) for _ in range(repeats)]))
+            entry["later_report"] = float(np.median([command(case, env_warm, True) for _ in range(repeats)]))
+            results[case["name"]] = entry
+            print(case["name"], json.dumps(entry, indent=1), flush=True)
+    return results
+
+
+def git_commit() -> str:
+    try:
+        import spheroseg
+
+        src = Path(spheroseg.__file__).resolve().parents[2]
+        return subprocess.run(["git", "-C", str(src), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True).stdout.strip()
+    except Exception:  # pragma: no cover
+        return "?"
+
+
+def report_section(data: dict) -> str:
+    labels = [k for k in ("before", "after") if k in data]
+    lines = ["## The whole command, stage by stage (issue 15)", "",
+             "Command: `PYTHONPATH=<code>/src python benchmarks/userspeed.py --label before|after --repeats 3`, "
+             "then `--report`.  `before` is main before this work, `after` this branch; "
+             + ", ".join(f"{k}: {data[k]['commit']} on {data[k]['date']}" for k in labels) + ".  "
+             "Medians over 3 runs on a shared 2-core machine under load from other jobs (load average 3-4), "
+             "so absolute times are pessimistic and noisy; each stage runs in a fresh interpreter, as in a command. "
+             "Volumes: CETUS Patient 7 ED (201 x 140 x 140, 0.9 mm assumed) and the same resampled to 256^3, "
+             "as MetaImage files.  Milliseconds.", ""]
+    names = list(data[labels[0]]["results"])
+    rows = [("import spheroseg + cli", "import"),
+            ("load the kernels and level matrices (after only; before: inside the first calls)", "kernels"),
+            ("SimpleITK's own read", "sitk_read"),
+            ("spheroseg.load, no padding search", "read"), ("padding search (outside_sector)", "padding"),
+            ("segment (before: first call in the process)", "segment"), ("  of which the descent (result.seconds)",
+                                                                   "segment_inside"),
+            ("mask", "mask"), ("meshes and surface files", "meshes"), ("mask and JSON writes", "writes"),
+            ("report (PNG)", "report")]
+    head = "| stage | " + " | ".join(f"{n} {lab}" for n in names for lab in labels) + " |"
+    lines += [head, "| --- |" + " ---: |" * (len(names) * len(labels))]
+    for title, key in rows:
+        cells = [f"{1000 * data[lab]['results'][n]['stages'].get(key, 0.0):.0f}" for n in names for lab in labels]
+        lines.append(f"| {title} | " + " | ".join(cells) + " |")
+    for title, key in (("`spheroseg segment`, first run (empty numba cache), no report", "first_run_no_report"),
+                       ("`spheroseg segment`, later runs, no report", "later_no_report"),
+                       ("`spheroseg segment`, later runs, with report", "later_report")):
+        cells = [f"{1000 * data[lab]['results'][n][key]:.0f}" for n in names for lab in labels]
+        lines.append(f"| {title} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--label", choices=["before", "after"])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--report", action="store_true", help="print the docs section from docs/userspeed.json")
+    args = parser.parse_args()
+    path = DOCS / "userspeed.json"
+    data = json.loads(path.read_text()) if path.is_file() else {}
+    if args.label:
+        data[args.label] = {"commit": git_commit(), "date": time.strftime("%Y-%m-%d %H:%M"),
+                            "python": platform.python_version(), "results": measure(args.repeats)}
+        path.write_text(json.dumps(data, indent=1) + "\n")
+    if args.report:
+        print(report_section(data))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,148 @@
+"""The compiled rasteriser and sector-padding pass against the numpy code
+they replace (kept here as the reference), voxel for voxel."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import spheroseg
+from spheroseg.phantom import make_phantom
+from spheroseg.surface import ImageGrid, Surface
+from spheroseg.volume import outside_sector
+
+APEX, BASE = np.array([3.0, -4.0, 85.0]), np.array([0.0, 0.0, 5.0])
+
+
+def reference_mask(surface: Surface, grid: ImageGrid) -> np.ndarray:
+    """Surface.mask before the compiled rasteriser: every voxel centre of the
+    bounding box through Surface.contains."""
+    out = np.zeros(grid.shape, dtype=bool)
+    lo, hi = surface.bounding_box()
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    idx = grid.world_to_index(corners)
+    start = np.clip(np.floor(idx.min(0)).astype(int), 0, np.array(grid.shape[::-1]))
+    stop = np.clip(np.ceil(idx.max(0)).astype(int) + 1, 0, np.array(grid.shape[::-1]))
+    if np.any(stop <= start):
+        return out
+    k, j, i = np.meshgrid(*(np.arange(a, b) for a, b in zip(start[::-1], stop[::-1])), indexing="ij")
+    world = grid.index_to_world(np.stack([i, j, k], axis=-1).reshape(-1, 3))
+    out[start[2]:stop[2], start[1]:stop[1], start[0]:stop[0]] = surface.contains(world).reshape(i.shape)
+    return out
+
+
+def reference_padding(array: np.ndarray, *, min_fraction: float = 0.01):
+    """outside_sector before the compiled pass: scipy labels of the zeros."""
+    from scipy import ndimage
+
+    zero = np.asarray(array) == 0
+    if zero.mean() < min_fraction:
+        return None
+    labels, n = ndimage.label(zero)
+    faces = np.concatenate([labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()])
+    touching = np.unique(faces[faces > 0])
+    if touching.size == 0:
+        return None
+    mask = np.isin(labels, touching)
+    return mask if mask.mean() >= min_fraction else None
+
+
+def bumpy(system, rng, amplitude=0.08, apex=APEX, base=BASE, patches=(8, 8)):
+    """An initial surface with random, pole-constrained perturbations."""
+    s = Surface.from_apex_base(apex, base, system=system, patches=patches)
+    params = s.grid.parameters(s.coefficients)
+    return s.with_coefficients(s.grid.constraints @ (params * (1 + amplitude * rng.normal(size=params.shape))))
+
+
+GRIDS = {
+    "isotropic": ImageGrid((100, 70, 70), spacing=(1.0, 1.0, 1.0), origin=(-33.2, -37.7, -2.1)),
+    "anisotropic": ImageGrid((60, 95, 80), spacing=(0.8, 0.55, 1.45), origin=(-31.1, -29.7, -1.3)),
+    "oblique": ImageGrid((90, 80, 75), spacing=(0.9, 1.1, 1.0), origin=(-20.0, -60.0, 10.0),
+                         direction=Rotation.from_euler("zyx", [25, -15, 35], degrees=True).as_matrix()),
+}
+
+
+@pytest.mark.parametrize("grid", list(GRIDS))
+@pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])
+def test_mask_equals_reference(system, grid, rng):
+    g = GRIDS[grid]
+    for amplitude in (0.0, 0.1):
+        s = bumpy(system, rng, amplitude)
+        mask = s.mask(g)
+        assert mask.sum() > 1000  # the cavity is on the grid
+        np.testing.assert_array_equal(mask, reference_mask(s, g))
+
+
+@pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])
+def test_mask_equals_reference_tilted_and_cropped(system, rng):
+    # long axis tilted off every image axis; the grid cuts the cavity
+    apex = np.array([30.0, -25.0, 70.0])
+    base = np.array([-5.0, 8.0, 4.0])
+    g = ImageGrid((70, 66, 50), spacing=(1.2, 0.7, 0.9), origin=(-40.0, -30.0, -5.0),
+                  direction=Rotation.from_euler("xyz", [10, 20, -30], degrees=True).as_matrix())
+    s = bumpy(system, rng, 0.12, apex=apex, base=base, patches=(4, 6))
+    mask = s.mask(g)
+    assert 0 < mask.sum() < mask.size
+    np.testing.assert_array_equal(mask, reference_mask(s, g))
+
+
+def test_mask_of_segmentation_equals_reference():
+    ph = make_phantom(seed=3, spacing=0.8, tilt_deg=20.0)
+    res = spheroseg.segment(ph.volume, apex=ph.apex, base=ph.base)
+    np.testing.assert_array_equal(res.mask(ph.volume), reference_mask(res.surface, ph.volume.grid))
+
+
+def test_mask_nonplanar_v2_range_equals_reference(rng):
+    # a v2 range that ends before the base plane: no planar shortcut
+    s = bumpy("prolate", rng, 0.05)
+    from spheroseg.hermite import HermiteGrid
+
+    grid = HermiteGrid(8, 8, (0.0, 1.3), poles=s.system.poles)
+    s = Surface.from_function(s.system, s.pose, grid, 0.6)
+    g = GRIDS["oblique"]
+    np.testing.assert_array_equal(s.mask(g), reference_mask(s, g))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_padding_equals_reference_on_phantoms(seed):
+    ph = make_phantom(seed=seed, spacing=1.0)
+    array = ph.volume.array
+    expected = reference_padding(array)
+    assert expected is not None and expected.any()
+    np.testing.assert_array_equal(outside_sector(array), expected)
+
+
+def test_padding_keeps_inner_zeros_and_handles_edge_cases():
+    a = np.ones((9, 10, 11), np.float32)
+    a[0, :, :5] = 0  # a face region
+    a[4, 4:6, 4:6] = 0  # inner zeros: not connected to a face
+    a[1:5, 2, 0] = 0  # touching the x face
+    expected = reference_padding(a, min_fraction=0.0)
+    got = outside_sector(a, min_fraction=0.0)
+    np.testing.assert_array_equal(got, expected)
+    assert not got[4, 4, 4]
+    assert outside_sector(np.ones((5, 5, 5))) is None
+    assert outside_sector(a, min_fraction=0.5) is None
+    zeros = np.zeros((3, 4, 5))
+    np.testing.assert_array_equal(outside_sector(zeros), reference_padding(zeros))
+
+
+@pytest.mark.parametrize("phase", ["ED", "ES"])
+def test_padding_and_mask_equal_reference_on_cetus(phase, tmp_path):
+    import json
+
+    from conftest import cetus_file
+
+    points = json.loads(cetus_file("Patient7_points.json").read_text())
+    array = np.load(cetus_file(points[phase]["file"]))
+    expected = reference_padding(array)
+    assert expected is not None and expected.mean() > 0.2  # the sector's padding
+    np.testing.assert_array_equal(outside_sector(array), expected)
+    # through load, as the CLI reads it
+    np.save(tmp_path / "p7.npy", array)
+    spacing = points["assumed_spacing_mm"]
+    vol = spheroseg.load(tmp_path / "p7.npy", spacing=(spacing,) * 3)
+    np.testing.assert_array_equal(vol.no_data_mask, expected)
+    apex = np.array(points[phase]["apex_index"][::-1], float) * spacing
+    base = np.array(points[phase]["base_index"][::-1], float) * spacing
+    res = spheroseg.segment(vol, apex=apex, base=base)
+    np.testing.assert_array_equal(res.mask(vol), reference_mask(res.surface, vol.grid))
