@@ -234,7 +234,11 @@ def _load_timed(source, args, seconds: dict):
     volume = load(source, spacing=args.spacing, no_data_value=None if auto else args.no_data)
     seconds["read"] = time.perf_counter() - t0
     _kernels_loaded(seconds)
-    if auto:
+    if auto and not isinstance(volume, Volume):  # a beam-space file: its NoDataValue key, read with it
+        t0 = time.perf_counter()
+        volume = load(source, spacing=args.spacing, no_data_value="auto")
+        seconds["read"] += time.perf_counter() - t0
+    elif auto:
         t0 = time.perf_counter()
         volume = Volume(volume.array, spacing=volume.spacing, origin=volume.origin, direction=volume.direction,
                         no_data_mask=outside_sector(volume.array))
