@@ -33,7 +33,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import _beam_kernels
 from .volume import INDEX_TOLERANCE, ImageGrid, Volume
 
 __all__ = ["BeamGeometry", "BeamVolume", "BeamSamplingView", "CONVENTIONS", "scan_convert", "to_beam_space",
@@ -439,6 +438,8 @@ def _grid_slice_points(grid: ImageGrid, k: int) -> np.ndarray:
 def _sample_points(volume: BeamVolume, points: np.ndarray, order: int) -> np.ndarray:
     """``volume.sample(points, order=order)``, trilinear through the compiled
     kernel when numba is installed (tested equal)."""
+    from . import _beam_kernels  # numba only when sampling: import spheroseg stays light
+
     if order != 1 or not _beam_kernels.AVAILABLE:
         return volume.sample(points, order=order)
     n = len(points)
