@@ -314,14 +314,19 @@ def speckle_nepers(samples: np.ndarray, patch: np.ndarray, *, min_rays: int = 6)
     averaged over patches and offsets, gives ``k^2 pi^2 / 6``.  Variances
     over three times their median (a patch across two tissues) are left out.
     """
-    variances = []
-    for p in np.unique(patch):
-        block = samples[patch == p]
-        for column in block.T:
-            values = column[np.isfinite(column)]
-            if len(values) >= min_rays:
-                variances.append(np.var(values, ddof=1))
-    variances = np.asarray(variances)
+    # per (patch, offset): count, sum and sum of squares of the finite values
+    _, group = np.unique(patch, return_inverse=True)
+    ok = np.isfinite(samples)
+    values = np.where(ok, samples, 0.0)
+    shape = (group.max() + 1, samples.shape[1])
+    count, total, squares = (np.zeros(shape) for _ in range(3))
+    for offset in range(samples.shape[1]):
+        count[:, offset] = np.bincount(group, ok[:, offset], minlength=shape[0])
+        total[:, offset] = np.bincount(group, values[:, offset], minlength=shape[0])
+        squares[:, offset] = np.bincount(group, values[:, offset] ** 2, minlength=shape[0])
+    enough = count >= min_rays
+    n = count[enough]
+    variances = (squares[enough] - total[enough] ** 2 / n) / (n - 1)
     if not variances.size or np.median(variances) <= 0:
         raise ValueError("no speckle around the surface to estimate the log compression from "
                          "(use mode='local' for images that are not log-compressed echo)")
