@@ -156,13 +156,17 @@ def _say(args, *lines) -> None:
             print(line)
 
 
-def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -> None:
+def _make_folder(out: Path) -> None:
     if out.exists() and not out.is_dir():
         raise CliError(f"output folder {out} is a file")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise CliError(f"cannot create output folder {out}: {exc.strerror}") from None
+
+
+def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -> None:
+    _make_folder(out)
     if not os.access(out, os.W_OK):
         raise CliError(f"output folder {out} is not writable")
     resolved_inputs = {p.resolve() for p in inputs if p.exists()}
@@ -383,12 +387,7 @@ def cmd_batch(args) -> int:
                "no_data_value": args.no_data, "mask_suffix": _mask_suffix(args, Path("")) if args.mask_format else None,
                "stl": args.stl, "report": not args.no_report}
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise CliError(f"output folder {out} is a file")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CliError(f"cannot create output folder {out}: {exc.strerror}") from None
+    _make_folder(out)
     for variable in BLAS_THREADS:  # one worker per core: single-threaded BLAS in each (as Dask's workers)
         os.environ.setdefault(variable, "1")
     client = executor = None

@@ -86,7 +86,7 @@ class Force(NamedTuple):
     c_in: object
     c_out: object
     scale: float
-    clip: float | None = 1.0  #: None: bound the displacement after averaging over the surface
+    clip: float = 1.0
 
 
 def _ratio(numerator: float, denominator: float) -> float:

@@ -60,7 +60,7 @@ class Descent:
                  nu: float = 0.0, landmarks=None, landmark_weights=None, backend: str = "auto",
                  adaptive_step: bool = False):
         self.model = SampledSurface(surface.system, surface.pose, surface.grid, order)
-        self.discretisation = d = self.model.discretisation
+        self.discretisation = self.model.discretisation
         self.backend = select_backend(self.model, compiled=backend != "numpy")
         self.like = surface
         self.p = self.model.parameters(surface.coefficients)
@@ -110,22 +110,14 @@ class Descent:
         m, d = self.model, self.discretisation
         if self.h0_floor is None:  # fixed per level: a median per iteration costs more than the rest
             self.h0_floor = 0.3 * float(np.median(obs.h0))
-        area_speed = None
-        if self.nu:
-            def area_speed(normal_to_v0):
-                return self.nu * self._area_speed(obs.geometry, normal_to_v0)
-        clip = np.inf if force.clip is None else force.clip
+
+        def area_speed(normal_to_v0):
+            return self.nu * self._area_speed(obs.geometry, normal_to_v0)
+
         wdv0 = self.backend.displacement(obs, force.c_in, force.c_out, force.scale, step=self.step,
-                                         h0_floor=self.h0_floor, clip=clip, u=force.u, area_speed=area_speed)
+                                         h0_floor=self.h0_floor, clip=force.clip, u=force.u,
+                                         area_speed=area_speed if self.nu else None)
         rhs = self.backend.scatter(wdv0)
-        if force.clip is None:
-            # bound the displacement after its projection on the Hermite space
-            # (B M^-1 B^T W dv0: the force averaged over the surface), not
-            # point by point: clipping a heavy-tailed force before averaging
-            # moves the point where its mean vanishes
-            limit = self.step / self.backend.normal_to_v0(obs, self.h0_floor)
-            smooth = self.backend.gather(d.mass_inverse @ rhs)
-            rhs = self.backend.scatter(m.weights * np.clip(smooth, -limit, limit))
         if self.landmarks is not None:
             # rows omega |L p_new - (L p + res)|^2: move towards each landmark
             # by at most a step

@@ -29,8 +29,6 @@ clicks describe, its apex not a centimetre from the clicked one.
 
 from __future__ import annotations
 
-import numpy as np
-
 __all__ = ["quality_report", "quality_warning"]
 
 #: the bounds of a plausible result
