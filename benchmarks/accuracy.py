@@ -35,11 +35,13 @@ from report import write_markdown  # noqa: E402
 
 from spheroseg.metrics import mask_volume_ml  # noqa: E402
 from spheroseg.phantom import FAMILIES, FORMATIONS, make_phantom, make_sequence, sweep_cases  # noqa: E402
+from spheroseg.options import MODES as spheroseg_modes  # noqa: E402
 from spheroseg.options import SegmentOptions  # noqa: E402
 from spheroseg.segment import segment, track  # noqa: E402
 from spheroseg.volume import Volume  # noqa: E402
 
-MODES = ("local", "chan-vese", "fast")
+MODES = spheroseg_modes  # every data term, the default first
+DEFAULT = SegmentOptions().mode
 PEERS = {"skimage morphological_chan_vese": run_skimage, "SimpleITK ScalarChanAndVese": run_sitk}
 PEER_KEY = {"skimage morphological_chan_vese": "skimage", "SimpleITK ScalarChanAndVese": "sitk"}
 
@@ -204,12 +206,12 @@ def sequences(seeds, peers: bool) -> list:
         t0 = time.perf_counter()
         tr = track(seq.volumes, first.apex, first.base)
         row = {"seed": seed, "truth_ef": seq.truth_ef,
-               "spheroseg local (tracking)": {"ef": tr.ef, "seconds_per_frame": (time.perf_counter() - t0) / len(seq.frames)}}
+               f"spheroseg {DEFAULT} (tracking)": {"ef": tr.ef, "seconds_per_frame": (time.perf_counter() - t0) / len(seq.frames)}}
         ed, es = int(np.argmax(seq.truth_volumes_ml)), int(np.argmin(seq.truth_volumes_ml))
         # the same question as the peers get: ED and ES segmented on their own
         # from the first frame's apex/base half-ellipsoid
         v = [segment(seq.frames[k].volume, first.apex, first.base).volume_ml for k in (ed, es)]
-        row["spheroseg local (ED and ES frames)"] = {"ef": 100 * (v[0] - v[1]) / v[0]}
+        row[f"spheroseg {DEFAULT} (ED and ES frames)"] = {"ef": 100 * (v[0] - v[1]) / v[0]}
         if peers:
             for name, fn in PEERS.items():
                 v = [mask_volume_ml(fn(seq.frames[k].volume, first.apex, first.base, **PEER_PARAMS[PEER_KEY[name]])[0],
@@ -257,7 +259,7 @@ def main(argv=None):
     cases = run_cases(seeds, peers)
     data = {
         "command": "python benchmarks/accuracy.py" + (" --quick" if args.quick else ""),
-        "machine": machine(), "peer_params": PEER_PARAMS, "cases": cases,
+        "machine": machine(), "peer_params": PEER_PARAMS, "default_mode": DEFAULT, "cases": cases,
         "sequences": sequences(seeds, peers), "cetus_patient7": cetus(peers),
         "wall_seconds": time.perf_counter() - t0,
     }

@@ -365,17 +365,18 @@ def _targets(acc, sp, sweep=None) -> list[str]:
         rows.append(f"| {target} | {value} | {'met' if met else '**missed**'} |")
 
     if acc:
-        speckle = [c["results"]["spheroseg local"] for c in acc["cases"] if c["family"] == "speckle"]
+        ours_key = f"spheroseg {acc.get('default_mode', 'local')}"
+        speckle = [c["results"][ours_key] for c in acc["cases"] if c["family"] == "speckle"]
         d = np.median([r["dice"] for r in speckle])
         msd = np.median([r["msd_mm"] for r in speckle])
         add("median Dice >= 0.92 on standard speckle", f"{d:.3f}", d >= 0.92)
         add("median mean surface distance <= 1.5 mm on standard speckle", f"{msd:.2f} mm", msd <= 1.5)
         if acc.get("sequences"):
-            err = max(abs(r["spheroseg local (tracking)"]["ef"] - r["truth_ef"]) for r in acc["sequences"])
+            err = max(abs(r[f"{ours_key} (tracking)"]["ef"] - r["truth_ef"]) for r in acc["sequences"])
             add("EF within 5 points on phantom sequences (worst)", f"{err:.1f} points", err <= 5)
         peers = [m for m in acc["cases"][0]["results"] if not m.startswith("spheroseg")]
         if peers:
-            ours = [c["results"]["spheroseg local"] for c in acc["cases"]]
+            ours = [c["results"][ours_key] for c in acc["cases"]]
             t_ours = np.median([r["seconds"] for r in ours])
             d_ours = np.median([r["dice"] for r in ours])
             best = min(peers, key=lambda m: np.median([c["results"][m]["seconds"] for c in acc["cases"]]))
