@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import machine, median_time, write_json  # noqa: E402
+from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
 from spheroseg import _beam_kernels, _kernels  # noqa: E402

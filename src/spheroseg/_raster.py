@@ -72,22 +72,18 @@ def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, step, slope1,
     """Status of the local point (_OUT, _IN or _TIE: too close to call), and
     the number of further voxels along the row (``step`` mm apart) that
     share it."""
-    # model coordinates and scale factors, as CoordinateSystem.from_cartesian
+    # model coordinates, as CoordinateSystem.from_cartesian
     rho = math.hypot(x2, x3)
     if kind == _PROLATE:
         w = cmath.acosh(complex(x1, rho) / param)
         v0 = abs(w.real)
         v2 = abs(w.imag)
-        s = param * math.sqrt(math.sinh(v0) ** 2 + math.sin(v2) ** 2)
-        h0, h1, h2 = s, param * math.sinh(v0) * math.sin(v2), s
     elif kind == _SPHERICAL:
         v0 = math.hypot(x1, rho)
         v2 = math.atan2(rho, x1)
-        h0, h1, h2 = 1.0, v0 * math.sin(v2), v0
     else:
         v0 = rho
         v2 = x1
-        h0, h1, h2 = 1.0, v0, 1.0
     # distance (mm) to the boundary of the v2 range, when it is a plane
     if standard_range:
         plane = min(abs(x1), abs(param - x1)) if kind == _CYLINDRICAL else abs(x1)
