@@ -341,7 +341,7 @@ def annulus_plane(annulus) -> tuple[np.ndarray, np.ndarray]:
     except (TypeError, ValueError):
         raise ValueError(f"annulus must be points (x, y, z in mm), got {annulus!r}") from None
     if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"annulus must have shape (k, 3), got {points.shape}")
+        raise ValueError(f"annulus must be an array of points (k, 3), got shape {points.shape}")
     if len(points) < 3:
         raise ValueError(f"the mitral plane needs at least 3 annulus points, got {len(points)}")
     if not np.all(np.isfinite(points)):

@@ -149,7 +149,7 @@ class Descent:
             norms = np.sqrt(np.dot(w, motion**2) * np.dot(w, self._previous_motion**2))
             if norms > 0 and dot < -0.5 * norms:
                 self.step = max(0.5 * self.step, self._initial_step / 8)
-        self._previous_motion = motion.copy()
+        self._previous_motion = motion
 
     def _area_speed(self, g, normal_to_v0) -> np.ndarray:
         """Normal speed (steps, outward) of the area term: minus the mean

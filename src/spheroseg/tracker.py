@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .coords import Pose
+from .coords import Pose, annulus_plane
 from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, band_offsets
 from .descent import Descent
 from .options import SegmentOptions, format_point
@@ -83,14 +83,8 @@ def _check_point(volume, point, name: str) -> np.ndarray:
 
 
 def _check_annulus(volume, annulus) -> np.ndarray:
-    try:
-        points = np.asarray(annulus, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"annulus must be points (x, y, z in mm), got {annulus!r}") from None
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"annulus must be an array of points (k, 3), got shape {points.shape}")
-    if len(points) < 3:
-        raise ValueError(f"the mitral plane needs at least 3 annulus points, got {len(points)}")
+    annulus_plane(annulus)  # its points' form: (k >= 3, 3), finite, not on a line
+    points = np.asarray(annulus, dtype=float)
     for k, point in enumerate(points):
         _check_point(volume, point, f"annulus point {k}")
     return points
@@ -278,7 +272,7 @@ class Tracker:
         obs = self._descent.observe(self.volume, term)
         force = term.force(self._descent.backend, self.volume, obs)
         self.c_in, self.c_out = term.grey_means
-        self._seen = (float(np.mean(~np.isfinite(obs.u))), np.asarray(force.c_out - force.c_in, float), term.spread)
+        self._last = (obs.u, force, term.spread)  # for the quality report, read when a result is made
         self.motion = self._descent.iterate(obs, force)
         self.iteration += 1
         self._level_iterations += 1
@@ -428,7 +422,11 @@ class Tracker:
             parameters=parameters, status=status, message=STATUS_MESSAGES[status], quality=self._quality(surface))
 
     def _quality(self, surface: Surface) -> dict:
-        no_data, contrast, spread = getattr(self, "_seen", (np.nan, np.full(1, np.nan), np.nan))
+        if hasattr(self, "_last"):
+            u, force, spread = self._last
+            no_data, contrast = float(np.mean(~np.isfinite(u))), np.asarray(force.c_out - force.c_in, float)
+        else:
+            no_data, contrast, spread = np.nan, np.full(1, np.nan), np.nan
         v1 = np.linspace(0, 2 * np.pi, 16, endpoint=False)
         tip = surface.points(v1, np.full_like(v1, surface.grid.v2_range[0])).mean(axis=0)
         with np.errstate(invalid="ignore", divide="ignore"):
