@@ -4,6 +4,8 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
+import spheroseg
+
 from spheroseg.io import ImageFileError, image_format, load, load_sequence, read_markups, save_mask, write_markups
 from spheroseg.volume import Volume
 
@@ -174,3 +176,33 @@ def test_load_finds_the_sector_padding(tmp_path):
     assert load(tmp_path / "echo.mha", no_data_value=None).no_data_mask is None
     with pytest.raises(ValueError, match="no_data_value"):
         load(tmp_path / "echo.mha", no_data_value="sometimes")
+
+
+def test_load_frames_tells_a_volume_from_a_sequence(tmp_path):
+    from spheroseg.io import load_frames
+    from spheroseg.phantom import make_sequence
+
+    seq = make_sequence(seed=1, n_frames=3, spacing=3.0)
+    spheroseg.save_volume(tmp_path / "cine.nrrd", list(seq.volumes))
+    spheroseg.save_volume(tmp_path / "one.mha", seq.volumes[1])
+    frames = load_frames(tmp_path / "cine.nrrd")
+    assert len(frames) == 3
+    np.testing.assert_array_equal(frames[2].array, seq.volumes[2].array)
+    (only,) = load_frames(tmp_path / "one.mha")
+    np.testing.assert_array_equal(only.array, seq.volumes[1].array)
+    np.testing.assert_allclose(only.spacing, seq.volumes[1].spacing)
+    np.save(tmp_path / "cine.npy", np.array([v.array for v in seq.volumes]))
+    assert len(load_frames(tmp_path / "cine.npy", spacing=(3, 3, 3))) == 3
+    with pytest.raises(FileNotFoundError):
+        load_frames(tmp_path / "missing.mha")
+    (tmp_path / "bad.mha").write_text("not an image")
+    with pytest.raises(spheroseg.ImageFileError, match="bad.mha"):
+        load_frames(tmp_path / "bad.mha")
+
+
+def test_save_volume_casts_to_the_dtype_asked(tmp_path):
+    volume = spheroseg.Volume(np.arange(24, dtype=float).reshape(2, 3, 4) * 10, spacing=(1, 2, 3))
+    spheroseg.save_volume(tmp_path / "v.nii", volume, dtype=np.uint8)
+    image = sitk.ReadImage(str(tmp_path / "v.nii"))
+    assert image.GetPixelID() == sitk.sitkUInt8
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(image), (np.arange(24).reshape(2, 3, 4) * 10).astype(np.uint8))

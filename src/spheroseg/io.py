@@ -27,7 +27,7 @@ import numpy as np
 from .beamspace import CONVENTIONS, BeamGeometry, BeamVolume
 from .volume import ImageGrid, Volume, outside_sector
 
-__all__ = ["load", "load_sequence", "save_mask", "save_volume", "read_markups", "write_markups", "image_format",
+__all__ = ["load", "load_sequence", "load_frames", "save_mask", "save_volume", "read_markups", "write_markups", "image_format",
            "IMAGE_SUFFIXES", "MASK_SUFFIXES", "BEAM_SUFFIXES", "BEAM_KEYS", "BEAM_OPTIONAL_KEYS", "beam_header",
            "beam_geometry_from_header", "write_atomically", "ImageFileError"]
 
@@ -266,6 +266,40 @@ def load(path: str | os.PathLike, *, spacing=None,
     return volume
 
 
+def load_frames(path: str | os.PathLike, *, spacing=None,
+                no_data_value: float | str | None = "auto") -> list[Volume] | list[BeamVolume]:
+    """Read a 3D image as one frame, or a 3D+t sequence as its frames
+    (whichever the file holds; the keywords are :func:`load`'s).
+
+    A folder or a glob pattern is a sequence (:func:`load_sequence`), as is
+    a 4D image, a 3D image of several components or a 4D ``.npy``.
+    """
+    path_str = str(path)
+    path = Path(path)
+    if any(ch in path_str for ch in "*?[") or path.is_dir():
+        return load_sequence(path_str, spacing=spacing, no_data_value=no_data_value)
+    if image_format(path) == ".npy":
+        if not path.is_file():
+            raise _missing(path)
+        try:
+            sequence = np.load(path, mmap_mode="r", allow_pickle=False).ndim == 4
+        except (ValueError, OSError):
+            sequence = False  # load says why, in one line
+    else:
+        if not path.is_file():
+            raise _missing(path)
+        reader = _sitk().ImageFileReader()
+        reader.SetFileName(str(path))
+        try:
+            reader.ReadImageInformation()
+        except RuntimeError:
+            return [load(path, spacing=spacing, no_data_value=no_data_value)]  # load says why, in one line
+        sequence = reader.GetDimension() == 4 or reader.GetNumberOfComponents() > 1
+    if sequence:
+        return load_sequence(path, spacing=spacing, no_data_value=no_data_value)
+    return [load(path, spacing=spacing, no_data_value=no_data_value)]
+
+
 def load_sequence(path: str | os.PathLike, *, spacing=None,
                   no_data_value: float | str | None = "auto") -> list[Volume] | list[BeamVolume]:
     """Read a 3D+t sequence as a list of :class:`Volume` (of
@@ -356,9 +390,10 @@ def _set_grid(image, grid: ImageGrid) -> None:
     image.SetDirection(tuple(float(d) for d in grid.direction.ravel()))
 
 
-def save_volume(path: str | os.PathLike, volume) -> None:
+def save_volume(path: str | os.PathLike, volume, *, dtype=np.float32) -> None:
     """Write a :class:`Volume` or :class:`~spheroseg.beamspace.BeamVolume`,
-    or a list of them (a 3D+t sequence, one 4D image, time last), as float32.
+    or a list of them (a 3D+t sequence, one 4D image, time last), as
+    ``dtype`` (float32; values are cast, not rescaled).
 
     A beam-space volume keeps its geometry in the header
     (:func:`beam_header`; only :data:`BEAM_SUFFIXES` keep it); its no-data
@@ -387,8 +422,8 @@ def save_volume(path: str | os.PathLike, volume) -> None:
         no_data = first.no_data_value if first.no_data_value is not None else (
             0.0 if any(v.no_data_mask is not None for v in frames) else None)
     fill = 0.0 if no_data is None else no_data
-    arrays = [np.where(v.no_data_mask, np.float32(fill), v.array) if v.no_data_mask is not None else v.array
-              for v in frames]
+    arrays = [(np.where(v.no_data_mask, np.float32(fill), v.array) if v.no_data_mask is not None else v.array)
+              .astype(dtype, copy=False) for v in frames]
     if len(frames) == 1:
         image = sitk.GetImageFromArray(arrays[0])
         if not beam:
