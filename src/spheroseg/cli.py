@@ -1,4 +1,4 @@
-"""The command line: ``spheroseg segment | track | batch | scan-convert | demo``.
+"""The command line: ``spheroseg segment | track | batch | scan-convert | view | demo``.
 
 Every failure is one line on stderr and a non-zero exit status.  Outputs
 are written to temporary files and renamed; existing outputs are kept
@@ -140,6 +140,22 @@ def build_parser() -> argparse.ArgumentParser:
     batch.add_argument("--timeout", type=_positive(float), metavar="S", help="seconds a study may take")
     batch.add_argument("--iterations-per-frame", type=int, default=20)
     _add_options(batch)
+    view = sub.add_parser("view", help="open a study in a local web page: click apex and base, watch the surface, "
+                                       "add landmarks, track, save",
+                          description="Serve a page on 127.0.0.1 for one 3D image or 3D+t sequence; the first line "
+                                      "printed is its address (with its access token). Ctrl-C stops it.")
+    view.add_argument("image", help="3D image or 3D+t sequence (any format segment and track read)")
+    view.add_argument("--port", type=int, default=0, help="port on 127.0.0.1 (default: a free one)")
+    view.add_argument("--no-browser", action="store_true", help="only print the address")
+    view.add_argument("--points", metavar="MRK_JSON", help="3D Slicer markups to start from (apex, base, landmarks)")
+    view.add_argument("--save-root", metavar="DIR", help="the folder the page saves under (default: the current one)")
+    view.add_argument("--spacing", nargs=3, type=float, metavar=("SX", "SY", "SZ"),
+                      help="voxel spacing in mm (required for .npy)")
+    view.add_argument("--system", default="prolate", choices=SYSTEMS)
+    view.add_argument("--patches", nargs=2, type=int, default=(8, 8), metavar=("N_THETA", "N_MU"))
+    view.add_argument("--mode", default=SegmentOptions.mode, choices=MODES, help="data term")
+    view.add_argument("--no-data", default="auto", type=_no_data, metavar="auto|none|VALUE",
+                      help="voxels without data, as for segment")
     demo = sub.add_parser("demo", help="track a built-in synthetic sequence and compare with its truth")
     demo.add_argument("--out", metavar="DIR", help="output folder (default: a new ./spheroseg-demo*)")
     demo.add_argument("--force", action="store_true")
@@ -487,11 +503,46 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def cmd_view(args) -> int:
+    from .viewer import open_viewer
+    from .warmup import load_kernels
+
+    if not 0 <= args.port <= 65535:
+        raise CliError(f"--port must be from 0 to 65535, got {args.port}")
+    if args.save_root is not None and not Path(args.save_root).is_dir():
+        raise CliError(f"--save-root {args.save_root} is not a folder")
+    try:
+        server = open_viewer(args.image, port=args.port, points=args.points, save_root=args.save_root,
+                             spacing=args.spacing, no_data_value=args.no_data, system=args.system,
+                             patches=tuple(args.patches), mode=args.mode)
+    except OSError as exc:
+        if exc.errno is not None and exc.filename is None:  # the socket, not a file
+            raise CliError(f"cannot listen on 127.0.0.1:{args.port}: {exc.strerror}") from None
+        raise
+    print(server.url, flush=True)
+    loaded = load_kernels()
+    if loaded["compiled"]:
+        print(f"spheroseg: compiled the numerical kernels in {loaded['seconds']:.1f} s (once)", file=sys.stderr)
+    if not args.no_browser:
+        import webbrowser
+
+        webbrowser.open(server.url)
+    print("spheroseg: serving; Ctrl-C stops", file=sys.stderr)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        print("spheroseg: stopped", file=sys.stderr)
+    finally:
+        server.session.close()
+        server.server_close()
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     handlers = {"segment": cmd_segment, "track": cmd_track, "batch": cmd_batch, "scan-convert": cmd_scan_convert,
-                "demo": cmd_demo}
+                "demo": cmd_demo, "view": cmd_view}
     try:
         return handlers[args.command](args)
     except KeyboardInterrupt:
