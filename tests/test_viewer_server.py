@@ -1,0 +1,316 @@
+"""The viewer's server against requests a hostile page or a broken client
+could send, and its session without a browser."""
+
+import base64
+import http.client
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+import spheroseg
+from spheroseg.io import save_volume, write_markups
+from spheroseg.phantom import make_phantom, make_sequence
+from spheroseg.viewer import open_viewer
+from spheroseg.viewer.server import MAX_BODY
+from spheroseg.viewer.session import Points, lps_to_ras, ras_to_lps
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return make_phantom(seed=3, spacing=2.0)
+
+
+@pytest.fixture
+def server(phantom, tmp_path):
+    path = tmp_path / "study.mha"
+    save_volume(path, phantom.volume)
+    (tmp_path / "out").mkdir()
+    server = open_viewer(path, save_root=tmp_path / "out", token="secret-token")
+    server.serve_in_thread()
+    yield server
+    server.close()
+
+
+def request(server, method, path, *, body=None, headers=None, token=True, host=None):
+    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=30)
+    conn.putrequest(method, path, skip_host=True, skip_accept_encoding=True)
+    conn.putheader("Host", host or f"127.0.0.1:{server.port}")
+    if token:
+        conn.putheader("X-Spheroseg-Token", server.token)
+    for key, value in (headers or {}).items():
+        conn.putheader(key, value)
+    if body is not None:
+        data = body if isinstance(body, bytes) else json.dumps(body).encode()
+        if "Content-Type" not in (headers or {}):
+            conn.putheader("Content-Type", "application/json")
+        conn.putheader("Content-Length", str(len(data)))
+        conn.endheaders(data)
+    else:
+        conn.endheaders()
+    response = conn.getresponse()
+    payload = response.read()
+    conn.close()
+    return response, payload
+
+
+def alive(server):
+    response, payload = request(server, "GET", "/api/study")
+    return response.status == 200 and json.loads(payload)["frames"] == 1
+
+
+def wait_for(server, frame=0, timeout=60.0):
+    """The frame's final surface, polled as a page without events would."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        response, payload = request(server, "GET", f"/api/surface?frame={frame}")
+        if response.status == 200:
+            return json.loads(payload)
+        time.sleep(0.05)
+    raise AssertionError("no surface")
+
+
+def test_listens_on_loopback_only(server):
+    assert server.server_address[0] == "127.0.0.1"
+    assert server.socket.family == socket.AF_INET
+    assert server.url.startswith(f"http://127.0.0.1:{server.port}/?token=")
+
+
+def test_token_required_everywhere(server):
+    for path in ("/", "/api/study", "/api/volume.nii", "/static/viewer.js", "/api/events"):
+        response, payload = request(server, "GET", path, token=False)
+        assert response.status == 401, path
+        assert "token" in json.loads(payload)["error"]
+    response, _ = request(server, "POST", "/api/points", body={"apex": [0, 0, 0]}, token=False)
+    assert response.status == 401
+    response, _ = request(server, "GET", "/api/study", token=False, headers={"X-Spheroseg-Token": "guess"})
+    assert response.status == 403
+    response, _ = request(server, "GET", "/?token=guess", token=False)
+    assert response.status == 403
+    response, _ = request(server, "GET", "/api/study", token=False, headers={"Cookie": "spheroseg_token=guess"})
+    assert response.status == 403
+    assert alive(server)
+
+
+def test_token_in_the_address_becomes_a_cookie(server):
+    response, _ = request(server, "GET", f"/?token={server.token}", token=False)
+    assert response.status == 303 and response.getheader("Location") == "/"
+    cookie = response.getheader("Set-Cookie")
+    assert f"spheroseg_token={server.token}" in cookie and "HttpOnly" in cookie and "SameSite=Strict" in cookie
+    response, payload = request(server, "GET", "/", token=False, headers={"Cookie": f"spheroseg_token={server.token}"})
+    assert response.status == 200 and b"niivue.umd.js" in payload
+
+
+def test_host_and_origin_checked(server):
+    # DNS rebinding: a page of evil.example resolved to 127.0.0.1 sends its own Host
+    response, _ = request(server, "GET", "/api/study", host=f"evil.example:{server.port}")
+    assert response.status == 403
+    response, _ = request(server, "GET", "/api/study", host="127.0.0.1:1")
+    assert response.status == 403
+    response, _ = request(server, "POST", "/api/track", body={"frame": 0}, headers={"Origin": "http://evil.example"})
+    assert response.status == 403
+    response, _ = request(server, "GET", "/api/study", host=f"localhost:{server.port}")
+    assert response.status == 200
+
+
+@pytest.mark.parametrize("path", [
+    "/../../etc/passwd", "/static/../../../etc/passwd", "/static/..%2f..%2fsession.py", "//etc/passwd",
+    "/etc/passwd", "/static/vendor/VERSION", "/static/", "/api/volume.nii/../../x", "/static/viewer.js/",
+    "/api/../server.py", "/%00", "/api/surface/../../../../etc/passwd",
+])
+def test_paths_outside_the_routes(server, path):
+    response, payload = request(server, "GET", path)
+    assert 400 <= response.status < 500, path
+    assert b"root:" not in payload
+    assert alive(server)
+
+
+def test_methods_and_bodies(server):
+    response, _ = request(server, "PUT", "/api/points", body={"apex": [0, 0, 0]})
+    assert response.status == 405
+    response, _ = request(server, "GET", "/api/points")
+    assert response.status == 405
+    response, payload = request(server, "POST", "/api/points", body=b"{not json")
+    assert response.status == 400 and "JSON" in json.loads(payload)["error"]
+    response, _ = request(server, "POST", "/api/points", body=b"\xff\xfe\x00garbage")
+    assert response.status == 400
+    response, _ = request(server, "POST", "/api/points", body=b"[1, 2, 3]")
+    assert response.status == 400
+    response, _ = request(server, "POST", "/api/points", body={"apex": [0, 0, 0]}, headers={"Content-Type": "text/plain"})
+    assert response.status == 415
+    response, _ = request(server, "POST", "/api/points", body=b"x" * (MAX_BODY + 1))
+    assert response.status == 413
+    response, payload = request(server, "POST", "/api/points", body={"apex": ["a", 0, 0], "base": [1, 2]})
+    assert response.status == 400 and "apex" in json.loads(payload)["error"]
+    response, payload = request(server, "POST", "/api/points", body={"apex": [1e9, 0, 0], "base": [0, 0, 0]})
+    assert response.status == 400 and "apex" in json.loads(payload)["error"]
+    response, _ = request(server, "POST", "/api/points", body={"frame": 7, "apex": [0, 0, 0]})
+    assert response.status == 400
+    response, _ = request(server, "GET", "/api/surface?frame=abc")
+    assert response.status == 400
+    response, _ = request(server, "POST", "/api/track", body={"frame": 0})
+    assert response.status == 400  # one frame: nothing to track
+    assert alive(server)
+
+
+def test_huge_and_garbage_requests_leave_the_server_up(server):
+    response, _ = request(server, "GET", "/api/study", headers={"X-Padding": "a" * 70_000})
+    assert response.status == 431
+    response, _ = request(server, "GET", "/api/study", headers={f"X-{k}": "1" for k in range(120)})
+    assert response.status == 431
+    response, _ = request(server, "GET", "/api/study?" + "a" * 70_000)
+    assert response.status == 414
+    with socket.create_connection(("127.0.0.1", server.port), timeout=10) as raw:
+        raw.sendall(b"\x16\x03\x01\x02\x00garbage that is not HTTP\r\n\r\n")
+        reply = b"".join(iter(lambda: raw.recv(4096), b""))
+        assert b"400" in reply  # the standard library's error page (no status line: it looked like HTTP/0.9)
+    with socket.create_connection(("127.0.0.1", server.port), timeout=10) as raw:
+        raw.sendall(b"POST /api/points HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 99999999999\r\n\r\n")
+        assert b" 403 " in raw.recv(200)  # refused on the Host before any body is read
+    assert alive(server)
+
+
+def test_save_only_inside_the_save_root(server, phantom, tmp_path):
+    apex, base = lps_to_ras(phantom.apex).tolist(), lps_to_ras(phantom.base).tolist()
+    response, _ = request(server, "POST", "/api/points", body={"frame": 0, "apex": apex, "base": base})
+    assert response.status == 200
+    wait_for(server)
+    for folder in ("../escape", "/tmp/escape", "a/../../escape", "", "   ", "a/./../..", 5):
+        response, payload = request(server, "POST", "/api/save", body={"folder": folder, "report": False})
+        assert response.status == 400, folder
+    assert not (tmp_path / "escape").exists() and not list(tmp_path.glob("out/.spheroseg-save-*"))
+    response, payload = request(server, "POST", "/api/save", body={"folder": "case/one", "report": False})
+    assert response.status == 200, payload
+    saved = json.loads(payload)
+    assert saved["folder"] == str((tmp_path / "out" / "case" / "one").resolve())
+    assert "mask.mha" in saved["files"] and "points.mrk.json" in saved["files"]
+    response, payload = request(server, "POST", "/api/save", body={"folder": "case/one", "report": False})
+    assert response.status == 400 and "exists" in json.loads(payload)["error"]
+    assert sorted(p.name for p in (tmp_path / "out" / "case").iterdir()) == ["one"]  # nothing left half-written
+
+
+def test_events_stream_surfaces(server, phantom):
+    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=30)
+    conn.request("GET", "/api/events", headers={"Host": f"127.0.0.1:{server.port}", "X-Spheroseg-Token": server.token})
+    stream = conn.getresponse()
+    assert stream.status == 200 and stream.getheader("Content-Type") == "text/event-stream"
+    assert stream.fp.readline() == b"retry: 1000\n"
+    apex, base = lps_to_ras(phantom.apex).tolist(), lps_to_ras(phantom.base).tolist()
+    response, payload = request(server, "POST", "/api/points", body={"frame": 0, "apex": apex, "base": base})
+    job = json.loads(payload)["job"]
+    events = []
+    while not (events and events[-1]["final"]):
+        line = stream.fp.readline()
+        if line.startswith(b"data: "):
+            events.append(json.loads(line[6:]))
+    conn.close()
+    assert events[0]["iteration"] == 0 and not events[0]["final"] and all(e["job"] == job for e in events)
+    final = events[-1]
+    result = spheroseg.segment(server.session.frames[0], phantom.apex, phantom.base)
+    vertices = np.frombuffer(base64.b64decode(final["vertices"]), "<f4").reshape(-1, 3)
+    np.testing.assert_allclose(ras_to_lps(vertices), result.surface.mesh(48, 24)[0], atol=1e-3)
+    assert final["volume_ml"] == pytest.approx(result.volume_ml, rel=1e-12)
+    faces = np.frombuffer(base64.b64decode(json.loads(request(server, "GET", "/api/study")[1])["faces"]), "<u4")
+    np.testing.assert_array_equal(faces.reshape(-1, 3), result.surface.mesh(48, 24)[1])
+
+
+def test_display_image_round_trip(phantom, tmp_path):
+    """The NIfTI the page shows is the study on its grid: RAS in the file, LPS
+    back through SimpleITK, grey levels scaled to 0-255."""
+    seq = make_sequence(seed=1, n_frames=3, spacing=2.5)
+    path = tmp_path / "cine.nrrd"
+    save_volume(path, list(seq.volumes))
+    server = open_viewer(path, save_root=tmp_path)
+    try:
+        data = server.session.nifti()
+        (tmp_path / "shown.nii").write_bytes(data)
+        image = sitk.ReadImage(str(tmp_path / "shown.nii"))
+        assert image.GetDimension() == 4 and image.GetSize()[3] == 3
+        assert image.GetPixelID() == sitk.sitkUInt8
+        first = seq.volumes[0]
+        np.testing.assert_allclose(image.GetSpacing()[:3], first.spacing)
+        np.testing.assert_allclose(image.GetOrigin()[:3], first.origin, atol=1e-4)
+        shown = sitk.GetArrayFromImage(image)  # [t, z, y, x]
+        arrays = np.array([v.array for v in seq.volumes])
+        lo, hi = arrays.min(), arrays.max()
+        np.testing.assert_allclose(shown.astype(float), np.rint((arrays - lo) * 255 / (hi - lo)), atol=1)
+        # the page's RAS millimetres are the image's LPS ones with x and y negated
+        assert np.array_equal(ras_to_lps(lps_to_ras([1.0, 2.0, 3.0])), [1.0, 2.0, 3.0])
+        assert ras_to_lps([1.0, 2.0, 3.0]).tolist() == [-1.0, -2.0, 3.0]
+    finally:
+        server.close()
+
+
+def test_session_tracks_like_the_api(tmp_path):
+    seq = make_sequence(seed=4, n_frames=3, spacing=2.5)
+    path = tmp_path / "cine.nrrd"
+    save_volume(path, list(seq.volumes))
+    first = seq.frames[0]
+    write_markups(tmp_path / "points.mrk.json", apex=first.apex, base=first.base)
+    server = open_viewer(path, save_root=tmp_path, points=tmp_path / "points.mrk.json")
+    server.serve_in_thread()
+    try:
+        wait_for(server)  # the given points are segmented at once
+        request(server, "POST", "/api/track", body={"frame": 1})
+        end = time.monotonic() + 60
+        while json.loads(request(server, "GET", "/api/study")[1])["tracking"] is None:
+            assert time.monotonic() < end
+            time.sleep(0.05)
+        tracking = json.loads(request(server, "GET", "/api/study")[1])["tracking"]
+        session = server.session
+        # from frame 1: forwards to the end, then from frame 1 again backwards
+        forward = spheroseg.track(session.frames[1:], first.apex, first.base)
+        backward = spheroseg.track(session.frames[1::-1], first.apex, first.base)
+        expected = [backward.volumes_ml[1], *forward.volumes_ml]
+        np.testing.assert_allclose(tracking["volumes_ml"], expected, rtol=1e-12)
+        assert Points.from_ras(session.points.as_ras()).same(session.points)
+    finally:
+        server.close()
+
+
+def test_command_prints_the_address_and_stops_on_ctrl_c(phantom, tmp_path):
+    path = tmp_path / "study.mha"
+    save_volume(path, phantom.volume)
+    process = subprocess.Popen([sys.executable, "-m", "spheroseg", "view", str(path), "--no-browser"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        first = process.stdout.readline().strip()
+        assert first.startswith("http://127.0.0.1:") and "/?token=" in first
+        port = int(first.split(":")[2].split("/")[0])
+        conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+        conn.request("GET", "/api/study", headers={"X-Spheroseg-Token": first.split("token=")[1]})
+        assert conn.getresponse().status == 200
+        conn.close()
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=30) == 0
+        assert "stopped" in process.stderr.read()
+    finally:
+        if process.poll() is None:
+            process.kill()
+
+
+def test_command_refuses_bad_input(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "spheroseg", "view", str(tmp_path / "missing.mha"), "--no-browser"],
+                            capture_output=True, text=True, timeout=60, env={**os.environ})
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0 and "missing.mha" in result.stderr
+
+
+def test_vendored_niivue_is_the_recorded_one():
+    import hashlib
+    from importlib import resources
+
+    vendor = resources.files("spheroseg.viewer").joinpath("static", "vendor")
+    record = vendor.joinpath("VERSION").read_text().split("\n")
+    assert record[0] == "@niivue/niivue 0.69.0"
+    digest = hashlib.sha256(vendor.joinpath("niivue.umd.js").read_bytes()).hexdigest()
+    assert record[2] == f"sha256 {digest}"
+    licences = vendor.joinpath("LICENSES.txt").read_text()
+    assert "BSD 2-Clause License" in licences and "Copyright (c) 2021, Niivue" in licences
