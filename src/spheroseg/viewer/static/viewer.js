@@ -64,13 +64,16 @@ async function sendPoints(fallback) {
   state.vertices.clear();
   state.tracking = null;
   showTracking();
-  const started = performance.now();
+  // the job's number comes with the reply, which may arrive after its surfaces
+  const timing = { job: null, click: performance.now(), first: null, final: null };
+  state.timings.push(timing);
+  if (complete(state.points)) say('segmenting...', 'running');
   try {
     const { job } = await api('/api/points', { frame: state.frame, ...state.points });
+    timing.job = job;
     state.job = Math.max(state.job, job);
-    state.timings.push({ job, click: started, first: null, final: null });
     document.body.dataset.sent = String(job);
-    if (complete(state.points)) say('segmenting...', 'running'); else hideSurface();
+    if (!complete(state.points)) hideSurface();
   } catch (error) {
     if (fallback) state.points = fallback;
     say(error.message, 'error');
@@ -236,6 +239,12 @@ function onRelease(event) {
 function receive(data) {
   if (data.job !== null && data.job < state.job) return;  // an older request's
   if (data.job !== null) state.job = data.job;
+  const timing = state.timings.find((t) => t.job === data.job) || state.timings.find((t) => t.job === null);
+  if (timing) {  // when the page had it, before drawing (which software rendering makes the slow part)
+    const now = performance.now();
+    if (timing.firstReceived === undefined) timing.firstReceived = now;
+    if (data.final) timing.finalReceived = now;
+  }
   const vertices = decode(data.vertices, Float32Array);
   if (data.final) state.vertices.set(data.frame, { vertices, data });
   if (data.frame !== state.frame) return;
@@ -260,7 +269,7 @@ function showSurface(vertices, data) {
   drawOverlay();
   const gl = nv.gl;
   gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));  // waits for the frame to be drawn
-  const timing = state.timings.find((t) => t.job === data.job);
+  const timing = state.timings.find((t) => t.job === data.job) || state.timings.find((t) => t.job === null);
   if (timing) {
     const now = performance.now();
     if (timing.first === null) timing.first = now;
@@ -410,7 +419,7 @@ function drawCurve() {
     ctx.beginPath();
     ctx.arc(x(k), y(v[k]), 4, 0, 2 * Math.PI);
     ctx.fill();
-    ctx.fillText(label, x(k) - 6, k === t.ed_frame ? y(v[k]) - 7 : y(v[k]) + 14);
+    ctx.fillText(label, Math.min(x(k) + 7, canvas.width - 16), y(v[k]) + (k === t.ed_frame ? 10 : -4));
   }
   ctx.fillStyle = '#99a';
   ctx.fillText(`${hi.toFixed(0)} mL`, 0, 10);
@@ -418,12 +427,13 @@ function drawCurve() {
 }
 
 async function track() {
+  state.trackingRun = true;
+  say('tracking...', 'running');
   try {
     const { job } = await api('/api/track', { frame: state.frame });
     state.job = Math.max(state.job, job);
-    state.trackingRun = job;
-    say('tracking...', 'running');
   } catch (error) {
+    state.trackingRun = null;
     say(error.message, 'error');
   }
 }
