@@ -314,3 +314,27 @@ def test_vendored_niivue_is_the_recorded_one():
     assert record[2] == f"sha256 {digest}"
     licences = vendor.joinpath("LICENSES.txt").read_text()
     assert "BSD 2-Clause License" in licences and "Copyright (c) 2021, Niivue" in licences
+
+
+def test_a_beam_space_study_is_shown_scan_converted_and_segmented_in_its_beams(tmp_path):
+    from spheroseg.beamspace import scan_convert
+    from spheroseg.phantom import FORMATIONS
+
+    ph = make_phantom(seed=1, spacing=2.0, formation=FORMATIONS["default"], beam_space=True)
+    path = tmp_path / "beams.mha"
+    save_volume(path, ph.beam_volume)
+    server = open_viewer(path, save_root=tmp_path)
+    server.serve_in_thread()
+    try:
+        (tmp_path / "shown.nii").write_bytes(server.session.nifti())
+        shown = sitk.ReadImage(str(tmp_path / "shown.nii"))
+        grid = scan_convert(server.session.frames[0]).grid
+        assert shown.GetSize() == grid.shape[::-1]
+        np.testing.assert_allclose(shown.GetOrigin(), grid.origin, atol=1e-4)
+        body = {"frame": 0, "apex": lps_to_ras(ph.apex).tolist(), "base": lps_to_ras(ph.base).tolist()}
+        assert request(server, "POST", "/api/points", body=body)[0].status == 200
+        final = wait_for(server)
+        expected = spheroseg.segment(server.session.frames[0], ph.apex, ph.base)
+        assert final["volume_ml"] == pytest.approx(expected.volume_ml, rel=1e-12)
+    finally:
+        server.close()

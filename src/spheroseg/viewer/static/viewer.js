@@ -6,7 +6,8 @@
 'use strict';
 
 const $ = (id) => document.getElementById(id);
-const COLORS = { contour: '#ffd23c', apex: '#ff4d4d', base: '#4dff88', landmark: '#4de1ff', selected: '#ffffff' };
+const COLORS = { contour: '#ffd23c', apex: '#ff4d4d', base: '#4dff88', landmark: '#4de1ff', annulus: '#ff9f40',
+                 selected: '#ffffff' };
 const NEAR_MM = 2.0;   // a point this close to a slice is drawn full, farther ones faded
 const GRAB_PX = 9;     // how close a press must be to a point to drag it
 
@@ -172,6 +173,7 @@ function allPoints() {
   if (p.apex) list.push({ kind: 'apex', mm: p.apex });
   if (p.base) list.push({ kind: 'base', mm: p.base });
   p.landmarks.forEach((mm, k) => list.push({ kind: 'landmark', index: k, mm }));
+  p.annulus.forEach((mm, k) => list.push({ kind: 'annulus', index: k, mm }));  // from a markups file
   return list;
 }
 
@@ -218,7 +220,9 @@ function onMove(event) {
   const [x, y] = canvasXY(event);
   const mm = mmAt(drag.tile, x, y, drag.fixed);
   const p = state.points;
-  if (drag.kind === 'apex') p.apex = mm; else if (drag.kind === 'base') p.base = mm; else p.landmarks[drag.index] = mm;
+  if (drag.kind === 'apex') p.apex = mm;
+  else if (drag.kind === 'base') p.base = mm;
+  else p[drag.kind === 'landmark' ? 'landmarks' : 'annulus'][drag.index] = mm;
   drag.moved = true;
   drawOverlay();
 }
