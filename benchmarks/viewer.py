@@ -13,7 +13,8 @@ NiiVue's draw, which only returns once the frame is rendered):
 - base click -> first surface drawn (the initial half-ellipsoid) and final
   surface drawn: each repeat clears the points and clicks the apex, then the
   base (every other time 1.25 mm higher);
-- landmark drag (release) -> final surface drawn.
+- landmark drag (release) -> final surface drawn;
+- the base click again with the 3D view switched off (``*_slices_only``).
 
 Also when the page had the surface, before drawing it (``*_received``: what a
 desktop GPU, drawing in milliseconds, would show), and the segmentation's own
@@ -81,7 +82,8 @@ def main() -> None:
     first = seq.frames[0]
     rows = {"base_to_first_ms": [], "base_to_final_ms": [], "drag_to_final_ms": [], "segment_ms": [],
             "drag_segment_ms": [], "base_to_first_received_ms": [], "base_to_final_received_ms": [],
-            "drag_to_final_received_ms": []}
+            "drag_to_final_received_ms": [], **{k + "_slices_only": [] for k in (
+                "base_to_first_ms", "base_to_final_ms", "base_to_first_received_ms", "base_to_final_received_ms")}}
     server = open_viewer(folder / "demo-frame0.mha", save_root=folder)
     server.serve_in_thread()
     with sync_playwright() as p:
@@ -94,7 +96,11 @@ def main() -> None:
         ready_s = time.perf_counter() - t0
         page.screenshot(path=str(DOCS / "viewer-1-loaded.png"))
         job = 0
-        for k in range(args.repeats + 1):  # the first is a warm-up (shaders, first mesh upload)
+        for k in range(2 * args.repeats + 2):  # the first of each layout is a warm-up
+            layout = "slices" if k > args.repeats else "3d"
+            if k == args.repeats + 1:
+                page.click("#render3d")  # the 3D view off: the three slices alone
+                page.wait_for_timeout(500)
             sent = int(page.evaluate("Number(document.body.dataset.sent || 0)"))
             page.click("#clear")  # then apex and base clicked anew, as a user starting over
             page.wait_for_function(f"Number(document.body.dataset.sent) > {sent}", polling=50, timeout=WAIT)
@@ -103,13 +109,17 @@ def main() -> None:
             page.mouse.click(*screen_xy(page, 1, first.base + [0.0, 0.0, 1.25 * (k % 2)]))
             job = wait_done(page, job)
             t = timing(page, job)
-            if k:
-                rows["base_to_first_ms"].append(t["first"] - t["click"])
-                rows["base_to_final_ms"].append(t["final"] - t["click"])
-                rows["base_to_first_received_ms"].append(t["firstReceived"] - t["click"])
-                rows["base_to_final_received_ms"].append(t["finalReceived"] - t["click"])
+            if k not in (0, args.repeats + 1):
+                suffix = "" if layout == "3d" else "_slices_only"
+                rows["base_to_first_ms" + suffix].append(t["first"] - t["click"])
+                rows["base_to_final_ms" + suffix].append(t["final"] - t["click"])
+                rows["base_to_first_received_ms" + suffix].append(t["firstReceived"] - t["click"])
+                rows["base_to_final_received_ms" + suffix].append(t["finalReceived"] - t["click"])
                 rows["segment_ms"].append(1000 * server.session.results[0][1].seconds)
-        page.screenshot(path=str(DOCS / "viewer-2-segmented.png"))
+            if k == args.repeats:
+                page.screenshot(path=str(DOCS / "viewer-2-segmented.png"))
+        page.click("#render3d")
+        page.wait_for_timeout(500)
         # a landmark on the wall, half way up; then dragged back and forth by 2.5 mm
         surface = server.session.results[0][1].surface
         mid = 0.5 * (server.session.points.apex + server.session.points.base)

@@ -527,6 +527,10 @@ async function start() {
   $('play').onclick = play;
   $('track').onclick = track;
   $('save').onclick = save;
+  $('render3d').onchange = () => {
+    nv.opts.multiplanarShowRender = $('render3d').checked ? niivue.SHOW_RENDER.ALWAYS : niivue.SHOW_RENDER.NEVER;
+    nv.drawScene();
+  };
   const views = $('views');
   for (const kind of ['pointerdown', 'mousedown']) views.addEventListener(kind, onPress, true);
   window.addEventListener('pointermove', onMove, true);
