@@ -38,31 +38,10 @@ import numpy as np
 from spheroseg.io import save_volume
 from spheroseg.phantom import make_sequence
 from spheroseg.viewer import open_viewer
-from spheroseg.viewer.session import lps_to_ras
+from spheroseg.viewer.browser import launch, screen_xy, wait_done
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
-ARGS = ["--no-sandbox", "--disable-dev-shm-usage", "--disable-quic", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync", "--no-first-run", "--use-angle=swiftshader",
-        "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
-WAIT = 30_000
-
-
-def screen_xy(page, kind, lps):
-    return tuple(page.evaluate(
-        """([kind, mm]) => {
-            const tile = viewer.sliceTiles().find((t) => t.axCorSag === kind);
-            const plane = [[0, 1], [0, 2], [1, 2]][kind];
-            const canvas = document.getElementById('gl');
-            const r = canvas.getBoundingClientRect();
-            const s = viewer.toScreen(tile, mm[plane[0]], mm[plane[1]]);
-            return [r.left + s[0] * r.width / canvas.width, r.top + s[1] * r.height / canvas.height];
-        }""", [kind, lps_to_ras(lps).tolist()]))
-
-
-def wait_done(page, after):
-    page.wait_for_function(f"document.body.dataset.state === 'done' && Number(document.body.dataset.job) > {after}",
-                           polling=50, timeout=WAIT)
-    return int(page.evaluate("document.body.dataset.job"))
+WAIT = 120_000
 
 
 def timing(page, job):
@@ -87,7 +66,7 @@ def main() -> None:
     server = open_viewer(folder / "demo-frame0.mha", save_root=folder)
     server.serve_in_thread()
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=shutil.which("chromium"), headless=True, args=ARGS)
+        browser = launch(p)
         version = browser.version
         page = browser.new_page(viewport={"width": 1100, "height": 700})
         t0 = time.perf_counter()
@@ -107,7 +86,7 @@ def main() -> None:
             page.mouse.click(*screen_xy(page, 1, first.apex))
             page.wait_for_function(f"Number(document.body.dataset.sent) > {sent + 1}", polling=50, timeout=WAIT)
             page.mouse.click(*screen_xy(page, 1, first.base + [0.0, 0.0, 1.25 * (k % 2)]))
-            job = wait_done(page, job)
+            job = wait_done(page, job, timeout_ms=WAIT)
             t = timing(page, job)
             if k not in (0, args.repeats + 1):
                 suffix = "" if layout == "3d" else "_slices_only"
@@ -131,7 +110,7 @@ def main() -> None:
         page.keyboard.down("Shift")
         page.mouse.click(*screen_xy(page, 1, landmark))
         page.keyboard.up("Shift")
-        job = wait_done(page, job)
+        job = wait_done(page, job, timeout_ms=WAIT)
         page.screenshot(path=str(DOCS / "viewer-3-landmark.png"))
         for k in range(args.repeats):
             now = server.session.points.landmarks[0]
@@ -139,7 +118,7 @@ def main() -> None:
             page.mouse.down()
             page.mouse.move(*screen_xy(page, 1, now + [0.0, 0.0, 2.5 if k % 2 == 0 else -2.5]), steps=3)
             page.mouse.up()
-            job = wait_done(page, job)
+            job = wait_done(page, job, timeout_ms=WAIT)
             t = timing(page, job)
             rows["drag_to_final_ms"].append(t["final"] - t["click"])
             rows["drag_to_final_received_ms"].append(t["finalReceived"] - t["click"])
@@ -153,7 +132,7 @@ def main() -> None:
         page.wait_for_function("document.body.dataset.state === 'ready'", polling=50, timeout=WAIT)
         page.mouse.click(*screen_xy(page, 1, first.apex))
         page.mouse.click(*screen_xy(page, 1, first.base))
-        wait_done(page, 0)
+        wait_done(page, 0, timeout_ms=WAIT)
         page.click("#track")
         page.wait_for_function("viewer.state.tracking !== null", polling=50, timeout=WAIT)
         es = page.evaluate("viewer.state.tracking.es_frame")

@@ -22,12 +22,9 @@ from spheroseg.fit import point_to_surface_distance
 from spheroseg.io import save_volume
 from spheroseg.phantom import make_phantom, make_sequence
 from spheroseg.viewer import open_viewer
-from spheroseg.viewer.session import lps_to_ras, ras_to_lps
+from spheroseg.viewer.browser import launch, screen_xy, wait_done
+from spheroseg.viewer.session import ras_to_lps
 
-#: flags for Chromium as root, with no network and no GPU (WebGL on SwiftShader)
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-dev-shm-usage", "--disable-quic", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run", "--use-angle=swiftshader",
-                 "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
 TIMEOUT_MS = 120_000
 
 
@@ -43,11 +40,10 @@ def browser():
         from playwright.sync_api import sync_playwright
     except ImportError:
         _missing_browser("Python Playwright is not installed")
-    executable = shutil.which("chromium")
-    if executable is None:
+    if shutil.which("chromium") is None:
         _missing_browser("no chromium on PATH")
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=executable, headless=True, args=CHROMIUM_ARGS)
+        browser = launch(p)
         yield browser
         browser.close()
 
@@ -62,28 +58,6 @@ def open_page(browser, server):
     assert page.evaluate("document.body.dataset.state") == "ready", page.text_content("#status")
     assert page.url.endswith("/"), "the token should leave the address bar for a cookie"
     return page, errors
-
-
-def screen_xy(page, tile_kind: int, lps) -> tuple[float, float]:
-    """The page position of a world point (LPS mm) on a slice tile (0 axial,
-    1 coronal, 2 sagittal), from NiiVue's layout of the tile."""
-    return tuple(page.evaluate(
-        """([kind, mm]) => {
-            const tile = viewer.sliceTiles().find((t) => t.axCorSag === kind);
-            const plane = [[0, 1], [0, 2], [1, 2]][kind];
-            const canvas = document.getElementById('gl');
-            const r = canvas.getBoundingClientRect();
-            const s = viewer.toScreen(tile, mm[plane[0]], mm[plane[1]]);
-            return [r.left + s[0] * r.width / canvas.width, r.top + s[1] * r.height / canvas.height];
-        }""", [tile_kind, lps_to_ras(lps).tolist()]))
-
-
-def wait_done(page, job_after: int = 0):
-    page.wait_for_function(
-        f"document.body.dataset.state === 'error' || (document.body.dataset.state === 'done' && "
-        f"Number(document.body.dataset.job) > {job_after})", polling=100, timeout=TIMEOUT_MS)
-    assert page.evaluate("document.body.dataset.state") == "done", page.text_content("#status")
-    return int(page.evaluate("document.body.dataset.job"))
 
 
 def crosshair_lps(page) -> np.ndarray:
@@ -213,7 +187,7 @@ def test_sequence_track_slider_and_curve(browser, tmp_path):
         first = seq.frames[0]
         page.mouse.click(*screen_xy(page, 1, first.apex))
         page.mouse.click(*screen_xy(page, 1, first.base))
-        job = wait_done(page)
+        wait_done(page)
         page.click("#track")
         page.wait_for_function("document.body.dataset.state === 'error' || viewer.state.tracking !== null",
                                polling=100, timeout=TIMEOUT_MS)
