@@ -16,7 +16,6 @@ regenerates docs/benchmarks.md.
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 from pathlib import Path
@@ -30,26 +29,17 @@ from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
 from spheroseg import _beam_kernels, _kernels  # noqa: E402
-from spheroseg.beamspace import BeamGeometry, scan_convert, to_beam_space  # noqa: E402
-from spheroseg.phantom import FORMATIONS, make_phantom, make_sequence  # noqa: E402
+from spheroseg.beamspace import scan_convert, to_beam_space  # noqa: E402
+from spheroseg.phantom import FORMATIONS, make_phantom, make_sequence, probe_sector  # noqa: E402
 from spheroseg.segment import segment, track  # noqa: E402
 
 ITERATIONS_PER_FRAME = 5
 
 
-def sector(volume, convention="tan") -> BeamGeometry:
-    nz, ny, nx = volume.shape
-    s = volume.spacing[0]
-    pose = np.eye(4)
-    pose[:3, 3] = [(nx - 1) / 2 * s, (ny - 1) / 2 * s, 0.0]
-    return BeamGeometry((150, 57, 57), 1.0, 5.0, math.radians(1.0), math.radians(1.0), convention=convention,
-                        probe_to_world=pose)
-
-
 def tracking(repeats: int) -> dict:
     seq = make_sequence(n_frames=10, seed=11, spacing=1.0)
     apex, base = seq.frames[0].apex, seq.frames[0].base
-    geometry = sector(seq.volumes[0])
+    geometry = probe_sector(seq.volumes[0])
     frames = [to_beam_space(v, geometry) for v in seq.volumes]
     grid = geometry.cartesian_grid()
     converted = [scan_convert(f, grid) for f in frames]
@@ -94,7 +84,7 @@ def per_sample(repeats: int) -> list[dict]:
     mean, count = np.empty(n), np.empty(n, np.int64)
     out = []
     for convention in ("tan", "sin"):
-        beam = to_beam_space(ph.volume, sector(ph.volume, convention))
+        beam = to_beam_space(ph.volume, probe_sector(ph.volume, convention=convention))
         cart = scan_convert(beam)
         for name, kernels, volume in (("beam space", _beam_kernels, beam), ("Cartesian", _kernels, cart)):
             view = volume.sampling_view()
@@ -124,7 +114,7 @@ def agreement(seeds=(1, 2, 3, 4)) -> list[dict]:
         for seed in seeds[:2]:
             ph = make_phantom(seed=seed, spacing=1.0)
             cases.append(("resampled from Cartesian", convention, seed, ph,
-                          to_beam_space(ph.volume, sector(ph.volume, convention))))
+                          to_beam_space(ph.volume, probe_sector(ph.volume, convention=convention))))
     rows = []
     for data, convention, seed, ph, beam in cases:
         converted_volume = scan_convert(beam)

@@ -18,50 +18,23 @@ Writes docs/mitral.json and regenerates docs/benchmarks.md.
 import sys
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
-from spheroseg import Volume, segment  # noqa: E402
+from spheroseg import segment  # noqa: E402
 from spheroseg.fit import annulus_of_open_mesh  # noqa: E402
 from spheroseg.metrics import dice  # noqa: E402
-from spheroseg.phantom import FAMILIES, make_phantom  # noqa: E402
+from spheroseg.phantom import FAMILIES, make_phantom, tilted_mitral_scene  # noqa: E402
 
 SEEDS = (0, 1, 2, 3, 4)
 TILTS = (0.0, 5.0, 10.0, 15.0)
 MODES = ("intensity", "local")
 
-
-def tilted_mitral_scene(tilt_deg, seed=0):
-    """Volume, true mask, true volume (mL), apex, base and 8 points of the
-    mitral ring of an ellipsoid (semi-axes 80, 26, 26 mm along z, x, y) cut
-    by a plane through its centre whose normal is tilted ``tilt_deg``
-    towards y; 1 mm voxels."""
-    length, radius = 80.0, 26.0
-    n = np.array([0.0, np.sin(np.radians(tilt_deg)), np.cos(np.radians(tilt_deg))])
-    base = np.array([50.0, 50.0, 40.0])
-    k, j, i = np.meshgrid(np.arange(130.0), np.arange(100.0), np.arange(100.0), indexing="ij")
-    x = np.stack([i, j, k], -1) - base
-    above = x @ n
-    cavity = ((x[..., 2] / length) ** 2 + (x[..., 0] ** 2 + x[..., 1] ** 2) / radius**2 <= 1) & (above >= 0)
-    atrium = (above < 0) & (above > -35) & ((x**2).sum(-1) - above**2 <= (0.85 * radius) ** 2)
-    image = np.where(cavity | atrium, 30.0, 120.0) + np.random.default_rng(seed).normal(0, 15, cavity.shape)
-    t = np.arange(8) * np.pi / 4
-    d = np.cos(t)[:, None] * [1.0, 0, 0] + np.sin(t)[:, None] * np.cross(n, [1.0, 0, 0])
-    r = 1 / np.sqrt((d[:, 2] / length) ** 2 + (d[:, 0] ** 2 + d[:, 1] ** 2) / radius**2)
-    # a plane through the centre halves the ellipsoid: the true volume
-    truth_ml = 2 / 3 * np.pi * length * radius**2 / 1000
-    volume = Volume(np.clip(image, 1, 255).astype(np.uint8))
-    return volume, cavity, truth_ml, base + [0, 0, length], base, base + r[:, None] * d
-
-
 def score(result, volume, truth_mask, truth_ml):
     return {"dice": dice(result.mask(volume), truth_mask), "volume_error_pct": 100 * (result.volume_ml / truth_ml - 1),
             "seconds": result.seconds, "converged": bool(result.converged)}
-
 
 def main():
     phantom_rows, scene_rows = [], []
@@ -79,7 +52,9 @@ def main():
         print(row)
     for tilt in TILTS:
         for seed in SEEDS[:3]:
-            volume, truth, truth_ml, apex, base, annulus = tilted_mitral_scene(tilt, seed)
+            scene = tilted_mitral_scene(tilt, seed=seed)
+            volume, truth, truth_ml = scene.volume, scene.truth_mask, scene.truth_ml
+            apex, base, annulus = scene.apex, scene.base, scene.annulus
             row = {"tilt_deg": tilt, "seed": seed}
             for mode in MODES:
                 row[f"apex-base line, {mode}"] = score(segment(volume, apex, base, mode=mode), volume, truth, truth_ml)
@@ -90,7 +65,6 @@ def main():
     write_json("mitral.json", {"command": "python benchmarks/mitral.py", "machine": machine(), "modes": list(MODES),
                                "phantom_tilted": phantom_rows, "tilted_mitral_scene": scene_rows})
     print("wrote", write_markdown())
-
 
 if __name__ == "__main__":
     main()

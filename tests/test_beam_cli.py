@@ -1,7 +1,6 @@
 """The command line on beam-space files: scan-convert, segment, track."""
 
 import json
-import math
 import os
 import subprocess
 import sys
@@ -12,7 +11,7 @@ import SimpleITK as sitk
 
 from spheroseg.beamspace import BeamGeometry, BeamVolume, scan_convert, to_beam_space
 from spheroseg.io import BEAM_KEYS, load, load_sequence, save_volume
-from spheroseg.phantom import make_phantom, make_sequence
+from spheroseg.phantom import make_phantom, make_sequence, probe_sector
 
 
 def run(*args):
@@ -28,20 +27,11 @@ def assert_one_line_error(proc, pattern):
     assert pattern.lower() in lines[0].lower(), lines[0]
 
 
-def geometry(volume, convention="tan"):
-    nz, ny, nx = volume.shape
-    s = volume.spacing[0]
-    m = np.eye(4)
-    m[:3, 3] = [(nx - 1) / 2 * s, (ny - 1) / 2 * s, 0.0]
-    return BeamGeometry((110, 41, 41), 1.4, 5.0, math.radians(1.4), math.radians(1.4), convention=convention,
-                        probe_to_world=m)
-
-
 @pytest.fixture(scope="module")
 def case(tmp_path_factory):
     folder = tmp_path_factory.mktemp("beam")
     ph = make_phantom(seed=41, spacing=1.5)
-    beam = to_beam_space(ph.volume, geometry(ph.volume, "sin"))
+    beam = to_beam_space(ph.volume, probe_sector(ph.volume, shape=(110, 41, 41), radius_spacing=1.4, angle_deg=1.4, convention="sin"))
     save_volume(folder / "beam.mha", beam)
     return folder, ph, beam
 
@@ -111,7 +101,7 @@ def test_segment_a_beam_space_file(case, tmp_path):
 
 def test_track_a_beam_space_sequence(tmp_path):
     seq = make_sequence(n_frames=3, seed=7, spacing=2.0)
-    g = geometry(seq.volumes[0])
+    g = probe_sector(seq.volumes[0], shape=(110, 41, 41), radius_spacing=1.4, angle_deg=1.4)
     save_volume(tmp_path / "seq.mha", [to_beam_space(v, g) for v in seq.volumes])
     apex, base = seq.frames[0].apex, seq.frames[0].base
     proc = run("track", tmp_path / "seq.mha", "--apex", *apex, "--base", *base, "--out", tmp_path / "t", "--quiet",

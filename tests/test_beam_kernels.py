@@ -1,38 +1,24 @@
 """The compiled beam-space kernels against BeamVolume.sample and the numpy backend."""
 
-import math
 
 import numpy as np
 import pytest
 
 from spheroseg import _beam_kernels
 from spheroseg.backends import CompiledBackend, NumpyBackend
-from spheroseg.beamspace import BeamGeometry, to_beam_space
+from spheroseg.beamspace import to_beam_space
 from spheroseg.energy import SampledSurface
-from spheroseg.phantom import make_phantom
+from spheroseg.phantom import make_phantom, probe_sector
 from spheroseg.surface import Surface
 
 pytestmark = pytest.mark.skipif(not _beam_kernels.AVAILABLE, reason="numba not installed")
-
-
-def phantom_geometry(ph, convention, *, tilt_deg=0.0):
-    """A sector from the phantom's probe (top centre, +z), +-28 deg, 1 mm x 1 deg,
-    optionally turned about the probe's y axis (an off-identity pose)."""
-    nz, ny, nx = ph.volume.shape
-    s = ph.volume.spacing[0]
-    m = np.eye(4)
-    t = math.radians(tilt_deg)
-    m[:3, :3] = [[math.cos(t), 0, math.sin(t)], [0, 1, 0], [-math.sin(t), 0, math.cos(t)]]
-    m[:3, 3] = [(nx - 1) / 2 * s, (ny - 1) / 2 * s, 0.0]
-    return BeamGeometry((150, 57, 57), 1.0, 5.0, math.radians(1.0), math.radians(1.0), convention=convention,
-                        probe_to_world=m)
 
 
 @pytest.fixture(scope="module", params=[("tan", 0.0), ("sin", 10.0)])
 def case(request):
     convention, tilt = request.param
     ph = make_phantom(seed=5, spacing=1.5)
-    beam = to_beam_space(ph.volume, phantom_geometry(ph, convention, tilt_deg=tilt))
+    beam = to_beam_space(ph.volume, probe_sector(ph.volume, convention=convention, tilt_deg=tilt))
     s = Surface.from_apex_base(ph.apex, ph.base, patches=(4, 6))
     model = SampledSurface(s.system, s.pose, s.grid, 6)
     rng = np.random.default_rng(0)

@@ -1,24 +1,13 @@
 """Segmentation and tracking of beam-space volumes, sampled directly."""
 
-import math
 
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
 from spheroseg import _beam_kernels, segment, track
-from spheroseg.beamspace import BeamGeometry, beam_mask, beam_mask_volume_ml, scan_convert, to_beam_space
-from spheroseg.phantom import FORMATIONS, make_phantom, make_sequence
-
-
-def phantom_geometry(volume, convention="tan"):
-    """A sector from the phantom's probe (top centre, +z), +-28 deg, 1 mm x 1 deg."""
-    nz, ny, nx = volume.shape
-    s = volume.spacing[0]
-    m = np.eye(4)
-    m[:3, 3] = [(nx - 1) / 2 * s, (ny - 1) / 2 * s, 0.0]
-    return BeamGeometry((150, 57, 57), 1.0, 5.0, math.radians(1.0), math.radians(1.0), convention=convention,
-                        probe_to_world=m)
+from spheroseg.beamspace import beam_mask, beam_mask_volume_ml, scan_convert, to_beam_space
+from spheroseg.phantom import FORMATIONS, make_phantom, make_sequence, probe_sector
 
 
 def mean_distance(a, b):
@@ -30,7 +19,7 @@ def mean_distance(a, b):
 @pytest.mark.parametrize("convention", ["tan", "sin"])
 def test_beam_space_and_scan_converted_segmentations_agree(convention):
     ph = make_phantom(seed=1, spacing=1.5)
-    beam = to_beam_space(ph.volume, phantom_geometry(ph.volume, convention))
+    beam = to_beam_space(ph.volume, probe_sector(ph.volume, convention=convention))
     # a 1 mm grid: the default (the beams' 1.4 mm spacing at mid depth) blurs
     # the edge more and moves the converted volume up by 1.9 % here, 2-3 %
     # on other phantoms (docs/benchmarks.md, "Beam space")
@@ -68,7 +57,7 @@ def test_phantom_formed_in_beam_space():
 @pytest.mark.skipif(not _beam_kernels.AVAILABLE, reason="numba not installed")
 def test_beam_space_compiled_and_numpy_backends_agree():
     ph = make_phantom(seed=2, spacing=1.5)
-    beam = to_beam_space(ph.volume, phantom_geometry(ph.volume, "sin"))
+    beam = to_beam_space(ph.volume, probe_sector(ph.volume, convention="sin"))
     for mode in ("intensity", "chan-vese"):
         fast = segment(beam, ph.apex, ph.base, mode=mode, backend="compiled")
         ref = segment(beam, ph.apex, ph.base, mode=mode, backend="numpy")
@@ -78,7 +67,7 @@ def test_beam_space_compiled_and_numpy_backends_agree():
 def test_tracking_a_beam_space_sequence():
     seq = make_sequence(n_frames=4, seed=4, spacing=2.0)
     apex, base = seq.frames[0].apex, seq.frames[0].base
-    geometry = phantom_geometry(seq.volumes[0])
+    geometry = probe_sector(seq.volumes[0])
     frames = [to_beam_space(v, geometry) for v in seq.volumes]
     result = track(frames, apex, base)
     fine = geometry.cartesian_grid(1.0)  # finer than the default: less blur added by the conversion

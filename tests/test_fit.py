@@ -3,8 +3,7 @@ import pytest
 
 from conftest import cetus_file
 from spheroseg.coords import annulus_plane
-from spheroseg.fit import (annulus_of_open_mesh, apex_base_of_open_mesh, fit_surface, point_to_surface_distance,
-                          surface_sample)
+from spheroseg.fit import (annulus_of_open_mesh, apex_base_of_open_mesh, fit_surface, point_to_surface_distance)
 from spheroseg.surface import Surface
 from spheroseg.surface_io import read_mesh
 

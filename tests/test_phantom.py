@@ -278,3 +278,16 @@ def test_sequence_with_formation_keeps_the_truth():
         assert a.params["formation"] == WIDE and not np.array_equal(a.volume.array, b.volume.array)
     # speckle changes from frame to frame
     assert not np.array_equal(formed.frames[0].volume.array, formed.frames[1].volume.array)
+
+
+def test_tilted_mitral_scene_truth():
+    from spheroseg.coords import annulus_plane
+    from spheroseg.phantom import tilted_mitral_scene
+
+    scene = tilted_mitral_scene(10.0)
+    # 1 mm voxels: the mask's voxel count is the analytic half-ellipsoid's volume
+    assert scene.truth_mask.sum() / 1000 == pytest.approx(scene.truth_ml, rel=0.01)
+    # the ring lies in the plane through the base tilted 10 degrees from the axis (z)
+    centre, normal = annulus_plane(scene.annulus)
+    np.testing.assert_allclose(centre, scene.base, atol=1e-9)
+    assert np.degrees(np.arccos(abs(normal[2]))) == pytest.approx(10.0, abs=1e-9)

@@ -9,7 +9,7 @@ from conftest import cetus_file
 from spheroseg.coords import annulus_plane
 from spheroseg.fit import annulus_of_open_mesh
 from spheroseg.metrics import dice, surface_distances
-from spheroseg.phantom import make_phantom, make_sequence
+from spheroseg.phantom import make_phantom, make_sequence, tilted_mitral_scene
 from spheroseg.segment import segment, track
 from spheroseg.volume import Volume
 
@@ -261,30 +261,9 @@ def test_area_term_shrinks_the_surface_area(phantoms):
     assert abs(tight.volume_ml / free.volume_ml - 1) < 0.1
 
 
-def tilted_mitral_scene(tilt_deg, seed=0):
-    """A cavity whose mitral plane is tilted from the apex-base line: an
-    ellipsoid (axis z, semi-axes 80, 26, 26 mm) cut by a plane through its
-    centre whose normal is tilted ``tilt_deg`` towards y, a dark atrium
-    beyond, bright tissue around, Gaussian noise; 1 mm voxels.  Returns the
-    volume, the true mask, the apex, the base (the centre) and 8 points of
-    the mitral ring (the ellipse where the plane cuts the ellipsoid)."""
-    length, radius = 80.0, 26.0
-    n = np.array([0.0, np.sin(np.radians(tilt_deg)), np.cos(np.radians(tilt_deg))])
-    base = np.array([50.0, 50.0, 40.0])
-    k, j, i = np.meshgrid(np.arange(130.0), np.arange(100.0), np.arange(100.0), indexing="ij")
-    x = np.stack([i, j, k], -1) - base
-    above = x @ n
-    cavity = ((x[..., 2] / length) ** 2 + (x[..., 0] ** 2 + x[..., 1] ** 2) / radius**2 <= 1) & (above >= 0)
-    atrium = (above < 0) & (above > -35) & ((x**2).sum(-1) - above**2 <= (0.85 * radius) ** 2)
-    image = np.where(cavity | atrium, 30.0, 120.0) + np.random.default_rng(seed).normal(0, 15, cavity.shape)
-    t = np.arange(8) * np.pi / 4
-    d = np.cos(t)[:, None] * [1.0, 0, 0] + np.sin(t)[:, None] * np.cross(n, [1.0, 0, 0])
-    r = 1 / np.sqrt((d[:, 2] / length) ** 2 + (d[:, 0] ** 2 + d[:, 1] ** 2) / radius**2)
-    return Volume(np.clip(image, 1, 255).astype(np.uint8)), cavity, base + [0, 0, length], base, base + r[:, None] * d
-
-
 def test_annulus_closes_the_cavity_at_a_tilted_mitral_plane():
-    volume, truth, apex, base, annulus = tilted_mitral_scene(10.0)
+    scene = tilted_mitral_scene(10.0)
+    volume, truth, apex, base, annulus = scene.volume, scene.truth_mask, scene.apex, scene.base, scene.annulus
     by_line = segment(volume, apex, base, mode="local")
     by_plane = segment(volume, apex, annulus=annulus, mode="local")
     d_line, d_plane = dice(by_line.mask(volume), truth), dice(by_plane.mask(volume), truth)

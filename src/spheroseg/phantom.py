@@ -34,11 +34,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import ndimage
 
-from .beamspace import BeamVolume, scan_convert
+from .beamspace import BeamGeometry, BeamVolume, scan_convert
 from .echo import ImageFormation, form_image, sector_geometry
 from .volume import ImageGrid, Volume
 
-__all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES", "FORMATIONS", "sweep_cases"]
+__all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES", "FORMATIONS", "sweep_cases",
+           "probe_sector", "MitralScene", "tilted_mitral_scene"]
 
 #: the phantom families of the benchmarks, as keyword arguments of make_phantom
 FAMILIES = {
@@ -473,3 +474,58 @@ def sweep_cases(*, families=("speckle", "tilted"), formations=None, seeds=(0,)) 
             raise ValueError(f"unknown formation {name!r}; choose from {list(FORMATIONS)}")
     for (k, family), seed, name in itertools.product(enumerate(families), seeds, formations):
         yield family, name, dict(seed=seed + 10 * k, formation=FORMATIONS[name], **FAMILIES[family])
+
+
+def probe_sector(volume: Volume, *, shape=(150, 57, 57), radius_spacing: float = 1.0, first_sample: float = 5.0,
+                 angle_deg: float = 1.0, tilt_deg: float = 0.0, convention: str = "tan") -> BeamGeometry:
+    """A beam-space sector over a phantom volume, from its probe (the top
+    face's centre, depth along +z): ``shape`` (radius, elevation, azimuth)
+    samples, ``radius_spacing`` and ``first_sample`` in mm, ``angle_deg``
+    between beams, the probe turned ``tilt_deg`` about its y axis."""
+    nz, ny, nx = volume.shape
+    s = volume.spacing[0]
+    t = np.radians(tilt_deg)
+    pose = np.eye(4)
+    pose[:3, :3] = [[np.cos(t), 0, np.sin(t)], [0, 1, 0], [-np.sin(t), 0, np.cos(t)]]
+    pose[:3, 3] = [(nx - 1) / 2 * s, (ny - 1) / 2 * s, 0.0]
+    angle = np.radians(angle_deg)
+    return BeamGeometry(shape, radius_spacing, first_sample, angle, angle, convention=convention, probe_to_world=pose)
+
+
+@dataclass(frozen=True)
+class MitralScene:
+    """:func:`tilted_mitral_scene`: the image, its truth and the points a user
+    would click (world mm)."""
+
+    volume: Volume
+    truth_mask: np.ndarray
+    truth_ml: float
+    apex: np.ndarray
+    base: np.ndarray
+    annulus: np.ndarray
+
+
+def tilted_mitral_scene(tilt_deg: float, *, seed: int = 0) -> MitralScene:
+    """A cavity whose mitral plane is tilted from the apex-base line.
+
+    An ellipsoid (axis z, semi-axes 80, 26, 26 mm) cut by a plane through
+    its centre whose normal is tilted ``tilt_deg`` towards y, a dark atrium
+    beyond, bright tissue around, Gaussian noise (seeded); 1 mm voxels.  The
+    base is the centre, the annulus 8 points of the mitral ring (the ellipse
+    where the plane cuts the ellipsoid); a plane through the centre halves
+    the ellipsoid, so the true volume is ``2/3 pi a b c``.
+    """
+    length, radius = 80.0, 26.0
+    n = np.array([0.0, np.sin(np.radians(tilt_deg)), np.cos(np.radians(tilt_deg))])
+    base = np.array([50.0, 50.0, 40.0])
+    k, j, i = np.meshgrid(np.arange(130.0), np.arange(100.0), np.arange(100.0), indexing="ij")
+    x = np.stack([i, j, k], -1) - base
+    above = x @ n
+    cavity = ((x[..., 2] / length) ** 2 + (x[..., 0] ** 2 + x[..., 1] ** 2) / radius**2 <= 1) & (above >= 0)
+    atrium = (above < 0) & (above > -35) & ((x**2).sum(-1) - above**2 <= (0.85 * radius) ** 2)
+    image = np.where(cavity | atrium, 30.0, 120.0) + np.random.default_rng(seed).normal(0, 15, cavity.shape)
+    t = np.arange(8) * np.pi / 4
+    d = np.cos(t)[:, None] * [1.0, 0, 0] + np.sin(t)[:, None] * np.cross(n, [1.0, 0, 0])
+    r = 1 / np.sqrt((d[:, 2] / length) ** 2 + (d[:, 0] ** 2 + d[:, 1] ** 2) / radius**2)
+    return MitralScene(Volume(np.clip(image, 1, 255).astype(np.uint8)), cavity, 2 / 3 * np.pi * length * radius**2 / 1000,
+                       base + [0, 0, length], base, base + r[:, None] * d)
