@@ -338,3 +338,16 @@ def test_a_beam_space_study_is_shown_scan_converted_and_segmented_in_its_beams(t
         assert final["volume_ml"] == pytest.approx(expected.volume_ml, rel=1e-12)
     finally:
         server.close()
+
+
+def test_command_refuses_a_port_in_use(phantom, tmp_path):
+    path = tmp_path / "study.mha"
+    save_volume(path, phantom.volume)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = subprocess.run([sys.executable, "-m", "spheroseg", "view", str(path), "--no-browser", "--port",
+                                 str(port)], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr.strip() == f"spheroseg: error: cannot listen on 127.0.0.1:{port}: Address already in use"
