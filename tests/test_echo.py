@@ -116,7 +116,8 @@ def test_sector_geometry_and_scan_conversion():
 
 
 @pytest.mark.parametrize("bad", [dict(axial_psf_mm=0.0), dict(dynamic_range_db=-40.0), dict(gain_db=np.nan),
-                                 dict(clutter_db=np.inf), dict(attenuation_db_per_cm=-1.0)])
+                                 dict(clutter_db=np.inf), dict(attenuation_db_per_cm=-1.0), dict(dropout_radius_mm=6.0),
+                                 dict(dropout_radius_mm=np.nan)])
 def test_formation_validation(bad):
     with pytest.raises(ValueError, match="ImageFormation"):
         ImageFormation(**bad)

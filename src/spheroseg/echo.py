@@ -100,6 +100,9 @@ class ImageFormation:
     dropout_db : float
         Loss of signal from a wall region (a wall parallel to the beams, a
         rib shadow), dB; 0: none.  Where it lies is the scene's business.
+    dropout_radius_mm : float
+        Size of that region: the loss is full within ``dropout_radius_mm - 6``
+        of its centre and fades to none at ``dropout_radius_mm`` (> 6).
 
     Notes
     -----
@@ -123,6 +126,7 @@ class ImageFormation:
     clutter_db: float | None = -32.0
     clutter_depth_mm: float = 26.0
     dropout_db: float = 0.0
+    dropout_radius_mm: float = 16.0
 
     def __post_init__(self):
         positive = ("axial_psf_mm", "lateral_psf_mm", "elevation_psf_mm", "reference_depth_mm", "focus_depth_mm",
@@ -137,6 +141,8 @@ class ImageFormation:
                 raise ValueError(f"ImageFormation.{name} must be finite, got {getattr(self, name)!r}")
         if self.clutter_db is not None and not np.isfinite(self.clutter_db):
             raise ValueError(f"ImageFormation.clutter_db must be finite or None, got {self.clutter_db!r}")
+        if not self.dropout_radius_mm > 6.0:
+            raise ValueError(f"ImageFormation.dropout_radius_mm must be more than 6 mm, got {self.dropout_radius_mm}")
         if self.attenuation_db_per_cm < 0 or self.dropout_db < 0:
             raise ValueError("ImageFormation.attenuation_db_per_cm and dropout_db must be >= 0")
 

@@ -236,7 +236,7 @@ def _formed_image(formation, *, grid, probe, seed, speckle_seed, half_angle_deg,
         centre = (np.array([0.5 * s["length"], 0, 0]) + np.array([0, np.cos(s["azimuth"] - 1.0),
                   np.sin(s["azimuth"] - 1.0)]) * (s["radius"] + s["wall"] / 2))
         d = np.linalg.norm(anatomy["local"] - centre, axis=-1)
-        echo = echo * 10 ** (-f.dropout_db / 10 * np.clip((16.0 - d) / 6.0, 0, 1))
+        echo = echo * 10 ** (-f.dropout_db / 10 * np.clip((f.dropout_radius_mm - d) / 6.0, 0, 1))
     if f.clutter_db is not None:
         depth = np.linalg.norm(points - probe, axis=-1)
         haze = np.exp(-(((depth - f.clutter_depth_mm) / 12.0) ** 2)) * 10 ** ((f.clutter_db + 3.0 * texture) / 10)
