@@ -20,10 +20,11 @@ import SimpleITK as sitk
 import spheroseg
 from spheroseg.fit import point_to_surface_distance
 from spheroseg.io import save_volume
-from spheroseg.phantom import make_phantom, make_sequence
+from spheroseg.metrics import dice
+from spheroseg.phantom import make_phantom, make_sequence, tilted_mitral_scene
 from spheroseg.viewer import open_viewer
 from spheroseg.viewer.browser import launch, screen_xy, wait_done
-from spheroseg.viewer.session import ras_to_lps
+from spheroseg.viewer.session import lps_to_ras, ras_to_lps
 
 TIMEOUT_MS = 120_000
 
@@ -214,6 +215,43 @@ def test_sequence_track_slider_and_curve(browser, tmp_path):
         saved = json.loads((tmp_path / "cine-out" / "results.json").read_text())
         assert saved["ef_percent"] == pytest.approx(api.ef, rel=1e-9)
         assert len(list((tmp_path / "cine-out" / "masks").iterdir())) == 4
+        assert errors == []
+    finally:
+        server.close()
+
+
+def test_annulus_points_close_the_cavity_at_their_plane(browser, tmp_path):
+    """Apex, then three points of a mitral ring tilted 10 degrees, each clicked
+    on the coronal slice through it (scrolled there first, as a user would)."""
+    scene = tilted_mitral_scene(10.0)
+    path = tmp_path / "tilted.mha"
+    save_volume(path, scene.volume)
+    server = open_viewer(path, save_root=tmp_path)
+    server.serve_in_thread()
+    try:
+        page, errors = open_page(browser, server)
+
+        def click_on_its_slice(point):
+            page.evaluate("""(mm) => { const nv = viewer.nv;
+                nv.scene.crosshairPos = nv.mm2frac(mm); nv.drawScene(); }""", lps_to_ras(point).tolist())
+            page.mouse.click(*screen_xy(page, 1, point))
+
+        click_on_its_slice(scene.apex)
+        page.wait_for_function("Number(document.body.dataset.sent) >= 1", polling=100, timeout=TIMEOUT_MS)
+        page.click("button[data-mode=annulus]")
+        for k, point in enumerate(scene.annulus[[0, 3, 5]]):
+            click_on_its_slice(point)
+            if k < 2:
+                page.wait_for_function(f"Number(document.body.dataset.sent) >= {k + 2}", polling=100,
+                                       timeout=TIMEOUT_MS)
+        wait_done(page)
+        session = server.session
+        assert session.points.base is None and len(session.points.annulus) == 3
+        np.testing.assert_allclose(session.points.annulus, scene.annulus[[0, 3, 5]], atol=1.0)
+        api = spheroseg.segment(session.frames[0], session.points.apex, annulus=session.points.annulus)
+        np.testing.assert_allclose(session.results[0][1].surface.coefficients, api.surface.coefficients, atol=1e-9)
+        assert dice(api.mask(scene.volume), scene.truth_mask) > 0.9
+        page.screenshot(path=str(tmp_path / "7-annulus.png"))
         assert errors == []
     finally:
         server.close()

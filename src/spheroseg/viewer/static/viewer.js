@@ -91,6 +91,11 @@ function place(mm, shift) {
   } else if (mode === 'base') {
     changePoints((p) => { p.base = mm; });
     setMode('navigate');
+  } else if (mode === 'annulus') {
+    changePoints((p) => { p.annulus.push(mm); });
+    if (state.points.annulus.length < 3 && state.points.base === null) {
+      say(`${state.points.annulus.length} annulus point(s): 3 or more close the cavity at their plane`);
+    }
   } else if (mode === 'landmark') {
     if (!complete(state.points)) { say('place the apex and the base first', 'error'); return; }
     changePoints((p) => { p.landmarks.push(mm); });
@@ -117,6 +122,7 @@ function setMode(mode) {
   state.mode = mode;
   for (const b of document.querySelectorAll('#modes button')) b.classList.toggle('active', b.dataset.mode === mode);
   const hints = { apex: 'click the apex', base: 'click the base (centre of the mitral plane)',
+                  annulus: 'click points of the mitral annulus (3 or more)',
                   landmark: 'click a point the wall must pass through', navigate: '' };
   if (hints[mode]) say(hints[mode]);
 }
@@ -173,7 +179,7 @@ function allPoints() {
   if (p.apex) list.push({ kind: 'apex', mm: p.apex });
   if (p.base) list.push({ kind: 'base', mm: p.base });
   p.landmarks.forEach((mm, k) => list.push({ kind: 'landmark', index: k, mm }));
-  p.annulus.forEach((mm, k) => list.push({ kind: 'annulus', index: k, mm }));  // from a markups file
+  p.annulus.forEach((mm, k) => list.push({ kind: 'annulus', index: k, mm }));
   return list;
 }
 
@@ -538,7 +544,7 @@ async function start() {
   document.addEventListener('keydown', (e) => {
     if (e.target.tagName === 'INPUT') return;
     if ((e.ctrlKey || e.metaKey) && e.key === 'z') { e.preventDefault(); undo(); return; }
-    const keys = { a: 'apex', b: 'base', l: 'landmark', Escape: 'navigate' };
+    const keys = { a: 'apex', b: 'base', m: 'annulus', l: 'landmark', Escape: 'navigate' };
     if (keys[e.key]) setMode(keys[e.key]);
     if (e.key === 'Delete' || e.key === 'Backspace') deleteSelected();
   });
