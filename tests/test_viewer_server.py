@@ -5,6 +5,7 @@ import base64
 import http.client
 import json
 import os
+import queue
 import signal
 import socket
 import subprocess
@@ -351,3 +352,17 @@ def test_command_refuses_a_port_in_use(phantom, tmp_path):
                                  str(port)], capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and result.stdout == ""
     assert result.stderr.strip() == f"spheroseg: error: cannot listen on 127.0.0.1:{port}: Address already in use"
+
+
+def test_a_slow_page_loses_intermediate_surfaces_only():
+    from spheroseg.viewer.session import EventStream
+
+    stream = EventStream(capacity=4)
+    stream.put("surface", {"final": True, "n": 0})
+    for n in range(1, 7):
+        stream.put("surface", {"final": False, "n": n})
+    stream.put("tracked", {"n": 7})
+    got = [stream.get(timeout=0.1) for _ in range(4)]
+    assert [(kind, data["n"]) for kind, data in got] == [("surface", 0), ("surface", 5), ("surface", 6), ("tracked", 7)]
+    with pytest.raises(queue.Empty):
+        stream.get(timeout=0.01)

@@ -13,6 +13,7 @@ stores, segments with and saves is LPS, as the rest of the package.
 from __future__ import annotations
 
 import base64
+import collections
 import os
 import queue
 import shutil
@@ -113,40 +114,58 @@ class Points:
         return all(eq(getattr(self, k), getattr(other, k)) for k in ("apex", "base", "landmarks", "annulus"))
 
 
+class EventStream:
+    """One page's pending events.  When more than ``capacity`` wait (a page
+    too slow to read them), the oldest intermediate surface goes: the final
+    surfaces and the other events are kept."""
+
+    def __init__(self, capacity: int = 64):
+        self.capacity = capacity
+        self._events: collections.deque = collections.deque()
+        self._ready = threading.Condition()
+
+    def put(self, kind: str, data: dict) -> None:
+        with self._ready:
+            if len(self._events) >= self.capacity:
+                stale = next((e for e in self._events if e[0] == "surface" and not e[1].get("final")), None)
+                if stale is not None:
+                    self._events.remove(stale)
+            self._events.append((kind, data))
+            self._ready.notify()
+
+    def get(self, timeout: float) -> tuple[str, dict]:
+        """The next event; ``queue.Empty`` after ``timeout`` seconds without one."""
+        with self._ready:
+            if not self._ready.wait_for(lambda: self._events, timeout):
+                raise queue.Empty
+            return self._events.popleft()
+
+
 class Broadcaster:
-    """Events to every open stream: each subscriber has its own queue; a
-    slow page drops the oldest surface events, never the final ones."""
+    """Events to every open page, each with its own :class:`EventStream`."""
 
     def __init__(self, *, capacity: int = 64):
-        self._subscribers: list[queue.Queue] = []
+        self._subscribers: list[EventStream] = []
         self._lock = threading.Lock()
         self.capacity = capacity
         self.closed = False
 
-    def subscribe(self) -> queue.Queue:
-        q: queue.Queue = queue.Queue(self.capacity)
+    def subscribe(self) -> EventStream:
+        stream = EventStream(self.capacity)
         with self._lock:
-            self._subscribers.append(q)
-        return q
+            self._subscribers.append(stream)
+        return stream
 
-    def unsubscribe(self, q: queue.Queue) -> None:
+    def unsubscribe(self, stream: EventStream) -> None:
         with self._lock:
-            if q in self._subscribers:
-                self._subscribers.remove(q)
+            if stream in self._subscribers:
+                self._subscribers.remove(stream)
 
     def publish(self, kind: str, data: dict) -> None:
         data = {**data, "sent": time.time()}
         with self._lock:
-            for q in self._subscribers:
-                while True:
-                    try:
-                        q.put_nowait((kind, data))
-                        break
-                    except queue.Full:
-                        try:
-                            q.get_nowait()
-                        except queue.Empty:
-                            pass
+            for stream in self._subscribers:
+                stream.put(kind, data)
 
     def close(self) -> None:
         self.closed = True
