@@ -311,11 +311,10 @@ class Session:
             tracking = self.tracking if tracked else None
         result = self._frame_result(frame)
         if tracking is None and result is None:
-            raise ValueError("nothing to save yet: place the apex and the base")
+            raise ValueError(f"nothing to save for frame {frame} yet: place the apex and the base, and let the "
+                             "segmentation finish")
         suffix = default_mask_suffix(self.source)  # the input's type, as the command line
-        keywords = {"apex": points.apex, "base": points.base,
-                    "annulus": points.annulus if len(points.annulus) else None,
-                    "landmarks": points.landmarks if len(points.landmarks) else None}
+        keywords = points.keywords()
         staging = Path(tempfile.mkdtemp(prefix=".spheroseg-save-", dir=target.parent))
         try:
             if tracking is not None:
@@ -335,6 +334,7 @@ class Session:
                 "volume_ml": written.get("volume_ml"), "ef_percent": written.get("ef_percent")}
 
     def close(self) -> None:
+        """Stop the running job and the worker; end the event streams."""
         with self._lock:
             self._generation += 1
         self._jobs.put(None)
@@ -475,7 +475,7 @@ class Session:
 
 
 def _display_nifti(volumes) -> bytes:
-    arrays = [np.where(v.no_data_mask, np.nan, v.array) if getattr(v, "no_data_mask", None) is not None else v.array
+    arrays = [np.where(v.no_data_mask, np.float32(np.nan), v.array) if v.no_data_mask is not None else v.array
               for v in volumes]
     lo = min(float(np.nanmin(a)) for a in arrays)
     hi = max(float(np.nanmax(a)) for a in arrays)
