@@ -91,7 +91,27 @@ def test_landmarks_stop_a_leak_through_a_third_of_the_wall():
     assert fraction > 1 / 3
     leaked = segment(ph.volume, ph.apex, ph.base)
     assert leaked.volume_ml > 1.5 * ph.truth_volume_ml
+    assert leaked.quality["poor"] and any("bulges" in w for w in leaked.quality["warnings"])
     landmarks = dark[np.random.default_rng(0).choice(len(dark), size=8, replace=False)]
     held = segment(ph.volume, ph.apex, ph.base, landmarks=landmarks)
     assert dice(held.mask(ph.volume), ph.truth_mask) >= 0.95
     assert abs(held.volume_ml / ph.truth_volume_ml - 1) < 0.06
+    assert held.quality["bulge"] < 1.3
+
+
+def test_wall_bulge():
+    """1 for the same wall; a wall pushed out in one region reads about the
+    ratio of its push there to elsewhere."""
+    from spheroseg import Surface
+    from spheroseg.fit import fit_surface
+    from spheroseg.quality import wall_bulge
+
+    initial = Surface.from_apex_base([0.0, 0.0, 80.0], [0.0, 0.0, 0.0])
+    assert wall_bulge(initial, initial) == pytest.approx(1.0, abs=1e-12)
+    # the wall 1.5 times as far from the axis within 30 degrees of v1 = 0, fitted (so smoothed)
+    lo, hi = initial.grid.v2_range
+    v1, v2 = np.meshgrid(np.linspace(0, 2 * np.pi, 96, endpoint=False), np.linspace(lo, hi, 48))
+    wall = initial.points(v1.ravel(), v2.ravel())
+    wall[:, :2] *= np.where(np.cos(v1.ravel()) > np.cos(np.radians(30)), 1.5, 1.0)[:, None]
+    pushed = fit_surface(wall, system=initial.system, pose=initial.pose, patches=(8, 8), v2_range=(lo, hi))
+    assert 1.3 < wall_bulge(pushed, initial) < 1.7

@@ -26,7 +26,7 @@ from .coords import Pose, annulus_plane
 from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, band_offsets
 from .descent import Descent
 from .options import SegmentOptions, format_point
-from .quality import quality_report
+from .quality import quality_report, wall_bulge
 from .results import STATUS_MESSAGES, Intermediate, SegmentationResult
 from .surface import Surface
 
@@ -179,6 +179,7 @@ class Tracker:
         self._level_iterations = 0
         self._converged = False
         self._initial_volume = surface.volume_ml()
+        self._initial = surface  # the quality report's reference shape
         self._seconds = time.perf_counter() - started
         self._skip_empty_levels()
 
@@ -434,4 +435,4 @@ class Tracker:
                 contrast=float(np.nanmedian(contrast) / spread), no_data_fraction=no_data,
                 low_contrast_fraction=float(np.mean(np.broadcast_to(contrast, (1,) + np.shape(contrast)) < 0.1 * spread)),
                 converged=self.status == 0, apex_shift_mm=float(np.linalg.norm(tip - self.apex)),
-                volume_ratio=surface.volume_ml() / self._initial_volume)
+                volume_ratio=surface.volume_ml() / self._initial_volume, bulge=wall_bulge(surface, self._initial))
