@@ -249,7 +249,8 @@ class Surface:
         Gauss-Legendre quadrature on every patch.
         """
         v1, v2, w = self.grid.quadrature(order)
-        return float(w @ self.system.radial_volume(self.radius(v1, v2), v2)) / 1000.0
+        f = np.maximum(self.grid.quadrature_values(self.coefficients, order), 0.0)  # as radius()
+        return float(w @ self.system.radial_volume(f, v2)) / 1000.0
 
     def bounding_box(self, n: int = 48) -> tuple[np.ndarray, np.ndarray]:
         """World bounding box (min, max corners) of the closed cavity."""
