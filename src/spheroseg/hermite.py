@@ -190,7 +190,7 @@ class HermiteGrid:
         w2 = (self.v2_range[1] - self.v2_range[0]) / self.n2
         b1 = self._factors(t1, d1, w1)  # (4, n): node a=0/1 x dof e=0/1 -> 2a+e
         b2 = self._factors(t2, d2, w2)
-        rows, cols, vals = [], [], []
+        cols, vals = [], []
         for a1 in (0, 1):
             node1 = (i1 + a1) % self.n1
             for a2 in (0, 1):
@@ -198,13 +198,14 @@ class HermiteGrid:
                 base = (node2 * self.n1 + node1) * 4
                 for e1 in (0, 1):
                     for e2 in (0, 1):
-                        rows.append(np.arange(n))
                         cols.append(base + e1 + 2 * e2)
                         vals.append(b1[2 * a1 + e1] * b2[2 * a2 + e2])
-        return sp.csr_matrix(
-            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-            shape=(n, self.n_coefficients),
-        )
+        # 16 distinct columns a row: built as CSR directly (through COO it
+        # cost 0.6 ms for a single point), columns sorted as COO's would be
+        matrix = sp.csr_matrix((np.stack(vals, axis=1).ravel(), np.stack(cols, axis=1).ravel(),
+                                np.arange(0, 16 * n + 1, 16)), shape=(n, self.n_coefficients))
+        matrix.sort_indices()
+        return matrix
 
     def evaluate(self, coefficients, v1, v2, d1: int = 0, d2: int = 0) -> np.ndarray:
         """``d^(d1+d2) f / dv1^d1 dv2^d2`` at the points (shape of ``v1``)."""
