@@ -35,6 +35,8 @@ def assert_same(a, b):
     assert fa.keys() == fb.keys() and len(fa) > 15
     for name in fa:
         assert fa[name].dtype == fb[name].dtype and np.array_equal(fa[name], fb[name]), name
+        # the same memory layout too: numba compiles a kernel per layout
+        assert fa[name].flags.c_contiguous and fb[name].flags.c_contiguous, name
     assert np.array_equal(a.system_inverse(0.5), b.system_inverse(0.5))
 
 

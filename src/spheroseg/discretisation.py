@@ -149,6 +149,8 @@ def discretise(grid: HermiteGrid, order: int = 8) -> Discretisation:
     if not (isinstance(order, (int, np.integer)) and order >= 1):
         raise ValueError(f"order must be a positive integer, got {order!r}")
     arrays = cached_arrays("discretisation", _key(grid, order), lambda: _matrices(grid, int(order)), sources=_SOURCES)
+    # C order whether computed or read: the kernels' compiled signatures depend on it
+    arrays = {name: np.ascontiguousarray(value) for name, value in arrays.items()}
     a = grid.constraints
     result = Discretisation(
         grid=grid, order=int(order), v1=arrays["v1"], v2=arrays["v2"], weights=arrays["weights"], constraints=a,
