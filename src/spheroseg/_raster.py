@@ -95,7 +95,7 @@ def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, step, slope1,
     if not (v2 >= lo and v2 <= hi):
         return _OUT, int(plane / step)
     v1 = math.atan2(x3, x2) % (2 * math.pi)
-    # f and its slopes, as HermiteGrid.evaluate
+    # f at the point (its slopes are bounded over the whole surface by the caller)
     n2, n1 = coef.shape[0] - 1, coef.shape[1]
     w1 = 2 * math.pi / n1
     w2 = (hi - lo) / n2
@@ -107,21 +107,14 @@ def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, step, slope1,
     t2 = u2 - i2
     b1 = _hermite(t1, w1, 0)
     b2 = _hermite(t2, w2, 0)
-    d1 = _hermite(t1, w1, 1)
-    d2 = _hermite(t2, w2, 1)
     f = 0.0
-    f1 = 0.0
-    f2 = 0.0
     for a1 in range(2):
         node1 = (i1 + a1) % n1
         for a2 in range(2):
             node2 = i2 + a2
             for e1 in range(2):
                 for e2 in range(2):
-                    c = coef[node2, node1, e1 + 2 * e2]
-                    f += b1[2 * a1 + e1] * b2[2 * a2 + e2] * c
-                    f1 += d1[2 * a1 + e1] * b2[2 * a2 + e2] * c
-                    f2 += b1[2 * a1 + e1] * d2[2 * a2 + e2] * c
+                    f += b1[2 * a1 + e1] * b2[2 * a2 + e2] * coef[node2, node1, e1 + 2 * e2]
     g = v0 - f
     if abs(g) < TIE:
         return _TIE, 0
