@@ -3,8 +3,16 @@ segmentation at three image sizes, the time to load the image from disk,
 the peers, tracking throughput, and a profile of one iteration.
 
     python benchmarks/speed.py           # about 10 minutes on 2 cores
+    PYTHONPATH=<other code>/src python benchmarks/speed.py --default-mode before [--min]
 
-Writes docs/speed.json and regenerates docs/benchmarks.md.
+Writes docs/speed.json and regenerates docs/benchmarks.md.  With
+``--default-mode LABEL`` it measures only the default mode (whole
+segmentations of the unseen-style cases, the last stage's iteration, the
+first segmentation of a process) with whatever spheroseg is importable and
+keeps them under that label beside the full run's ('after'), so that two
+versions of the code are compared on the same machine; ``--min`` keeps the
+least of this run and the stored one (run the two versions in turn a few
+times on a shared machine).
 """
 
 from __future__ import annotations
@@ -77,7 +85,6 @@ def intensity_iteration_us(volume, apex, base, repeats=300) -> float:
     probe = d.backend.observe(d.p, volume)
     term = IntensityInterface(probe.u[np.isfinite(probe.u)])
     term.force(d.backend, volume, d.observe(volume, term))  # measures and freezes the region means
-    assert not term.needs_bands
     p0 = d.p.copy()
 
     def one():
@@ -128,6 +135,14 @@ def unseen_cases(seeds=(0, 1, 2)) -> list[dict]:
     return rows
 
 
+def _previous(key: str) -> dict:
+    """``key`` of the speed.json on disk (kept across full runs)."""
+    import json
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "speed.json"
+    return json.loads(path.read_text()).get(key, {}) if path.is_file() else {}
+
+
 def _nbytes(value) -> int:
     if isinstance(value, np.ndarray):
         return value.nbytes
@@ -148,15 +163,37 @@ def memory_bytes(d) -> int:
     return int(_nbytes(vars(d)) + _nbytes(vars(d.backend)) + shared)
 
 
+def default_mode(label: str, minimum: bool = False) -> None:
+    """Only the default mode's measurements, stored under ``label`` (with
+    ``minimum``, the least of this run and the one stored)."""
+    import json
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "speed.json"
+    data = json.loads(path.read_text()) if path.is_file() else {}
+    entry = {"first_calls": first_calls(), "unseen": unseen_cases(), "machine": machine(),
+             "date": time.strftime("%Y-%m-%d %H:%M"), "runs": 1}
+    previous = data.setdefault("default_mode", {}).get(label)
+    if minimum and previous:  # the least of repeated runs: what load on a shared machine added is left out
+        entry["runs"] = previous.get("runs", 1) + 1
+        entry["first_calls"] = {k: min(v, previous["first_calls"][k]) for k, v in entry["first_calls"].items()}
+        for row, old in zip(entry["unseen"], previous["unseen"]):
+            for key in ("segment_ms", "intensity_iteration_us"):
+                row[key] = min(row[key], old[key])
+    data["default_mode"][label] = entry
+    print("wrote", write_json("speed.json", data))
+
+
 def main():
+    if len(sys.argv) >= 3 and sys.argv[1] == "--default-mode":
+        return default_mode(sys.argv[2], minimum="--min" in sys.argv[3:])
     # the first segmentation in a process pays for loading the compiled
     # kernels from numba's cache and for the per-resolution matrices
     ph = make_phantom(seed=0)
     started = time.perf_counter()
     segment(ph.volume, ph.apex, ph.base)
     first_ms = 1000 * (time.perf_counter() - started)
-    first = first_calls()
-    print("first calls", first, flush=True)
+    first_call = first_calls()
+    print("first calls", first_call, flush=True)
     unseen = unseen_cases()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -224,7 +261,10 @@ def main():
     data = {"command": "python benchmarks/speed.py", "machine": machine(), "sizes": rows, "profile": profile,
             "tracking": {"iterations_per_frame": 5, "volumes_per_second": tracking[5],
                          "volumes_per_second_3": tracking[3], "volumes_per_second_20": tracking[20]},
-            "first_segmentation_ms": first_ms, "first_calls": first, "unseen": unseen,
+            "first_segmentation_ms": first_ms, "first_calls": first_call, "unseen": unseen,
+            "default_mode": {**_previous("default_mode"), "after": {"first_calls": first_call, "unseen": unseen,
+                                                                    "machine": machine(),
+                                                                    "date": time.strftime("%Y-%m-%d %H:%M")}},
             "notes": notes}
     print("wrote", write_json("speed.json", data))
     print("wrote", write_markdown())
