@@ -189,9 +189,10 @@ def _speed(sp) -> list[str]:
                 "function 'psf_wide', 1 mm phantoms, seeds 0-2): the whole segmentation (median of 10, iterations "
                 "in brackets) and one iteration of its last stage (the intensity interface on 8 x 8 patches, its "
                 "region means frozen: observe, force, update)"
-                + (", before and after issue 15's changes, measured on the same machine one after the other "
-                   f"(`--default-mode before` on {modes['before'].get('date', '?')}, after on "
-                   f"{modes['after'].get('date', '?')})" if len(labels) == 2 else "") + ".", "",
+                + (", before and after issue 15's changes, measured on the same machine in turn "
+                   f"(`--default-mode before --min`, last on {modes['before'].get('date', '?')}, the least of "
+                   f"{modes['before'].get('runs', 1)} runs; after: the least of {modes['after'].get('runs', 1)}, "
+                   f"last on {modes['after'].get('date', '?')})" if len(labels) == 2 else "") + ".", "",
                 "| formation | seed | image | " + " | ".join(f"{lab}: segmentation ms" for lab in labels) + " | "
                 + " | ".join(f"{lab}: last-stage iteration us" for lab in labels) + " |",
                 "| --- | --- | --- |" + " --- |" * (2 * len(labels))]

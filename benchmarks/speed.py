@@ -186,6 +186,9 @@ def default_mode(label: str, minimum: bool = False) -> None:
 def main():
     if len(sys.argv) >= 3 and sys.argv[1] == "--default-mode":
         return default_mode(sys.argv[2], minimum="--min" in sys.argv[3:])
+    import os
+
+    load_start = os.getloadavg()[0]
     # the first segmentation in a process pays for loading the compiled
     # kernels from numba's cache and for the per-resolution matrices
     ph = make_phantom(seed=0)
@@ -257,6 +260,8 @@ def main():
         "to 1e-6).",
         f"Whole tracking of the 10-frame sequence (first frame from apex and base, then up to 20 iterations per "
         f"frame): {1000 * full:.0f} ms, {len(seq.volumes) / full:.0f} volumes per second.",
+        f"Load average {load_start:.1f} at the start of this run, {os.getloadavg()[0]:.1f} at its end (a shared "
+        "2-core machine: other jobs slow it).",
     ]
     data = {"command": "python benchmarks/speed.py", "machine": machine(), "sizes": rows, "profile": profile,
             "tracking": {"iterations_per_frame": 5, "volumes_per_second": tracking[5],
