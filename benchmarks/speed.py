@@ -3,8 +3,16 @@ segmentation at three image sizes, the time to load the image from disk,
 the peers, tracking throughput, and a profile of one iteration.
 
     python benchmarks/speed.py           # about 10 minutes on 2 cores
+    PYTHONPATH=<other code>/src python benchmarks/speed.py --default-mode before [--min]
 
-Writes docs/speed.json and regenerates docs/benchmarks.md.
+Writes docs/speed.json and regenerates docs/benchmarks.md.  With
+``--default-mode LABEL`` it measures only the default mode (whole
+segmentations of the unseen-style cases, the last stage's iteration, the
+first segmentation of a process) with whatever spheroseg is importable and
+keeps them under that label beside the full run's ('after'), so that two
+versions of the code are compared on the same machine; ``--min`` keeps the
+least of this run and the stored one (run the two versions in turn a few
+times on a shared machine).
 """
 
 from __future__ import annotations
@@ -23,9 +31,9 @@ from report import write_markdown  # noqa: E402
 
 import spheroseg  # noqa: E402
 from spheroseg.backends import compiled_available  # noqa: E402
-from spheroseg.dataterms import LocalMeans  # noqa: E402
+from spheroseg.dataterms import IntensityInterface, LocalMeans  # noqa: E402
 from spheroseg.descent import Descent  # noqa: E402
-from spheroseg.phantom import make_phantom, make_sequence  # noqa: E402
+from spheroseg.phantom import FORMATIONS, make_phantom, make_sequence  # noqa: E402
 from spheroseg.segment import segment, track  # noqa: E402
 from spheroseg.surface import Surface  # noqa: E402
 from spheroseg.tracker import Tracker  # noqa: E402
@@ -67,6 +75,74 @@ def iteration_parts(d, volume, repeats=300) -> dict:
     return out
 
 
+def intensity_iteration_us(volume, apex, base, repeats=300) -> float:
+    """Median time (us) of one iteration of the default mode's last stage
+    (the intensity interface on 8 x 8 patches, its region means frozen), as
+    the tracker runs it: observe, force, update; from the surface a
+    segmentation ends on."""
+    s = segment(volume, apex, base).surface
+    d = Descent(s, s, order=8, step=1.0, landmarks=apex[None], landmark_weights=[10.0], nu=0.0, smoothness=1.0)
+    probe = d.backend.observe(d.p, volume)
+    term = IntensityInterface(probe.u[np.isfinite(probe.u)])
+    term.force(d.backend, volume, d.observe(volume, term))  # measures and freezes the region means
+    p0 = d.p.copy()
+
+    def one():
+        d.p = p0.copy()
+        obs = d.observe(volume, term)
+        d.iterate(obs, term.force(d.backend, volume, obs))
+
+    return 1e6 * median_time(one, repeats)
+
+
+# the first segmentation of a fresh process: everything, and after the
+# kernels were loaded on another grid (what is left: the grid matrices)
+FIRST_CALL = r"""
+import json, time
+import spheroseg
+from spheroseg.phantom import make_phantom
+ph = make_phantom(seed=0, spacing=2.0)
+t = time.perf_counter(); spheroseg.segment(ph.volume, ph.apex, ph.base, patches=(6, 6)); fresh = time.perf_counter() - t
+t = time.perf_counter(); spheroseg.segment(ph.volume, ph.apex, ph.base); first = time.perf_counter() - t
+t = time.perf_counter(); spheroseg.segment(ph.volume, ph.apex, ph.base); again = time.perf_counter() - t
+print(json.dumps({"fresh_ms": 1000 * fresh, "first_default_ms": 1000 * first, "again_ms": 1000 * again}))
+"""
+
+
+def first_calls(repeats=5) -> dict:
+    """Medians over fresh interpreters of :data:`FIRST_CALL`'s timings."""
+    import json
+    import subprocess
+
+    runs = [json.loads(subprocess.run([sys.executable, "-c", FIRST_CALL], capture_output=True, text=True,
+                                      check=True).stdout.strip().splitlines()[-1]) for _ in range(repeats)]
+    return {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
+
+
+def unseen_cases(seeds=(0, 1, 2)) -> list[dict]:
+    """Whole default segmentations of the accuracy sweep's image formations
+    ('default' and the wider point-spread function), 1 mm phantoms."""
+    rows = []
+    for name in ("default", "psf_wide"):
+        for seed in seeds:
+            ph = make_phantom(seed=seed, formation=FORMATIONS[name])
+            res = segment(ph.volume, ph.apex, ph.base)
+            rows.append({"formation": name, "seed": seed, "shape": "x".join(map(str, ph.volume.shape)),
+                         "segment_ms": 1000 * median_time(lambda: segment(ph.volume, ph.apex, ph.base), 10),
+                         "iterations": res.iterations,
+                         "intensity_iteration_us": intensity_iteration_us(ph.volume, ph.apex, ph.base)})
+            print(rows[-1], flush=True)
+    return rows
+
+
+def _previous(key: str) -> dict:
+    """``key`` of the speed.json on disk (kept across full runs)."""
+    import json
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "speed.json"
+    return json.loads(path.read_text()).get(key, {}) if path.is_file() else {}
+
+
 def _nbytes(value) -> int:
     if isinstance(value, np.ndarray):
         return value.nbytes
@@ -87,13 +163,41 @@ def memory_bytes(d) -> int:
     return int(_nbytes(vars(d)) + _nbytes(vars(d.backend)) + shared)
 
 
+def default_mode(label: str, minimum: bool = False) -> None:
+    """Only the default mode's measurements, stored under ``label`` (with
+    ``minimum``, the least of this run and the one stored)."""
+    import json
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "speed.json"
+    data = json.loads(path.read_text()) if path.is_file() else {}
+    entry = {"first_calls": first_calls(), "unseen": unseen_cases(), "machine": machine(),
+             "date": time.strftime("%Y-%m-%d %H:%M"), "runs": 1}
+    previous = data.setdefault("default_mode", {}).get(label)
+    if minimum and previous:  # the least of repeated runs: what load on a shared machine added is left out
+        entry["runs"] = previous.get("runs", 1) + 1
+        entry["first_calls"] = {k: min(v, previous["first_calls"][k]) for k, v in entry["first_calls"].items()}
+        for row, old in zip(entry["unseen"], previous["unseen"]):
+            for key in ("segment_ms", "intensity_iteration_us"):
+                row[key] = min(row[key], old[key])
+    data["default_mode"][label] = entry
+    print("wrote", write_json("speed.json", data))
+
+
 def main():
+    if len(sys.argv) >= 3 and sys.argv[1] == "--default-mode":
+        return default_mode(sys.argv[2], minimum="--min" in sys.argv[3:])
+    import os
+
+    load_start = os.getloadavg()[0]
     # the first segmentation in a process pays for loading the compiled
     # kernels from numba's cache and for the per-resolution matrices
     ph = make_phantom(seed=0)
     started = time.perf_counter()
     segment(ph.volume, ph.apex, ph.base)
     first_ms = 1000 * (time.perf_counter() - started)
+    first_call = first_calls()
+    print("first calls", first_call, flush=True)
+    unseen = unseen_cases()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         import SimpleITK as sitk
@@ -111,10 +215,12 @@ def main():
             load_auto_s = median_time(lambda: spheroseg.load(path), 3)
             d = descent(ph.apex, ph.base)
             parts = iteration_parts(d, vol)
+            parts["intensity_iteration_us"] = intensity_iteration_us(vol, ph.apex, ph.base)
             seg_s = median_time(lambda: segment(vol, ph.apex, ph.base), 10)
             res = segment(vol, ph.apex, ph.base)
             row = {"spacing_mm": spacing, "shape": "x".join(map(str, vol.shape)), "voxels": int(np.prod(vol.shape)),
-                   "load_ms": 1000 * load_s, "load_auto_ms": 1000 * load_auto_s, "iteration_us": parts["iteration_us"], "segment_ms": 1000 * seg_s,
+                   "load_ms": 1000 * load_s, "load_auto_ms": 1000 * load_auto_s, "iteration_us": parts["iteration_us"],
+                   "intensity_iteration_us": parts["intensity_iteration_us"], "segment_ms": 1000 * seg_s,
                    "iterations": res.iterations}
             for name, fn in (("skimage", run_skimage), ("sitk", run_sitk)):
                 _, seconds = fn(vol, ph.apex, ph.base, **PEER_PARAMS[name])
@@ -154,11 +260,16 @@ def main():
         "to 1e-6).",
         f"Whole tracking of the 10-frame sequence (first frame from apex and base, then up to 20 iterations per "
         f"frame): {1000 * full:.0f} ms, {len(seq.volumes) / full:.0f} volumes per second.",
+        f"Load average {load_start:.1f} at the start of this run, {os.getloadavg()[0]:.1f} at its end (a shared "
+        "2-core machine: other jobs slow it).",
     ]
     data = {"command": "python benchmarks/speed.py", "machine": machine(), "sizes": rows, "profile": profile,
             "tracking": {"iterations_per_frame": 5, "volumes_per_second": tracking[5],
                          "volumes_per_second_3": tracking[3], "volumes_per_second_20": tracking[20]},
-            "first_segmentation_ms": first_ms,
+            "first_segmentation_ms": first_ms, "first_calls": first_call, "unseen": unseen,
+            "default_mode": {**_previous("default_mode"), "after": {"first_calls": first_call, "unseen": unseen,
+                                                                    "machine": machine(),
+                                                                    "date": time.strftime("%Y-%m-%d %H:%M")}},
             "notes": notes}
     print("wrote", write_json("speed.json", data))
     print("wrote", write_markdown())

@@ -155,6 +155,14 @@ def measure(repeats: int) -> dict:
     return results
 
 
+def cpu_name() -> str:
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+        return next(line.split(":", 1)[1].strip() for line in lines if line.startswith("model name"))
+    except (OSError, StopIteration):  # pragma: no cover
+        return platform.processor() or "?"
+
+
 def git_commit() -> str:
     try:
         import spheroseg
@@ -171,8 +179,9 @@ def report_section(data: dict) -> str:
     lines = ["## The whole command, stage by stage (issue 15)", "",
              "Command: `PYTHONPATH=<code>/src python benchmarks/userspeed.py --label before|after --repeats 3`, "
              "then `--report`.  `before` is main before this work, `after` this branch; "
-             + ", ".join(f"{k}: {data[k]['commit']} on {data[k]['date']}" for k in labels) + ".  "
-             "Medians over 3 runs on a shared 2-core machine under load from other jobs (load average 3-4), "
+             + ", ".join(f"{k}: {data[k]['commit']} on {data[k]['date']}"
+                         + (f" ({data[k]['machine']})" if data[k].get("machine") else "") for k in labels) + ".  "
+             "Medians over 3 runs on a shared 2-core machine under load from other jobs, "
              "so absolute times are pessimistic and noisy; each stage runs in a fresh interpreter, as in a command. "
              "Volumes: CETUS Patient 7 ED (201 x 140 x 140, 0.9 mm assumed) and the same resampled to 256^3, "
              "as MetaImage files.  Milliseconds.", ""]
@@ -207,8 +216,12 @@ def main() -> None:
     path = DOCS / "userspeed.json"
     data = json.loads(path.read_text()) if path.is_file() else {}
     if args.label:
+        load = os.getloadavg()[0]
+        results = measure(args.repeats)
         data[args.label] = {"commit": git_commit(), "date": time.strftime("%Y-%m-%d %H:%M"),
-                            "python": platform.python_version(), "results": measure(args.repeats)}
+                            "python": platform.python_version(), "results": results,
+                            "machine": f"{cpu_name()}, load average {load:.1f} at the start, "
+                                       f"{os.getloadavg()[0]:.1f} at the end"}
         path.write_text(json.dumps(data, indent=1) + "\n")
     if args.report:
         print(report_section(data))

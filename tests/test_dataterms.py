@@ -130,3 +130,17 @@ def test_intensity_interface_puts_the_wall_at_the_interface(spread_mm, local_bel
     errors = {mode: segment(volume, apex, base, mode=mode).volume_ml / truth_ml - 1 for mode in ("local", "intensity")}
     assert errors["local"] < local_below, errors
     assert abs(errors["intensity"]) < intensity_within, errors
+
+
+def test_the_interface_reads_the_bands_only_until_its_means_are_frozen(two_regions):
+    volume, model, p_on, _, _ = two_regions
+    backend = NumpyBackend(model)
+    term = IntensityInterface(np.array([C_IN, C_OUT]))
+    term.nepers = 10.0  # not speckle: k given
+    assert term.needs_bands
+    force = term.force(backend, volume, backend.observe(p_on, volume, band_offsets=term.band_offsets))
+    assert not term.needs_bands
+    obs = backend.observe(p_on, volume)  # no bands: the frozen means are used
+    assert obs.inside is None and term.force(backend, volume, obs)[1:] == force[1:]
+    term.reset()
+    assert term.needs_bands

@@ -121,3 +121,14 @@ def test_eq10_norms_match_gram_matrix():
 def test_too_few_patches(n1, n2):
     with pytest.raises(ValueError, match="number of patches"):
         HermiteGrid(n1, n2)
+
+
+@pytest.mark.parametrize("order", [3, 8])
+def test_quadrature_values_are_the_surface_at_the_quadrature_points(rng, order):
+    """The patch-table evaluation against the sparse basis, point by point,
+    on a grid with a pole row and one without."""
+    for grid in (HermiteGrid(6, 4, (0.0, 2.0)), HermiteGrid(2, 3, (0.4, 2.5))):
+        c = rng.normal(size=grid.shape)
+        v1, v2, _ = grid.quadrature(order)
+        np.testing.assert_allclose(grid.quadrature_values(c, order), grid.basis_matrix(v1, v2) @ c.ravel(),
+                                   rtol=0, atol=1e-12)

@@ -146,3 +146,25 @@ def test_padding_and_mask_equal_reference_on_cetus(phase, tmp_path):
     base = np.array(points[phase]["base_index"][::-1], float) * spacing
     res = spheroseg.segment(vol, apex=apex, base=base)
     np.testing.assert_array_equal(res.mask(vol), reference_mask(res.surface, vol.grid))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_padding_equals_reference_on_random_zeros(seed):
+    """Zero runs inside rows, reached from the padding through chains of
+    other rows (and not): noise zeros in a sector-like cone, a corridor
+    that winds in from a face, and the all-zero corner cases."""
+    rng = np.random.default_rng(seed)
+    k, j, i = np.indices((23, 19, 29))
+    cone = (i - 14) ** 2 + (j - 9) ** 2 <= (0.4 * k + 2) ** 2
+    a = np.where(cone, 1 + rng.integers(0, 5, cone.shape), 0).astype(np.int16)
+    a[rng.random(a.shape) < 0.3] = 0  # zeros inside: some reach the padding, some not
+    a[5:18, 4:15, 6:22] = 7  # a block of data with a corridor through it
+    a[6, 5:14, 7] = a[6, 13, 7:21] = a[6:17, 13, 20] = 0
+    for array in (a, np.zeros_like(a), np.ones_like(a)):
+        np.testing.assert_array_equal(outside_sector(array, min_fraction=0.0),
+                                      reference_padding(array, min_fraction=0.0))
+    from spheroseg._raster import face_connected_zeros  # a stack grown from its first size
+    noise = np.where(rng.random((40, 40, 40)) < 0.45, 0, 1)
+    mask, count = face_connected_zeros(noise)
+    assert count == mask.sum()
+    np.testing.assert_array_equal(mask, reference_padding(noise, min_fraction=0.0))

@@ -51,6 +51,8 @@ def test_no_data_value_marks_missing_samples():
         (np.zeros((4, 4)), {}, "3D"),
         (np.zeros((2, 4, 4, 4)), {}, "3D"),
         (np.full((4, 4, 4), np.nan), {}, "NaN"),
+        (np.full((4, 4, 4), 1e39), {}, "infinite"),  # beyond float32
+        (np.full((4, 4, 4), -np.inf, np.float32), {}, "infinite"),
         (np.zeros((4, 4, 4)), {"spacing": (1, 0, 1)}, "spacing"),
         (np.zeros((4, 4, 4)), {"direction": np.zeros((3, 3))}, "direction"),
         (np.zeros((1, 4, 4)), {}, "at least 2"),
@@ -73,3 +75,9 @@ def test_outside_sector_is_the_padding_not_the_blood():
     vol = Volume(a, no_data_mask=mask)
     assert np.isnan(vol.sample(np.array([[2.0, 15, 15]])))[0]  # x = 2: padding
     assert vol.sample(np.array([[15.0, 15, 15]]))[0] == 0.0  # the pool is data
+
+
+def test_integer_volumes_are_their_values_in_float32():
+    a = np.array([0, 255, 2**31 - 1, -(2**31)], np.int64).repeat(16).reshape(4, 4, 4)
+    v = Volume(a)
+    assert v.array.dtype == np.float32 and np.array_equal(v.array, a.astype(np.float32))

@@ -34,8 +34,9 @@ Cavity mask (:func:`cavity_mask`)
     the rows and the surface's area in voxels, not with the volume.
 
 Sector padding (:func:`face_connected_zeros`)
-    The exact zeros 6-connected to the image's faces, by a span flood fill
-    seeded from every zero on a face (runs along x, compiled).
+    The exact zeros 6-connected to the image's faces: the zero runs at the
+    ends of each row along x (most of a sector's padding) in one pass, then
+    a span flood fill from the runs inside rows that touch them.
 """
 
 from __future__ import annotations
@@ -94,7 +95,7 @@ def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, step, slope1,
     if not (v2 >= lo and v2 <= hi):
         return _OUT, int(plane / step)
     v1 = math.atan2(x3, x2) % (2 * math.pi)
-    # f and its slopes, as HermiteGrid.evaluate
+    # f at the point (its slopes are bounded over the whole surface by the caller)
     n2, n1 = coef.shape[0] - 1, coef.shape[1]
     w1 = 2 * math.pi / n1
     w2 = (hi - lo) / n2
@@ -106,21 +107,14 @@ def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, step, slope1,
     t2 = u2 - i2
     b1 = _hermite(t1, w1, 0)
     b2 = _hermite(t2, w2, 0)
-    d1 = _hermite(t1, w1, 1)
-    d2 = _hermite(t2, w2, 1)
     f = 0.0
-    f1 = 0.0
-    f2 = 0.0
     for a1 in range(2):
         node1 = (i1 + a1) % n1
         for a2 in range(2):
             node2 = i2 + a2
             for e1 in range(2):
                 for e2 in range(2):
-                    c = coef[node2, node1, e1 + 2 * e2]
-                    f += b1[2 * a1 + e1] * b2[2 * a2 + e2] * c
-                    f1 += d1[2 * a1 + e1] * b2[2 * a2 + e2] * c
-                    f2 += b1[2 * a1 + e1] * d2[2 * a2 + e2] * c
+                    f += b1[2 * a1 + e1] * b2[2 * a2 + e2] * coef[node2, node1, e1 + 2 * e2]
     g = v0 - f
     if abs(g) < TIE:
         return _TIE, 0
@@ -210,23 +204,63 @@ def cavity_mask(start, stop, affine, offset, kind, param, coefficients, v2_range
 
 @njit(cache=True)
 def _flood_zeros(zero, out, stack):
-    """Span flood fill of ``zero`` (bool) from the faces into ``out``
-    (6-connectivity): fill a whole run along x, then seed the runs of the
-    four neighbouring rows that touch it."""
+    """The zeros of ``zero`` (bool) 6-connected to the faces, into ``out``;
+    their count, or -1 if ``stack`` overflows.
+
+    A sector's padding is mostly the zero runs at both ends of each row
+    along x, which touch an x face: they are filled in one pass that reads
+    nothing else.  The zeros left (runs inside rows) are padding when they
+    lie on a y or z face or touch padding in one of the four neighbouring
+    rows: those runs seed a span flood fill (fill a run, then seed the runs
+    of the neighbouring rows that touch it) through the remaining zeros."""
     nz, ny, nx = zero.shape
-    top = 0
-    # seeds: every zero on the six faces
+    first = np.empty((nz, ny), dtype=np.int64)  # the row's first and last non-zero
+    last = np.empty((nz, ny), dtype=np.int64)
+    count = 0
     for k in range(nz):
         for j in range(ny):
-            edge = k == 0 or k == nz - 1 or j == 0 or j == ny - 1
-            i = 0
-            while i < nx:
-                if zero[k, j, i]:
-                    stack[top] = (k * ny + j) * nx + i
+            a = 0
+            while a < nx and zero[k, j, a]:
+                out[k, j, a] = True
+                a += 1
+            count += a
+            first[k, j] = a
+            last[k, j] = a - 1
+            if a == nx:
+                continue
+            b = nx - 1
+            while zero[k, j, b]:
+                out[k, j, b] = True
+                b -= 1
+            count += nx - 1 - b
+            last[k, j] = b
+    top = 0
+    for k in range(nz):
+        for j in range(ny):
+            face = k == 0 or k == nz - 1 or j == 0 or j == ny - 1
+            m = first[k, j] + 1
+            while m < last[k, j]:
+                if not zero[k, j, m]:
+                    m += 1
+                    continue
+                a = m
+                while zero[k, j, m]:  # ends at the row's last non-zero
+                    m += 1
+                seed = face
+                for dk, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                    if seed:
+                        break
+                    kk, jj = k + dk, j + dj
+                    if 0 <= kk < nz and 0 <= jj < ny:
+                        for q in range(a, m):
+                            if out[kk, jj, q]:
+                                seed = True
+                                break
+                if seed:
+                    if top == len(stack):
+                        return -1
+                    stack[top] = (k * ny + j) * nx + a
                     top += 1
-                # rows inside the image: their two end voxels only
-                i = i + 1 if edge or i == nx - 1 else nx - 1
-    count = 0
     while top > 0:
         top -= 1
         p = stack[top]
@@ -265,17 +299,17 @@ def _flood_zeros(zero, out, stack):
 def face_connected_zeros(array: np.ndarray) -> tuple[np.ndarray, int]:
     """The exact zeros 6-connected to the faces of a 3D array, and their count."""
     zero = np.ascontiguousarray(array) == 0  # one kernel signature for every dtype
-    nz, ny, nx = zero.shape
-    # the face voxels, then run starts: a voxel can be pushed from each of its
-    # four neighbouring rows before it is filled, so in the worst case 4 per
-    # voxel; a stack that overflows makes the kernel return -1
-    size = 2 * (nx * ny + ny * nz + nz * nx) + zero.size
+    # seeds (one a run), then run starts: a voxel can be pushed from each of
+    # its four neighbouring rows before it is filled, so in the worst case 5
+    # a voxel (a sector's padding needs a few hundred); a stack that
+    # overflows makes the kernel return -1
+    size = 4096
     while True:
         out = np.zeros(zero.shape, dtype=bool)
         count = _flood_zeros(zero, out, np.empty(size, dtype=np.int64))
         if count >= 0:
             return out, int(count)
-        size *= 2
+        size = min(8 * size, 5 * zero.size + 16)
 
 
 def compilations() -> int:

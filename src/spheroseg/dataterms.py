@@ -262,13 +262,19 @@ class IntensityInterface(LocalMeans):
     LOG_SPREAD = np.pi / np.sqrt(6.0)
 
     def __init__(self, samples, *, band=8.0, band_out=15.0, interface=None):
+        self.reset()  # first: the base class reads needs_bands
         super().__init__(samples, band=band, band_out=band_out)
         self.nepers = None  #: grey levels per neper of intensity, once estimated
-        self.reset()
 
     def reset(self) -> None:
         """Measure the region means again on the next observation."""
         self._frozen = None
+
+    @property
+    def needs_bands(self) -> bool:
+        """Only until the region means are frozen: the band samples after
+        that would be read by nothing (two thirds of an iteration's samples)."""
+        return self._frozen is None
 
     def force(self, backend, volume, obs) -> Force:
         if self._frozen is None:

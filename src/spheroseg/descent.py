@@ -133,6 +133,14 @@ class Descent:
             self._adapt_step(motion)
         return float(np.sqrt(np.dot(m.weights, motion**2) / d.area))
 
+    def restart(self, step: float) -> None:
+        """Begin a new level on this grid from the current surface, as a new
+        :class:`Descent` would (the step, the scale-factor floor and the
+        typical radius measured anew), without rebuilding its matrices."""
+        self.set_surface(self.surface)
+        self.reset_step(step)
+        self.h0_floor = self._radius = None
+
     def reset_step(self, step: float) -> None:
         """Start again from ``step`` mm (a new frame, new landmarks)."""
         self.step = self._initial_step = step

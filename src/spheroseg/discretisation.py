@@ -29,6 +29,8 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
+from . import hermite
+from .array_cache import cached_arrays
 from .hermite import HermiteGrid
 
 __all__ = ["Discretisation", "discretise", "BAND_STRIDE", "ROUGHNESS_SCALE"]
@@ -120,7 +122,9 @@ class Discretisation:
         """``(M + a T)^-1`` (cached per smoothness, read-only)."""
         key = float(smoothness)
         if key not in self._system_inverses:
-            inverse = spd_inverse(self.mass + self.smoothing(key))
+            inverse = cached_arrays("system-inverse", _key(self.grid, self.order) + (key,),
+                                    lambda: {"inverse": spd_inverse(self.mass + self.smoothing(key))},
+                                    sources=_SOURCES)["inverse"]
             inverse.flags.writeable = False
             self._system_inverses[key] = inverse
         return self._system_inverses[key]
@@ -139,9 +143,41 @@ def spd_inverse(matrix: np.ndarray) -> np.ndarray:
 @lru_cache(maxsize=16)
 def discretise(grid: HermiteGrid, order: int = 8) -> Discretisation:
     """The :class:`Discretisation` of ``grid`` at ``order`` sample points per
-    patch and direction (cached by value: equal grids share it)."""
+    patch and direction (cached by value: equal grids share it; and on disk,
+    :mod:`spheroseg.array_cache`: a new process reads it instead of
+    computing it again)."""
     if not (isinstance(order, (int, np.integer)) and order >= 1):
         raise ValueError(f"order must be a positive integer, got {order!r}")
+    arrays = cached_arrays("discretisation", _key(grid, order), lambda: _matrices(grid, int(order)), sources=_SOURCES)
+    # C order whether computed or read: the kernels' compiled signatures depend on it
+    arrays = {name: np.ascontiguousarray(value) for name, value in arrays.items()}
+    a = grid.constraints
+    result = Discretisation(
+        grid=grid, order=int(order), v1=arrays["v1"], v2=arrays["v2"], weights=arrays["weights"], constraints=a,
+        constraints_t=a.T.tocsr(), b_f=_unpack(arrays, "b_f"), b_1=_unpack(arrays, "b_1"), b_2=_unpack(arrays, "b_2"),
+        mass=arrays["mass"], mass_inverse=arrays["mass_inverse"], roughness=arrays["roughness"],
+        band_rows=arrays["band_rows"], band_weights=arrays["band_weights"],
+        band_transpose=_unpack(arrays, "band_transpose"), tables=(arrays["tables_1"], arrays["tables_2"]),
+        band_tables=(arrays["band_tables_1"], arrays["band_tables_2"]),
+        trig=tuple(arrays[f"trig_{k}"] for k in range(4)))
+    for value in vars(result).values():
+        for array in value if isinstance(value, tuple) else (value,):
+            if isinstance(array, np.ndarray):
+                array.flags.writeable = False
+    return result
+
+
+# the code that computes the cached arrays: editing it invalidates the files
+_SOURCES = (__file__, hermite.__file__)
+
+
+def _key(grid: HermiteGrid, order: int) -> tuple:
+    return (grid.n1, grid.n2, grid.v2_range, grid.poles, int(order))
+
+
+def _matrices(grid: HermiteGrid, order: int) -> dict:
+    """Every array of the :class:`Discretisation` but the constraints (flat,
+    sparse matrices as their CSR parts)."""
     v1, v2, weights = grid.quadrature(order)
     a = grid.constraints
     b_f = (grid.basis_matrix(v1, v2) @ a).tocsr()
@@ -157,15 +193,17 @@ def discretise(grid: HermiteGrid, order: int = 8) -> Discretisation:
     band_rows = np.flatnonzero(local[(q % n_row) % order] & local[(q // n_row) % order])
     band_weights = weights[band_rows] * (total / weights[band_rows].sum())
     tables = grid.patch_tables(order)
-    result = Discretisation(
-        grid=grid, order=int(order), v1=v1, v2=v2, weights=weights, constraints=a, constraints_t=a.T.tocsr(),
-        b_f=b_f, b_1=b_1, b_2=b_2, mass=mass, mass_inverse=spd_inverse(mass),
-        roughness=grid.roughness_matrix().toarray(), band_rows=band_rows, band_weights=band_weights,
-        band_transpose=b_f[band_rows].T.tocsr(), tables=tables,
-        band_tables=tuple(np.ascontiguousarray(t[:, local]) for t in tables),
-        trig=(np.cos(v1), np.sin(v1), np.cos(v2), np.sin(v2)))
-    for value in vars(result).values():
-        for array in value if isinstance(value, tuple) else (value,):
-            if isinstance(array, np.ndarray):
-                array.flags.writeable = False
-    return result
+    arrays = dict(v1=v1, v2=v2, weights=weights, mass=mass, mass_inverse=spd_inverse(mass),
+                  roughness=grid.roughness_matrix().toarray(), band_rows=band_rows, band_weights=band_weights,
+                  tables_1=tables[0], tables_2=tables[1], band_tables_1=np.ascontiguousarray(tables[0][:, local]),
+                  band_tables_2=np.ascontiguousarray(tables[1][:, local]))
+    arrays.update({f"trig_{k}": f(v) for k, (f, v) in enumerate(((np.cos, v1), (np.sin, v1), (np.cos, v2), (np.sin, v2)))})
+    for name, matrix in (("b_f", b_f), ("b_1", b_1), ("b_2", b_2), ("band_transpose", b_f[band_rows].T.tocsr())):
+        arrays.update({f"{name}_data": matrix.data, f"{name}_indices": matrix.indices,
+                       f"{name}_indptr": matrix.indptr, f"{name}_shape": np.array(matrix.shape)})
+    return arrays
+
+
+def _unpack(arrays: dict, name: str) -> sp.csr_matrix:
+    return sp.csr_matrix((arrays[f"{name}_data"], arrays[f"{name}_indices"], arrays[f"{name}_indptr"]),
+                         shape=tuple(arrays[f"{name}_shape"]))

@@ -249,7 +249,8 @@ class Surface:
         Gauss-Legendre quadrature on every patch.
         """
         v1, v2, w = self.grid.quadrature(order)
-        return float(w @ self.system.radial_volume(self.radius(v1, v2), v2)) / 1000.0
+        f = np.maximum(self.grid.quadrature_values(self.coefficients, order), 0.0)  # as radius()
+        return float(w @ self.system.radial_volume(f, v2)) / 1000.0
 
     def bounding_box(self, n: int = 48) -> tuple[np.ndarray, np.ndarray]:
         """World bounding box (min, max corners) of the closed cavity."""
@@ -331,11 +332,12 @@ class Surface:
         ring_start = []
         points = []
         count = 0
+        radii = self.radius(*np.meshgrid(v1, v2))  # [ring, v1]: one evaluation (v1[0] = 0 for a pole)
         for r, v in enumerate(v2):
             if pole_at.get(r, False):
-                ring = self.system.to_cartesian(self.radius(0.0, v), 0.0, v)[None]
+                ring = self.system.to_cartesian(radii[r, :1], 0.0, v)
             else:
-                ring = self.system.to_cartesian(self.radius(v1, np.full_like(v1, v)), v1, v)
+                ring = self.system.to_cartesian(radii[r], v1, v)
             local[r] = ring
             ring_start.append(count)
             points.append(ring)

@@ -290,7 +290,10 @@ class Tracker:
             self.level += 1
             self._level_iterations = 0
             self._terms[self.levels[self.level].data_term].reset()
-            self._descent = self._new_descent(self._descent.surface, self._reference)
+            if self.levels[self.level].patches == self.levels[self.level - 1].patches:
+                self._descent.restart(self.options.step)  # the intensity stage: same grid, same landmarks
+            else:
+                self._descent = self._new_descent(self._descent.surface, self._reference)
             self._skip_empty_levels()
         else:
             self.status = 0 if converged else 1
@@ -355,8 +358,13 @@ class Tracker:
         self.volume = volume
         self._reference = surface
         if self.level != finest[0]:
+            if self.patches == self.levels[finest[0]].patches:  # as a new descent on this grid and pose
+                self._descent.restart(self.options.step)
+                self._descent.set_reference(surface)
+            else:  # stopped on a coarser level
+                self.level = finest[0]
+                self._descent = self._new_descent(surface, surface)
             self.level = finest[0]
-            self._descent = self._new_descent(surface, surface)
         else:
             self._descent.set_surface(surface)
             self._descent.set_reference(surface)

@@ -90,7 +90,9 @@ class Volume:
         if not np.issubdtype(array.dtype, np.number) or np.iscomplexobj(array):
             raise ValueError(f"volume values must be real numbers, got dtype {array.dtype}")
         self.array = np.ascontiguousarray(array, dtype=np.float32)
-        if not np.all(np.isfinite(self.array)):
+        # integers convert to finite float32: only floating-point input is
+        # checked (a pass over every voxel, as long as the conversion)
+        if array.dtype.kind == "f" and not np.isfinite(self.array).all():
             raise ValueError("volume contains NaN or infinite voxels")
         spacing = np.asarray(spacing, dtype=float)
         if spacing.shape != (3,) or not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
