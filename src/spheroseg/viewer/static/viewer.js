@@ -215,7 +215,15 @@ function onPress(event) {
     return;
   }
   if (state.mode !== 'navigate' || event.shiftKey) {
-    place(mmAt(tile, x, y, crosshairMM()), event.shiftKey);  // NiiVue moves the slices there too
+    // the slices move to the point as NiiVue's cursor would, but NiiVue does
+    // not draw a frame for the click: the surface's frame shows both (without
+    // a graphics card a frame takes hundreds of ms, and the page waits for it)
+    event.stopPropagation();
+    event.preventDefault();
+    const mm = mmAt(tile, x, y, crosshairMM());
+    nv.scene.crosshairPos = nv.mm2frac(mm);
+    place(mm, event.shiftKey);
+    if (!complete(state.points)) nv.drawScene();
   }
 }
 
