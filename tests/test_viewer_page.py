@@ -208,6 +208,14 @@ def test_sequence_track_slider_and_curve(browser, tmp_path):
         frame_volume = float(page.text_content("#volume").split()[0])
         assert frame_volume == pytest.approx(api.volumes_ml[2], abs=0.05)
         page.screenshot(path=str(tmp_path / "6-tracked.png"))
+        # Play steps through the frames, Pause stops
+        page.click("#play")
+        page.wait_for_function("viewer.state.frame !== 2", polling=100, timeout=TIMEOUT_MS)
+        page.click("#play")
+        assert page.text_content("#play") == "Play"
+        stopped = page.evaluate("viewer.state.frame")
+        page.wait_for_timeout(600)
+        assert page.evaluate("viewer.state.frame") == stopped
         page.fill("#folder", "cine-out")
         page.click("#save")
         page.wait_for_function("document.body.dataset.saved || document.body.dataset.state === 'error'",
