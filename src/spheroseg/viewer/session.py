@@ -269,7 +269,7 @@ class Session:
         running job stops.  Returns the job's number (its events carry it)."""
         frame = self.check_frame(frame)
         if points.complete:
-            Tracker(self.frames[frame], **points.keywords(), **self._tracker_options())  # checks, one line each
+            Tracker(self.frames[frame], **points.keywords(), **self.options.as_parameters())  # checks, one line each
         with self._lock:
             self.points = points
             self._generation += 1
@@ -341,9 +341,6 @@ class Session:
         self.events.close()
 
     # inside -------------------------------------------------------------------
-
-    def _tracker_options(self) -> dict:
-        return self.options.as_parameters()
 
     def check_frame(self, frame) -> int:
         """``frame`` if it is a frame of this study; else a one-line ``ValueError``."""
@@ -434,7 +431,7 @@ class Session:
         return callback
 
     def _segment(self, job: int, frame: int, points: Points) -> None:
-        tracker = Tracker(self.frames[frame], **points.keywords(), **self._tracker_options())
+        tracker = Tracker(self.frames[frame], **points.keywords(), **self.options.as_parameters())
         self.events.publish("surface", self._surface_data(frame, tracker.surface, final=False, job=job))
         result = tracker.run(self._stream(job, frame))
         if not self._current(job):
@@ -452,7 +449,7 @@ class Session:
             if not self._current(job):
                 return
             if t == frame or t == frame - 1:  # each direction starts from the clicked frame
-                tracker = Tracker(self.frames[frame], **points.keywords(), **self._tracker_options())
+                tracker = Tracker(self.frames[frame], **points.keywords(), **self.options.as_parameters())
                 if t == frame:
                     results[t] = tracker.run(self._stream(job, t))
                     self._publish_frame(job, t, results[t], done, n)
