@@ -85,6 +85,23 @@ def test_mask_equals_reference_tilted_and_cropped(system, rng):
     np.testing.assert_array_equal(mask, reference_mask(s, g))
 
 
+@pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])
+def test_mask_equals_reference_on_the_axis_plane_and_foci(system, rng):
+    # apex and base on voxel centres, the long axis along z: whole lines of
+    # voxel centres lie on the axis (and, prolate, on the focal segment,
+    # where the fast coordinates give way to the exact ones) and a plane of
+    # them on the base plane; half-voxel steps put more on the axis
+    g = ImageGrid((81, 81, 111), spacing=(0.5, 0.5, 0.75), origin=(-20.0, -20.0, -3.0))
+    s = bumpy(system, rng, 0.1, apex=np.array([0.0, 0.0, 75.0]), base=np.array([0.0, 0.0, 0.0]))
+    codes = s.mask(g)
+    assert codes.sum() > 10000
+    np.testing.assert_array_equal(codes, reference_mask(s, g))
+    if system == "prolate":
+        d = s.system.focal_length
+        on_segment = [p for p in g.index_to_world(np.argwhere(codes)[:, ::-1]) if np.hypot(p[0], p[1]) == 0 and p[2] < d]
+        assert len(on_segment) > 10  # voxel centres on the focal segment
+
+
 def test_mask_of_segmentation_equals_reference():
     ph = make_phantom(seed=3, spacing=0.8, tilt_deg=20.0)
     res = spheroseg.segment(ph.volume, apex=ph.apex, base=ph.base)

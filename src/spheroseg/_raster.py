@@ -6,32 +6,35 @@ called (``import spheroseg`` does not load numba).
 Cavity mask (:func:`cavity_mask`)
     The reference is :meth:`spheroseg.Surface.contains` at every voxel centre
     of the surface's bounding box: a voxel is inside when ``v2`` lies in the
-    model's range and ``g = v0 - f(v1, v2) <= 0``.  Along each row of voxels
-    (the image's ``i`` axis) the kernel evaluates ``g`` exactly, as the
-    reference does, but skips the voxels that provably share the status of
-    the one it evaluated, by *sphere tracing*: within a ball of radius
+    model's range and ``g = v0 - f(v1, v2) <= 0``.  The kernel splits the box
+    into cubes of ``BLOCK`` voxels a side and evaluates ``g`` at a
+    block's centre: when every voxel centre of the block lies within a ball
+    on which ``g`` provably keeps its sign, the block takes the centre's
+    status at once; otherwise it splits in eight, down to single voxels,
+    whose ``g`` decides them as the reference does.  On a ball of radius
     ``delta`` (mm) around the point,
 
         |g(y) - g(x)| <= delta L(delta),
-        L(delta) = 1 / min h0 + F1 / min h1 + F2 / min h2
+        L(delta)^2 = 1 / min h0^2 + F1^2 / min h1^2 + F2^2 / min h2^2
 
-    with ``h_i`` the scale factors (``|grad v_i| = 1 / h_i``), bounded below
-    on the ball: ``h1`` is the distance to the long axis in every system,
-    so ``min h1 = rho - delta``; prolate ``h0 = h2 = sqrt(r1 r2)`` with
-    ``r1, r2`` the distances to the foci; spherical ``h2 = r``; the others
-    are 1.  ``F1``, ``F2`` bound ``|df/dv1|``, ``|df/dv2|`` over the whole
-    surface (sampled densely by the caller, with a margin).  So every voxel
-    within ``delta`` with ``delta L(delta) < |g|`` shares the point's status;
-    near the axis or the foci the bound grows and the step falls back to
-    single voxels.  The boundary of the ``v2`` range is the base plane
-    ``x1 = 0`` (prolate, spherical with ``v2_range = (0, pi/2)``) or the
-    planes ``z = 0``, ``z = height`` (cylindrical): its distance is exact,
-    and a segment that leaves that convex range does not come back.  Voxels
-    within ``TIE`` of a decision are left to the caller, which decides them
-    with the reference arithmetic.  The cost grows with the number of rows
-    and the surface's area in voxels, not with the volume.
- Cost grows with
-    the rows and the surface's area in voxels, not with the volume.
+    (the gradient of ``g`` in orthogonal coordinates), with ``h_i`` the
+    scale factors (``|grad v_i| = 1 / h_i``) bounded below on the ball:
+    ``h1`` is the distance to the long axis in every system, so ``min h1 =
+    rho - delta``; prolate ``h0 = h2 = sqrt(r1 r2)`` with ``r1, r2`` the
+    distances to the foci; spherical ``h2 = r``; the others are 1.  ``F1``,
+    ``F2`` bound ``|df/dv1|``, ``|df/dv2|`` over the whole surface (sampled
+    densely by the caller, with a margin).  A ball never reaches the axis
+    or a focus, where the bound fails.  The boundary of the ``v2`` range is
+    the base plane ``x1 = 0`` (prolate, spherical with ``v2_range = (0,
+    pi/2)``) or the planes ``z = 0``, ``z = height`` (cylindrical): its
+    distance is exact, and a segment that leaves that convex range does not
+    come back.  The prolate coordinates come from the distances to the
+    foci, without the complex logarithm of the reference; a point within
+    ``FAST`` of a decision (far above their error) or near the focal
+    segment is redone with the reference's arithmetic, and voxels within
+    ``TIE`` of a decision are left to the caller, which decides them as the
+    reference does.  Only blocks the surface passes near are split, so the
+    cost grows with the surface's area in voxels, not with the volume.
 
 Sector padding (:func:`face_connected_zeros`)
     The exact zeros 6-connected to the image's faces: the zero runs at the
@@ -57,9 +60,14 @@ _OUT, _IN, _TIE = 0, 1, 2
 #: units of v0 and v2) are decided by the caller in numpy, as the reference
 #: does: the compiled arithmetic may round differently
 TIE = 1e-9
+#: decisions closer than this by the fast prolate coordinates are redone
+#: with the reference's arithmetic
+FAST = 1e-6
+#: voxels across the largest blocks (a power of 2)
+BLOCK = 8
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _hermite(t, width, derivative):
     """Cubic Hermite basis (value and slope dofs in global units) at ``t``."""
     if derivative == 0:
@@ -68,138 +76,250 @@ def _hermite(t, width, derivative):
     return (6 * t * (t - 1) / width, (3 * t - 1) * (t - 1), 6 * t * (1 - t) / width, t * (3 * t - 2))
 
 
-@njit(cache=True)
-def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, step, slope1, slope2):
+@njit(cache=True, inline="always", error_model="numpy")
+def _prolate_fast(x1, rho, param):
+    """Prolate ``(v0, v2)`` and the distances ``r1, r2`` to the foci, without
+    the complex logarithm: ``cosh v0 = (r1 + r2) / 2a``, ``tan v2 = rho
+    cosh v0 / (x1 sinh v0)``.  Accurate to ~1e-10 except within ~1e-3 of the
+    focal segment (``v0 -> 0``), where it returns ``v0 = -1`` to say so."""
+    r1 = math.sqrt((x1 - param) * (x1 - param) + rho * rho)
+    r2 = math.sqrt((x1 + param) * (x1 + param) + rho * rho)
+    c = 0.5 * (r1 + r2) / param
+    if c < 1.0 + 5e-7:
+        return -1.0, 0.0, r1, r2
+    s = math.sqrt((c - 1.0) * (c + 1.0))
+    return math.log(c + s), math.atan2(rho * c, x1 * s), r1, r2
+
+
+@njit(cache=True, error_model="numpy")
+def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope2, reach):
     """Status of the local point (_OUT, _IN or _TIE: too close to call), and
-    the number of further voxels along the row (``step`` mm apart) that
-    share it."""
-    # model coordinates, as CoordinateSystem.from_cartesian
-    rho = math.hypot(x2, x3)
+    whether every point within ``reach`` (mm) provably shares it (always
+    for ``reach = 0``; never for _TIE at ``reach > 0``)."""
     if kind == _PROLATE:
-        w = cmath.acosh(complex(x1, rho) / param)
-        v0 = abs(w.real)
-        v2 = abs(w.imag)
-    elif kind == _SPHERICAL:
-        v0 = math.hypot(x1, rho)
-        v2 = math.atan2(rho, x1)
+        # the fast coordinates decide only the points FAST clear of a
+        # decision (their error is below 1e-10 there); the others, as the
+        # reference computes them
+        rho = math.sqrt(x2 * x2 + x3 * x3)
+        v0, v2, r1, r2 = _prolate_fast(x1, rho, param)
+        if v0 < 0.0:
+            return _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope2, reach)
+        tie = FAST
     else:
-        v0 = rho
-        v2 = x1
+        # as CoordinateSystem.from_cartesian
+        rho = math.hypot(x2, x3)
+        if kind == _SPHERICAL:
+            v0 = math.hypot(x1, rho)
+            v2 = math.atan2(rho, x1)
+            r1 = r2 = v0
+        else:
+            v0 = rho
+            v2 = x1
+            r1 = r2 = math.inf
+        tie = TIE
+    return _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, standard_range, slope1,
+                     slope2, reach)
+
+
+@njit(cache=True, error_model="numpy")
+def _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope2, reach):
+    """:func:`_status` of a prolate point with its coordinates as the
+    reference computes them (the complex arccosh)."""
+    rho = math.hypot(x2, x3)
+    w = cmath.acosh(complex(x1, rho) / param)
+    r1 = math.hypot(x1 - param, rho)
+    r2 = math.hypot(x1 + param, rho)
+    return _classify(x1, x2, x3, rho, abs(w.real), abs(w.imag), r1, r2, TIE, kind, param, coef, lo, hi,
+                     standard_range, slope1, slope2, reach)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, standard_range, slope1, slope2,
+              reach):
+    """The status of a point from its model coordinates: too close to call
+    within ``tie`` of a decision (the fast prolate coordinates are redone
+    exactly, the exact ones left to the caller)."""
     # distance (mm) to the boundary of the v2 range, when it is a plane
     if standard_range:
         plane = min(abs(x1), abs(param - x1)) if kind == _CYLINDRICAL else abs(x1)
     else:
         plane = 0.0
-    if abs(v2 - lo) < TIE or abs(v2 - hi) < TIE:
-        return _TIE, 0
+    if abs(v2 - lo) < tie or abs(v2 - hi) < tie:
+        if tie != TIE:
+            return _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope2, reach)
+        return _TIE, reach == 0.0
+    # shrunk by 1e-9: the distances are rounded
     if not (v2 >= lo and v2 <= hi):
-        return _OUT, int(plane / step)
-    v1 = math.atan2(x3, x2) % (2 * math.pi)
-    # f at the point (its slopes are bounded over the whole surface by the caller)
+        return _OUT, reach == 0.0 or reach < plane * (1.0 - 1e-9)
+    g = v0 - _surface(x2, x3, v2, coef, lo, hi)
+    if abs(g) < tie:
+        if tie != TIE:
+            return _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope2, reach)
+        return _TIE, reach == 0.0
+    code = _IN if g <= 0 else _OUT
+    if reach == 0.0:
+        return code, True
+    if not reach < 0.999 * min(rho, r1, r2) or (code == _IN and not reach < plane * (1.0 - 1e-9)):
+        return code, False
+    return code, reach * _gradient_bound(reach, kind, r1, r2, rho, slope1, slope2) < abs(g) * (1.0 - 1e-9)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _surface(x2, x3, v2, coef, lo, hi):
+    """``f(v1, v2)`` with ``v1 = atan2(x3, x2)``."""
+    # as np.mod(arctan2, 2 pi) does for angles in [-pi, pi]
+    v1 = math.atan2(x3, x2)
+    if v1 < 0:
+        v1 += 2 * math.pi
     n2, n1 = coef.shape[0] - 1, coef.shape[1]
-    w1 = 2 * math.pi / n1
-    w2 = (hi - lo) / n2
-    u1 = (v1 % (2 * math.pi)) * (n1 / (2 * math.pi))
+    u1 = v1 * (n1 / (2 * math.pi))
     u2 = (v2 - lo) * (n2 / (hi - lo))
     i1 = min(max(int(math.floor(u1)), 0), n1 - 1)
     i2 = min(max(int(math.floor(u2)), 0), n2 - 1)
-    t1 = u1 - i1
-    t2 = u2 - i2
-    b1 = _hermite(t1, w1, 0)
-    b2 = _hermite(t2, w2, 0)
+    b1 = _hermite(u1 - i1, 2 * math.pi / n1, 0)
+    b2 = _hermite(u2 - i2, (hi - lo) / n2, 0)
     f = 0.0
     for a1 in range(2):
-        node1 = (i1 + a1) % n1
+        node1 = i1 + a1 if i1 + a1 < n1 else 0
         for a2 in range(2):
-            node2 = i2 + a2
             for e1 in range(2):
                 for e2 in range(2):
-                    f += b1[2 * a1 + e1] * b2[2 * a2 + e2] * coef[node2, node1, e1 + 2 * e2]
-    g = v0 - f
-    if abs(g) < TIE:
-        return _TIE, 0
-    inside = g <= 0
-    # the largest ball on which g cannot reach 0 (module docstring)
-    if kind == _PROLATE:
-        r1 = math.sqrt((x1 - param) ** 2 + rho * rho)
-        r2 = math.sqrt((x1 + param) ** 2 + rho * rho)
-        near = min(rho, r1, r2)
-    elif kind == _SPHERICAL:
-        r1 = r2 = v0
-        near = min(rho, v0)
+                    f += b1[2 * a1 + e1] * b2[2 * a2 + e2] * coef[i2 + a2, node1, e1 + 2 * e2]
+    return f
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _gradient_bound(delta, kind, r1, r2, rho, slope1, slope2):
+    """Upper bound of ``|grad g|`` on the ball of radius ``delta`` (mm): the
+    root sum of squares of the three terms (the coordinates are orthogonal),
+    each with its scale factor bounded below on the ball."""
+    if kind == _PROLATE:  # h0 = h2 >= sqrt((r1 - delta) (r2 - delta))
+        radial = (1.0 + slope2 * slope2) / ((r1 - delta) * (r2 - delta))
+    elif kind == _SPHERICAL:  # h0 = 1, h2 = r >= r1 - delta
+        radial = 1.0 + (slope2 / (r1 - delta)) ** 2
     else:
-        r1 = r2 = math.inf
-        near = rho
-    radius = 0.0
-    delta = 0.0
-    for _ in range(4):
-        delta = min(delta, 0.999 * near)
-        if kind == _PROLATE:
-            m0 = math.sqrt((r1 - delta) * (r2 - delta))
-            m2 = m0
-        elif kind == _SPHERICAL:
-            m0, m2 = 1.0, r1 - delta
-        else:
-            m0, m2 = 1.0, 1.0
-        if not (m0 > 0 and m2 > 0 and rho - delta > 0):
-            break
-        bound = 1.0 / m0 + slope1 / (rho - delta) + slope2 / m2
-        if delta > 0 and delta * bound < abs(g):
-            radius = delta
-            break
-        # bound grows with delta: |g| / bound(delta_k) satisfies the test
-        # with bound(delta_k) in place of bound(delta_{k+1})
-        delta = abs(g) / bound
-    radius = radius * (1.0 - 1e-9)
-    if inside:
-        radius = min(radius, plane)
-    code = _IN if inside else _OUT
-    if not radius < 1e30:  # inf or NaN
-        return code, 0
-    return code, int(radius / step)
+        radial = 1.0 + slope2 * slope2
+    m1 = rho - delta  # h1 = rho
+    return math.sqrt(radial + (slope1 / m1) ** 2)
 
 
-@njit(cache=True, parallel=True)
-def _cavity_rows(out, start, affine, offset, kind, param, coef, lo, hi, standard_range, step, slope1, slope2):
-    nk, nj, ni = out.shape
-    for row in prange(nk * nj):
-        k = row // nj
-        j = row % nj
-        fj = start[1] + j
-        fk = start[2] + k
-        bx = offset[0] + affine[0, 1] * fj + affine[0, 2] * fk
-        by = offset[1] + affine[1, 1] * fj + affine[1, 2] * fk
-        bz = offset[2] + affine[2, 1] * fj + affine[2, 2] * fk
-        i = 0
-        while i < ni:
-            fi = start[0] + i
-            code, n = _status(bx + affine[0, 0] * fi, by + affine[1, 0] * fi, bz + affine[2, 0] * fi,
-                                kind, param, coef, lo, hi, standard_range, step, slope1, slope2)
-            stop = min(i + n + 1, ni)
-            if code != _OUT:
-                for m in range(i, stop):
-                    out[k, j, m] = code
-            i = stop
+@njit(cache=True, inline="always", error_model="numpy")
+def _reach(affine, ei, ej, ek):
+    """Largest distance (mm) from the centre of a block of voxel centres,
+    ``ei x ej x ek`` voxel steps across, to its corners."""
+    best = 0.0
+    for sj in (-1.0, 1.0):
+        for sk in (-1.0, 1.0):
+            dx = 0.5 * (ei * affine[0, 0] + sj * ej * affine[0, 1] + sk * ek * affine[0, 2])
+            dy = 0.5 * (ei * affine[1, 0] + sj * ej * affine[1, 1] + sk * ek * affine[1, 2])
+            dz = 0.5 * (ei * affine[2, 0] + sj * ej * affine[2, 1] + sk * ek * affine[2, 2])
+            best = max(best, math.sqrt(dx * dx + dy * dy + dz * dz))
+    return best
 
 
-def cavity_mask(start, stop, affine, offset, kind, param, coefficients, v2_range, standard_range, slopes):
+@njit(cache=True, parallel=True, error_model="numpy")
+def _cavity_blocks(out, start, stop, affine, offset, kind, param, coef, lo, hi, standard_range, slope1, slope2, size,
+                   ties):
+    """Fill the box ``[start, stop)`` of ``out`` block by block: a block
+    whose centre's ball (its status shared, :func:`_status`) holds every
+    voxel centre of the block takes that status at once; the others split in
+    eight, down to single voxels.  ``ties[b]``: the voxels of top block ``b``
+    left too close to call."""
+    ni, nj, nk = stop[0] - start[0], stop[1] - start[1], stop[2] - start[2]
+    bk, bj, bi = -(-nk // size), -(-nj // size), -(-ni // size)
+    for block in prange(bk * bj * bi):
+        stack = np.empty((8 * 8, 4), dtype=np.int64)  # (k0, j0, i0, size): 7 a level deep
+        stack[0, 0] = (block // (bj * bi)) * size
+        stack[0, 1] = ((block // bi) % bj) * size
+        stack[0, 2] = (block % bi) * size
+        stack[0, 3] = size
+        top = 1
+        while top > 0:
+            top -= 1
+            k0, j0, i0, s = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
+            k1, j1, i1 = min(k0 + s, nk), min(j0 + s, nj), min(i0 + s, ni)
+            if k1 <= k0 or j1 <= j0 or i1 <= i0:
+                continue
+            # the centre of the block's voxel centres, in the grid's index
+            ci = start[0] + 0.5 * (i0 + i1 - 1)
+            cj = start[1] + 0.5 * (j0 + j1 - 1)
+            ck = start[2] + 0.5 * (k0 + k1 - 1)
+            x1 = offset[0] + affine[0, 0] * ci + affine[0, 1] * cj + affine[0, 2] * ck
+            x2 = offset[1] + affine[1, 0] * ci + affine[1, 1] * cj + affine[1, 2] * ck
+            x3 = offset[2] + affine[2, 0] * ci + affine[2, 1] * cj + affine[2, 2] * ck
+            single = k1 - k0 == 1 and j1 - j0 == 1 and i1 - i0 == 1
+            reach = 0.0 if single else _reach(affine, i1 - 1 - i0, j1 - 1 - j0, k1 - 1 - k0)
+            code, shared = _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope2, reach)
+            if shared:
+                if code == _TIE:
+                    ties[block] += 1
+                if code != _OUT:
+                    for k in range(start[2] + k0, start[2] + k1):
+                        for j in range(start[1] + j0, start[1] + j1):
+                            for i in range(start[0] + i0, start[0] + i1):
+                                out[k, j, i] = code
+                continue
+            h = (s + 1) // 2
+            for dk in range(2):
+                for dj in range(2):
+                    for di in range(2):
+                        stack[top, 0] = k0 + dk * h
+                        stack[top, 1] = j0 + dj * h
+                        stack[top, 2] = i0 + di * h
+                        stack[top, 3] = h
+                        top += 1
+
+
+@njit(cache=True)
+def _positions(out, start, stop, size, ties):
+    """The indices ``(k, j, i)`` of the _TIE voxels of the box ``[start,
+    stop)``, from the top blocks that have them (``ties`` as
+    :func:`_cavity_blocks` counts them)."""
+    found = np.empty((ties.sum(), 3), dtype=np.int64)
+    ni, nj = stop[0] - start[0], stop[1] - start[1]
+    bj, bi = -(-nj // size), -(-ni // size)
+    n = 0
+    for block in range(ties.size):
+        if ties[block] == 0:
+            continue
+        k0 = start[2] + (block // (bj * bi)) * size
+        j0 = start[1] + ((block // bi) % bj) * size
+        i0 = start[0] + (block % bi) * size
+        for k in range(k0, min(k0 + size, stop[2])):
+            for j in range(j0, min(j0 + size, stop[1])):
+                for i in range(i0, min(i0 + size, stop[0])):
+                    if out[k, j, i] == _TIE:
+                        found[n, 0], found[n, 1], found[n, 2] = k, j, i
+                        n += 1
+    return found
+
+
+def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v2_range, standard_range, slopes):
     """Voxel status in the index box ``[start, stop)`` (x, y, z order) of a
-    grid: 0 outside the cavity, 1 inside, 2 too close to call (left to the
-    caller); shape ``stop - start`` reversed ([z, y, x]).  The local model
-    point of index ``idx`` is ``affine @ idx + offset``; ``kind`` is
-    ``"prolate"``, ``"spherical"`` or ``"cylindrical"`` and ``param`` its
-    focal length or height; ``standard_range``: the ``v2`` range ends on the
-    base plane (and for cylinders the plane ``z = height``); ``slopes``:
-    upper bounds of ``|df/dv1|`` and ``|df/dv2|`` over the surface."""
+    grid of ``shape`` ([z, y, x]): 0 outside the cavity (and outside the
+    box), 1 inside, 2 too close to call (left to the caller, with their
+    indices ``(k, j, i)``).  The local model point of index ``idx`` is
+    ``affine @ idx + offset``; ``kind`` is ``"prolate"``, ``"spherical"`` or
+    ``"cylindrical"`` and ``param`` its focal length or height;
+    ``standard_range``: the ``v2`` range ends on the base plane (and for
+    cylinders the plane ``z = height``); ``slopes``: upper bounds of
+    ``|df/dv1|`` and ``|df/dv2|`` over the surface.
+
+    Returns
+    -------
+    codes : array of uint8, ``shape``
+    ties : array (n, 3) of int
+    """
     start = np.asarray(start, dtype=np.int64)
     stop = np.asarray(stop, dtype=np.int64)
-    box = np.zeros(tuple((stop - start)[::-1]), dtype=np.uint8)
-    step = float(np.linalg.norm(affine[:, 0]))
-    kind = {"prolate": _PROLATE, "spherical": _SPHERICAL, "cylindrical": _CYLINDRICAL}[kind]
-    _cavity_rows(box, start, np.ascontiguousarray(affine, dtype=float), np.asarray(offset, dtype=float), kind,
-                 float(param), np.ascontiguousarray(coefficients, dtype=float), float(v2_range[0]),
-                 float(v2_range[1]), bool(standard_range), step, float(slopes[0]), float(slopes[1]))
-    return box
+    codes = np.zeros(shape, dtype=np.uint8)
+    blocks = np.prod(-(-(stop - start) // BLOCK))
+    ties = np.zeros(blocks, dtype=np.int64)
+    _cavity_blocks(codes, start, stop, np.ascontiguousarray(affine, dtype=float), np.asarray(offset, dtype=float),
+                   {"prolate": _PROLATE, "spherical": _SPHERICAL, "cylindrical": _CYLINDRICAL}[kind], float(param),
+                   np.ascontiguousarray(coefficients, dtype=float), float(v2_range[0]), float(v2_range[1]),
+                   bool(standard_range), float(slopes[0]), float(slopes[1]), BLOCK, ties)
+    return codes, _positions(codes, start, stop, BLOCK, ties)
 
 
 @njit(cache=True)

@@ -264,10 +264,11 @@ class Surface:
 
         Only the voxels in the surface's bounding box are tested, each as
         :meth:`contains` does (``v2`` in range and ``v0 <= f(v1, v2)``).  The
-        compiled rasteriser (:mod:`spheroseg._raster`) evaluates ``f`` along
-        each row of voxels only where the status can change, so its cost
-        grows with the surface's area in voxels, not with the grid; without
-        numba every voxel of the box is converted.
+        compiled rasteriser (:mod:`spheroseg._raster`) decides whole blocks of
+        voxels from one evaluation where the surface is provably far, and
+        single voxels only near it, so its cost grows with the surface's area
+        in voxels, not with the grid; without numba every voxel of the box is
+        converted.
         """
         out = np.zeros(grid.shape, dtype=bool)
         lo, hi = self.bounding_box()
@@ -301,15 +302,11 @@ class Surface:
         v2, v1 = np.meshgrid(np.linspace(v2_lo, v2_hi, 12 * self.grid.n2 + 1),
                              np.linspace(0, 2 * np.pi, 12 * self.grid.n1 + 1), indexing="ij")
         slopes = [1.25 * np.abs(self.evaluate(v1, v2, *d)).max() + 1e-9 for d in ((1, 0), (0, 1))]
-        box = cavity_mask(start, stop, affine, offset, name, param, self.coefficients, (v2_lo, v2_hi), planar,
-                          slopes)
-        inside = box == 1
-        ties = np.argwhere(box == 2)  # (k, j, i) in the box
+        codes, ties = cavity_mask(grid.shape, start, stop, affine, offset, name, param, self.coefficients,
+                                  (v2_lo, v2_hi), planar, slopes)
         if len(ties):
-            world = grid.index_to_world(ties[:, ::-1] + start)
-            inside[tuple(ties.T)] = self.contains(world)
-        out[start[2] : stop[2], start[1] : stop[1], start[0] : stop[0]] = inside
-        return out
+            codes[tuple(ties.T)] = self.contains(grid.index_to_world(ties[:, ::-1]))
+        return codes.view(bool)  # 0 and 1 only
 
     def mesh(self, n_v1: int = 64, n_v2: int = 32, *, closed: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Triangle mesh of the cavity wall, world mm, outward-facing.
