@@ -206,3 +206,14 @@ def test_save_volume_casts_to_the_dtype_asked(tmp_path):
     image = sitk.ReadImage(str(tmp_path / "v.nii"))
     assert image.GetPixelID() == sitk.sitkUInt8
     np.testing.assert_array_equal(sitk.GetArrayFromImage(image), (np.arange(24).reshape(2, 3, 4) * 10).astype(np.uint8))
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.int16, np.float32, np.float64])
+def test_load_owns_its_voxels(tmp_path, dtype, rng):
+    # load reads SimpleITK's buffer without a copy before the float32
+    # conversion; the voxels must not stay a view of the freed image
+    array = (rng.random((6, 7, 8)) * 100).astype(dtype)
+    sitk.WriteImage(sitk.GetImageFromArray(array), str(tmp_path / "v.mha"))
+    vol = load(tmp_path / "v.mha", no_data_value=None)
+    assert vol.array.flags.owndata and vol.array.dtype == np.float32
+    np.testing.assert_array_equal(vol.array, array.astype(np.float32))

@@ -98,14 +98,22 @@ def _make_volume(array, no_data_value, **geometry) -> Volume:
     return Volume(array, **geometry, no_data_value=no_data_value)
 
 
+def _voxels(image) -> np.ndarray:
+    """The image's voxels ``[z, y, x]`` for a :class:`Volume`, which converts
+    them to a new float32 array: a view of SimpleITK's buffer (no copy
+    before that conversion), or a copy when they are float32 already (the
+    conversion would keep the view, which must not outlive ``image``)."""
+    view = _sitk().GetArrayViewFromImage(image)
+    return view.copy() if view.dtype == np.float32 else view
+
+
 def _volume_from_image(image, no_data_value) -> Volume:
-    sitk = _sitk()
     if image.GetDimension() != 3:
         raise ValueError(f"expected a 3D image, got {image.GetDimension()}D")
     if image.GetNumberOfComponentsPerPixel() != 1:
         raise ValueError(f"expected a scalar image, got {image.GetNumberOfComponentsPerPixel()} components per voxel")
     return _make_volume(
-        sitk.GetArrayFromImage(image),
+        _voxels(image),
         no_data_value,
         spacing=image.GetSpacing(),
         origin=image.GetOrigin(),
