@@ -8,6 +8,7 @@ unless ``--force``; an input is never overwritten.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -266,6 +267,17 @@ def _load_timed(source, args, seconds: dict):
     return volume
 
 
+def _report_worker(args):
+    """What draws the command's report: a second process that imports
+    matplotlib while this one loads and segments (:mod:`spheroseg.report_worker`),
+    or nothing without a report."""
+    if args.no_report:
+        return contextlib.nullcontext()
+    from .report_worker import ReportWorker
+
+    return ReportWorker()
+
+
 def cmd_segment(args) -> int:
     # CPU time of the process so far: the interpreter and the package imports
     seconds = {"import": time.process_time()}
@@ -281,14 +293,15 @@ def cmd_segment(args) -> int:
     apex, base, landmarks, annulus = _points(args)
     _prepare_out(Path(args.out), names, args.force, [source])
     out = Path(args.out)
-    volume = _load_timed(source, args, seconds)
-    t0 = time.perf_counter()
-    result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, **_segment_kwargs(args))
-    seconds["segment"] = time.perf_counter() - t0
-    seconds["descent"] = result.seconds
-    written = write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base, annulus=annulus,
-                                         landmarks=landmarks, mask_suffix=suffix, stl=args.stl,
-                                         report=not args.no_report, seconds=seconds)
+    with _report_worker(args) as worker:
+        volume = _load_timed(source, args, seconds)
+        t0 = time.perf_counter()
+        result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, **_segment_kwargs(args))
+        seconds["segment"] = time.perf_counter() - t0
+        seconds["descent"] = result.seconds
+        written = write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base,
+                                             annulus=annulus, landmarks=landmarks, mask_suffix=suffix, stl=args.stl,
+                                             report=not args.no_report, seconds=seconds, report_worker=worker)
     if args.profile:
         print(profile_lines(written["seconds"]), file=sys.stderr)
     _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
@@ -326,26 +339,27 @@ def cmd_track(args) -> int:
     names = ["masks", "meshes", "results.json", "report.png"]
     _prepare_out(Path(args.out), names, args.force, [source])
     out = Path(args.out)
-    t0 = time.perf_counter()
-    volumes = load_sequence(args.sequence, spacing=args.spacing, no_data_value=args.no_data)
-    t_load = time.perf_counter() - t0
-    timings = {"load": t_load}
-    _kernels_loaded(timings)
-    bar = None
-    if not args.quiet:
-        from tqdm import tqdm
+    with _report_worker(args) as worker:
+        t0 = time.perf_counter()
+        volumes = load_sequence(args.sequence, spacing=args.spacing, no_data_value=args.no_data)
+        t_load = time.perf_counter() - t0
+        timings = {"load": t_load}
+        _kernels_loaded(timings)
+        bar = None
+        if not args.quiet:
+            from tqdm import tqdm
 
-        bar = tqdm(total=len(volumes), unit="frame", desc="tracking", file=sys.stderr)
-    progress = (lambda done, total: bar.update(done - bar.n)) if bar is not None else None
-    try:
-        result = track(volumes, apex, base, annulus=annulus, landmarks=landmarks,
-                       iterations_per_frame=args.iterations_per_frame, progress=progress, **_segment_kwargs(args))
-    finally:
-        if bar is not None:
-            bar.close()
-    written = write_tracking_outputs(out, volumes, result, source=source, apex=apex, base=base, annulus=annulus,
-                                     landmarks=landmarks, mask_suffix=suffix, stl=args.stl,
-                                     report=not args.no_report, seconds=timings)
+            bar = tqdm(total=len(volumes), unit="frame", desc="tracking", file=sys.stderr)
+        progress = (lambda done, total: bar.update(done - bar.n)) if bar is not None else None
+        try:
+            result = track(volumes, apex, base, annulus=annulus, landmarks=landmarks,
+                           iterations_per_frame=args.iterations_per_frame, progress=progress, **_segment_kwargs(args))
+        finally:
+            if bar is not None:
+                bar.close()
+        written = write_tracking_outputs(out, volumes, result, source=source, apex=apex, base=base, annulus=annulus,
+                                         landmarks=landmarks, mask_suffix=suffix, stl=args.stl,
+                                         report=not args.no_report, seconds=timings, report_worker=worker)
     if args.profile:
         seconds = written["seconds"]
         print(profile_lines({"load": seconds["load"], "kernels": seconds["kernels"],

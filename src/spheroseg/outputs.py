@@ -121,9 +121,21 @@ def _placement(result, apex, base, annulus) -> dict:
             "annulus": _points(annulus), "long_axis": pose.rotation[:, 0]}
 
 
+def _start_report(path: Path, worker, volume, surface, **kwargs):
+    """Start the report (in ``worker``'s process when given, else drawn
+    when the returned function is called, after the other files); call that
+    function to finish it."""
+    from .report import report_parts, save_parts
+
+    parts = report_parts(volume, surface, **kwargs)
+    if worker is None:
+        return lambda: save_parts(path, parts)
+    return worker.save(path, parts)
+
+
 def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, base=None, annulus=None, landmarks=None,
                                mask_suffix: str = ".nii.gz", stl: bool = False, report: bool = True,
-                               seconds: dict | None = None, extra: dict | None = None) -> dict:
+                               seconds: dict | None = None, extra: dict | None = None, report_worker=None) -> dict:
     """Write the outputs of :func:`spheroseg.segment` into the folder ``out``.
 
     Files: ``mask<mask_suffix>`` (the cavity on ``volume``'s grid, 8-bit),
@@ -157,6 +169,10 @@ def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, 
         and ``report`` (the PNG) as measured here, unless given.
     extra : dict, optional
         More top-level entries for ``results.json`` (they win over the defaults).
+    report_worker : ReportWorker, optional
+        Draws the report in its process while the other files are written
+        (:mod:`spheroseg.report_worker`); ``seconds["report"]`` is then the
+        time spent preparing it and waiting for it.  Default: drawn here.
 
     Returns
     -------
@@ -177,18 +193,19 @@ def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, 
 
     mask = result.mask(volume)
     lap("mask")
+    if report:
+        name = Path(source).name if source is not None else "segmentation"
+        drawing = _start_report(out / "report.png", report_worker, _displayable(volume), result.surface, mask=mask,
+                                title=f"{name}: {result.volume_ml:.1f} mL")
+        lap("report")
     save_mask(out / ("mask" + mask_suffix), mask, volume)
     lap("writes")
     files = {"mask": "mask" + mask_suffix, **write_surface_files(out, "mesh", "surface.json", result, stl=stl)}
     lap("meshes")
     if report:
-        from .report import save_report
-
-        name = Path(source).name if source is not None else "segmentation"
-        save_report(out / "report.png", _displayable(volume), result.surface, mask=mask,
-                    title=f"{name}: {result.volume_ml:.1f} mL")
+        drawing()
         files["report"] = "report.png"
-        lap("report")
+        timings["report"] += time.perf_counter() - clock
     results = {
         "input": None if source is None else str(source), "volume_ml": result.volume_ml,
         "iterations": result.iterations, "converged": result.converged, **_outcome(result),
@@ -202,7 +219,7 @@ def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, 
 
 def write_tracking_outputs(out: Path, volumes, result, *, source=None, apex, base=None, annulus=None, landmarks=None,
                            mask_suffix: str = ".nii.gz", stl: bool = False, report: bool = True,
-                           seconds: dict | None = None, extra: dict | None = None) -> dict:
+                           seconds: dict | None = None, extra: dict | None = None, report_worker=None) -> dict:
     """Write the outputs of :func:`spheroseg.track` into the folder ``out``.
 
     Files: ``masks/frame_TTT<mask_suffix>``, ``meshes/frame_TTT.vtk|.ply[|.stl]``,
@@ -216,7 +233,7 @@ def write_tracking_outputs(out: Path, volumes, result, *, source=None, apex, bas
     volumes : sequence of Volume
         The frames that were tracked.
     result : TrackingResult
-    source, apex, base, landmarks, mask_suffix, stl, report, seconds, extra
+    source, apex, base, landmarks, mask_suffix, stl, report, seconds, extra, report_worker
         As :func:`write_segmentation_outputs`; ``seconds["segment"]`` defaults
         to the list of per-frame times.
 
@@ -228,16 +245,16 @@ def write_tracking_outputs(out: Path, volumes, result, *, source=None, apex, bas
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     volumes = list(volumes)
-    write_frame_files(out, volumes, result, mask_suffix=mask_suffix, stl=stl)
     if report:
-        from .report import save_report
-
         name = Path(source).name if source is not None else "sequence"
         ed = result.ed_frame
-        save_report(out / "report.png", _displayable(volumes[ed]), result.frames[ed].surface,
-                    volumes_ml=result.volumes_ml,
-                    ed_frame=ed, es_frame=result.es_frame,
-                    title=f"{name}: EDV {result.edv_ml:.1f} mL, ESV {result.esv_ml:.1f} mL, EF {result.ef:.1f} %")
+        drawing = _start_report(
+            out / "report.png", report_worker, _displayable(volumes[ed]), result.frames[ed].surface,
+            volumes_ml=result.volumes_ml, ed_frame=ed, es_frame=result.es_frame,
+            title=f"{name}: EDV {result.edv_ml:.1f} mL, ESV {result.esv_ml:.1f} mL, EF {result.ef:.1f} %")
+    write_frame_files(out, volumes, result, mask_suffix=mask_suffix, stl=stl)
+    if report:
+        drawing()
     timings = dict(seconds or {})
     timings.setdefault("segment", [f.seconds for f in result.frames])
     later = result.frames[1].parameters if len(result.frames) > 1 else {}

@@ -1,0 +1,80 @@
+"""The report drawn in a second process: the same picture as drawn here,
+errors raised where they are waited for, and a dead process replaced by
+drawing here."""
+
+import multiprocessing
+import signal
+
+import matplotlib.image
+import numpy as np
+import pytest
+
+import spheroseg
+from spheroseg.phantom import make_phantom
+from spheroseg.report import report_parts, save_parts
+from spheroseg.report_worker import ReportWorker
+
+
+@pytest.fixture(scope="module")
+def parts():
+    ph = make_phantom(seed=2, spacing=2.0)
+    result = spheroseg.segment(ph.volume, ph.apex, ph.base)
+    return report_parts(ph.volume, result.surface, title="phantom", volumes_ml=[130.0, 90.0, 60.0], ed_frame=0,
+                        es_frame=2)
+
+
+def workers() -> list:
+    return [p for p in multiprocessing.active_children() if p.name == "spheroseg-report"]
+
+
+def test_worker_draws_what_is_drawn_here(parts, tmp_path):
+    save_parts(tmp_path / "here.png", parts)
+    with ReportWorker(parallel=True) as worker:
+        assert worker.parallel and len(workers()) == 1
+        worker.save(tmp_path / "there.png", parts)()
+    np.testing.assert_array_equal(matplotlib.image.imread(tmp_path / "there.png"),
+                                  matplotlib.image.imread(tmp_path / "here.png"))
+    assert workers() == []
+
+
+def test_worker_raises_what_drawing_raised_and_goes_on(parts, tmp_path):
+    with ReportWorker(parallel=True) as worker:
+        wait = worker.save(tmp_path / "missing" / "report.png", parts)
+        with pytest.raises(FileNotFoundError):
+            wait()
+        worker.save(tmp_path / "report.png", parts)()
+    assert (tmp_path / "report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not (tmp_path / "missing").exists()
+
+
+def test_a_dead_worker_is_replaced_by_drawing_here(parts, tmp_path):
+    with ReportWorker(parallel=True) as worker:
+        (process,) = workers()
+        process.kill()
+        process.join()
+        worker.save(tmp_path / "report.png", parts)()
+        assert not worker.parallel
+    assert (tmp_path / "report.png").is_file()
+
+
+def test_an_error_stops_the_worker_at_once():
+    with pytest.raises(KeyError):
+        with ReportWorker(parallel=True):
+            (process,) = workers()
+            raise KeyError("the command failed")
+    assert workers() == [] and process.exitcode == -signal.SIGTERM  # terminated, not asked to finish
+
+
+def test_the_end_of_a_command_lets_the_worker_finish():
+    with ReportWorker(parallel=True):
+        (process,) = workers()
+    assert process.exitcode == 0
+
+
+def test_without_parallel_the_report_is_drawn_here(parts, tmp_path):
+    with ReportWorker(parallel=False) as worker:
+        assert not worker.parallel and workers() == []
+        wait = worker.save(tmp_path / "report.png", parts)
+        assert not (tmp_path / "report.png").exists()  # drawn when waited for, after the other files
+        wait()
+    assert (tmp_path / "report.png").is_file()
