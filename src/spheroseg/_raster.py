@@ -322,6 +322,33 @@ def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v
     return codes, _positions(codes, start, stop, BLOCK, ties)
 
 
+@njit(cache=True, parallel=True)
+def _end_runs(zero, out, first, last):
+    """The zero runs at both ends of every row along x into ``out``, each
+    row's first and last non-zero (``first = nx`` for a row of zeros), and
+    the number of voxels filled; rows in parallel (they are independent)."""
+    nz, ny, nx = zero.shape
+    counts = np.zeros(nz, dtype=np.int64)
+    for k in prange(nz):
+        for j in range(ny):
+            a = 0
+            while a < nx and zero[k, j, a]:
+                out[k, j, a] = True
+                a += 1
+            counts[k] += a
+            first[k, j] = a
+            last[k, j] = a - 1
+            if a == nx:
+                continue
+            b = nx - 1
+            while zero[k, j, b]:
+                out[k, j, b] = True
+                b -= 1
+            counts[k] += nx - 1 - b
+            last[k, j] = b
+    return counts.sum()
+
+
 @njit(cache=True)
 def _flood_zeros(zero, out, stack):
     """The zeros of ``zero`` (bool) 6-connected to the faces, into ``out``;
@@ -336,24 +363,7 @@ def _flood_zeros(zero, out, stack):
     nz, ny, nx = zero.shape
     first = np.empty((nz, ny), dtype=np.int64)  # the row's first and last non-zero
     last = np.empty((nz, ny), dtype=np.int64)
-    count = 0
-    for k in range(nz):
-        for j in range(ny):
-            a = 0
-            while a < nx and zero[k, j, a]:
-                out[k, j, a] = True
-                a += 1
-            count += a
-            first[k, j] = a
-            last[k, j] = a - 1
-            if a == nx:
-                continue
-            b = nx - 1
-            while zero[k, j, b]:
-                out[k, j, b] = True
-                b -= 1
-            count += nx - 1 - b
-            last[k, j] = b
+    count = _end_runs(zero, out, first, last)
     top = 0
     for k in range(nz):
         for j in range(ny):
