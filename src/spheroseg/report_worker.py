@@ -2,11 +2,13 @@
 
 Importing matplotlib takes about 0.35 s and drawing a report about 0.2 s,
 while the command itself spends a second loading numba's kernels and
-segmenting on one core.  With two or more cores, :class:`ReportWorker`
-spawns a process that imports matplotlib at once and later draws the
-report (:func:`spheroseg.report.save_parts`) from the few arrays it shows,
-so neither lies on the command's path.  With one core, or when the process
-cannot start or dies, the report is drawn in this process, as before.
+segmenting on one core.  When a core is free, :class:`ReportWorker` starts
+a process that imports matplotlib at once and later draws the report
+(:func:`spheroseg.report.save_parts`) from the few arrays it shows, so
+neither lies on the command's path.  On Linux the process is forked as the
+command starts (before numba is loaded), so it needs no imports but
+matplotlib's; elsewhere it is spawned.  Without a free core, or when the
+process cannot start or dies, the report is drawn in this process.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import pickle
+import sys
 
 from .report import save_parts
 
@@ -45,11 +48,18 @@ def _serve(connection) -> None:
                 connection.send(RuntimeError(f"report: {exc}"))
 
 
-def _cores() -> int:
+def _free_core() -> bool:
+    """Whether a second process would find a core to itself: two or more
+    cores, and over the last minute at least one of them idle on average."""
     try:
-        return len(os.sched_getaffinity(0))
+        cores = len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not on Linux
-        return os.cpu_count() or 1
+        cores = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):  # pragma: no cover - not on Unix
+        load = 0.0
+    return cores >= 2 and load <= cores - 1
 
 
 class ReportWorker:
@@ -62,16 +72,16 @@ class ReportWorker:
     Parameters
     ----------
     parallel : bool, optional
-        Draw in a second process; default: when this process may use two or
-        more cores.
+        Draw in a second process; default: when a core is free (two or more
+        cores, the load average at most one less).
     """
 
     def __init__(self, *, parallel: bool | None = None) -> None:
         self._process = self._connection = None
         if parallel is None:
-            parallel = _cores() >= 2
+            parallel = _free_core()
         if parallel:
-            context = multiprocessing.get_context("spawn")
+            context = multiprocessing.get_context("fork" if sys.platform == "linux" else "spawn")
             self._connection, child = context.Pipe()
             try:
                 self._process = context.Process(target=_serve, args=(child,), daemon=True,
