@@ -22,9 +22,10 @@ Cavity mask (:func:`cavity_mask`)
     ``h1`` is the distance to the long axis in every system, so ``min h1 =
     rho - delta``; prolate ``h0 = h2 = sqrt(r1 r2)`` with ``r1, r2`` the
     distances to the foci; spherical ``h2 = r``; the others are 1.  ``F1``,
-    ``F2`` bound ``|df/dv1|``, ``|df/dv2|`` over the whole surface (sampled
-    densely by the caller, with a margin).  A ball never reaches the axis
-    or a focus, where the bound fails.  The boundary of the ``v2`` range is
+    ``F2`` bound ``|df/dv1|``, ``|df/dv2|`` over the rows of patches along
+    ``v2`` that the ball reaches (``v2`` moves by at most ``delta / min h2``
+    on it; the caller samples each row densely, with a margin).  A ball
+    never reaches the axis or a focus, where the bound fails.  The boundary of the ``v2`` range is
     the base plane ``x1 = 0`` (prolate, spherical with ``v2_range = (0,
     pi/2)``) or the planes ``z = 0``, ``z = height`` (cylindrical): its
     distance is exact, and a segment that leaves that convex range does not
@@ -92,7 +93,7 @@ def _prolate_fast(x1, rho, param):
 
 
 @njit(cache=True, error_model="numpy")
-def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope2, reach):
+def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach):
     """Status of the local point (_OUT, _IN or _TIE: too close to call), and
     whether every point within ``reach`` (mm) provably shares it (always
     for ``reach = 0``; never for _TIE at ``reach > 0``)."""
@@ -103,7 +104,7 @@ def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope
         rho = math.sqrt(x2 * x2 + x3 * x3)
         v0, v2, r1, r2 = _prolate_fast(x1, rho, param)
         if v0 < 0.0:
-            return _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope2, reach)
+            return _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach)
         tie = FAST
     else:
         # as CoordinateSystem.from_cartesian
@@ -117,12 +118,12 @@ def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope
             v2 = x1
             r1 = r2 = math.inf
         tie = TIE
-    return _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, standard_range, slope1,
-                     slope2, reach)
+    return _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, standard_range, slopes,
+                     reach)
 
 
 @njit(cache=True, error_model="numpy")
-def _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope2, reach):
+def _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach):
     """:func:`_status` of a prolate point with its coordinates as the
     reference computes them (the complex arccosh)."""
     rho = math.hypot(x2, x3)
@@ -130,12 +131,11 @@ def _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1,
     r1 = math.hypot(x1 - param, rho)
     r2 = math.hypot(x1 + param, rho)
     return _classify(x1, x2, x3, rho, abs(w.real), abs(w.imag), r1, r2, TIE, kind, param, coef, lo, hi,
-                     standard_range, slope1, slope2, reach)
+                     standard_range, slopes, reach)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, standard_range, slope1, slope2,
-              reach):
+def _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, standard_range, slopes, reach):
     """The status of a point from its model coordinates: too close to call
     within ``tie`` of a decision (the fast prolate coordinates are redone
     exactly, the exact ones left to the caller)."""
@@ -146,7 +146,7 @@ def _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, s
         plane = 0.0
     if abs(v2 - lo) < tie or abs(v2 - hi) < tie:
         if tie != TIE:
-            return _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope2, reach)
+            return _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach)
         return _TIE, reach == 0.0
     # shrunk by 1e-9: the distances are rounded
     if not (v2 >= lo and v2 <= hi):
@@ -154,14 +154,15 @@ def _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, s
     g = v0 - _surface(x2, x3, v2, coef, lo, hi)
     if abs(g) < tie:
         if tie != TIE:
-            return _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope2, reach)
+            return _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach)
         return _TIE, reach == 0.0
     code = _IN if g <= 0 else _OUT
     if reach == 0.0:
         return code, True
     if not reach < 0.999 * min(rho, r1, r2) or (code == _IN and not reach < plane * (1.0 - 1e-9)):
         return code, False
-    return code, reach * _gradient_bound(reach, kind, r1, r2, rho, slope1, slope2) < abs(g) * (1.0 - 1e-9)
+    bound = _gradient_bound(reach, kind, r1, r2, rho, v2, lo, hi, slopes)
+    return code, reach * bound < abs(g) * (1.0 - 1e-9)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -189,18 +190,38 @@ def _surface(x2, x3, v2, coef, lo, hi):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _gradient_bound(delta, kind, r1, r2, rho, slope1, slope2):
-    """Upper bound of ``|grad g|`` on the ball of radius ``delta`` (mm): the
-    root sum of squares of the three terms (the coordinates are orthogonal),
-    each with its scale factor bounded below on the ball."""
+def _gradient_bound(delta, kind, r1, r2, rho, v2, lo, hi, slopes):
+    """Upper bound of ``|grad g|`` on the ball of radius ``delta`` (mm)
+    around a point at ``v2``: the root sum of squares of the three terms
+    (the coordinates are orthogonal), each with its scale factor bounded
+    below on the ball, and the slopes of ``f`` bounded over the rows of
+    patches the ball reaches (``slopes[i2]``: ``|df/dv1|``, ``|df/dv2|``)."""
     if kind == _PROLATE:  # h0 = h2 >= sqrt((r1 - delta) (r2 - delta))
-        radial = (1.0 + slope2 * slope2) / ((r1 - delta) * (r2 - delta))
+        m2 = math.sqrt((r1 - delta) * (r2 - delta))
     elif kind == _SPHERICAL:  # h0 = 1, h2 = r >= r1 - delta
-        radial = 1.0 + (slope2 / (r1 - delta)) ** 2
+        m2 = r1 - delta
     else:
-        radial = 1.0 + slope2 * slope2
+        m2 = 1.0
+    # |grad v2| = 1 / h2: on the ball v2 stays within delta / m2 of the centre's
+    n2 = slopes.shape[0]
+    spread = delta / m2
+    first, last = 0, n2 - 1
+    if spread < hi - lo:
+        first = min(max(int(math.floor((v2 - spread - lo) * n2 / (hi - lo))), 0), n2 - 1)
+        last = min(max(int(math.floor((v2 + spread - lo) * n2 / (hi - lo))), first), n2 - 1)
+    f1 = 0.0
+    f2 = 0.0
+    for row in range(first, last + 1):
+        f1 = max(f1, slopes[row, 0])
+        f2 = max(f2, slopes[row, 1])
+    if kind == _PROLATE:
+        radial = (1.0 + f2 * f2) / (m2 * m2)
+    elif kind == _SPHERICAL:
+        radial = 1.0 + (f2 / m2) ** 2
+    else:
+        radial = 1.0 + f2 * f2
     m1 = rho - delta  # h1 = rho
-    return math.sqrt(radial + (slope1 / m1) ** 2)
+    return math.sqrt(radial + (f1 / m1) ** 2)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -218,8 +239,7 @@ def _reach(affine, ei, ej, ek):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _cavity_blocks(out, start, stop, affine, offset, kind, param, coef, lo, hi, standard_range, slope1, slope2, size,
-                   ties):
+def _cavity_blocks(out, start, stop, affine, offset, kind, param, coef, lo, hi, standard_range, slopes, size, ties):
     """Fill the box ``[start, stop)`` of ``out`` block by block: a block
     whose centre's ball (its status shared, :func:`_status`) holds every
     voxel centre of the block takes that status at once; the others split in
@@ -249,7 +269,7 @@ def _cavity_blocks(out, start, stop, affine, offset, kind, param, coef, lo, hi, 
             x3 = offset[2] + affine[2, 0] * ci + affine[2, 1] * cj + affine[2, 2] * ck
             single = k1 - k0 == 1 and j1 - j0 == 1 and i1 - i0 == 1
             reach = 0.0 if single else _reach(affine, i1 - 1 - i0, j1 - 1 - j0, k1 - 1 - k0)
-            code, shared = _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slope1, slope2, reach)
+            code, shared = _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach)
             if shared:
                 if code == _TIE:
                     ties[block] += 1
@@ -303,7 +323,8 @@ def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v
     ``"cylindrical"`` and ``param`` its focal length or height;
     ``standard_range``: the ``v2`` range ends on the base plane (and for
     cylinders the plane ``z = height``); ``slopes``: upper bounds of
-    ``|df/dv1|`` and ``|df/dv2|`` over the surface.
+    ``|df/dv1|`` and ``|df/dv2|`` over each row of patches along ``v2``
+    (shape ``(n2, 2)``; one row: over the whole surface).
 
     Returns
     -------
@@ -318,7 +339,7 @@ def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v
     _cavity_blocks(codes, start, stop, np.ascontiguousarray(affine, dtype=float), np.asarray(offset, dtype=float),
                    {"prolate": _PROLATE, "spherical": _SPHERICAL, "cylindrical": _CYLINDRICAL}[kind], float(param),
                    np.ascontiguousarray(coefficients, dtype=float), float(v2_range[0]), float(v2_range[1]),
-                   bool(standard_range), float(slopes[0]), float(slopes[1]), BLOCK, ties)
+                   bool(standard_range), np.ascontiguousarray(slopes, dtype=float).reshape(-1, 2), BLOCK, ties)
     return codes, _positions(codes, start, stop, BLOCK, ties)
 
 
