@@ -102,6 +102,35 @@ def test_mask_equals_reference_on_the_axis_plane_and_foci(system, rng):
         assert len(on_segment) > 10  # voxel centres on the focal segment
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_mask_equals_reference_on_random_surfaces_and_grids(seed):
+    # patch counts, bumps, voxel sizes, rotations and offsets drawn at random
+    rng = np.random.default_rng(seed)
+    system = ["prolate", "spherical", "cylindrical"][seed % 3]
+    s = bumpy(system, rng, rng.uniform(0.0, 0.2), apex=rng.uniform(-10, 10, 3) + [0.0, 0.0, 80.0],
+              base=rng.uniform(-5, 5, 3), patches=tuple(int(n) for n in rng.integers(3, 9, 2)))
+    spacing = rng.uniform(0.8, 1.6, 3)
+    g = ImageGrid(tuple(int(n) for n in 110 / spacing[::-1]), spacing=spacing,
+                  origin=rng.uniform(-3, 3, 3) + [-40.0, -40.0, -10.0],
+                  direction=Rotation.from_euler("xyz", rng.uniform(-30, 30, 3), degrees=True).as_matrix())
+    mask = s.mask(g)
+    assert mask.sum() > 1000
+    np.testing.assert_array_equal(mask, reference_mask(s, g))
+
+
+@pytest.mark.parametrize("step_at, height", [(0.6, 0.5), (0.9, 0.6), (0.4, 0.7)])
+def test_mask_equals_reference_where_the_slope_changes_from_row_to_row(step_at, height):
+    # the radius steps up across one row of patches and is flat elsewhere:
+    # a ball centred in a flat row must take the steep row's slopes when it
+    # reaches it (with the centre row's alone, 11 and 21 voxels differ)
+    s = Surface.from_apex_base(np.array([0.0, 0.0, 80.0]), np.zeros(3), patches=(8, 8))
+    coefficients = np.zeros(s.grid.shape)
+    coefficients[:, :, 0] = (0.45 + height * (s.grid.node_v2 > step_at))[:, None]
+    s = s.with_coefficients(s.grid.constrain(coefficients))
+    g = ImageGrid((90, 90, 100), spacing=(0.9, 0.9, 0.9), origin=(-40.0, -40.0, -5.0))
+    np.testing.assert_array_equal(s.mask(g), reference_mask(s, g))
+
+
 def test_mask_of_segmentation_equals_reference():
     ph = make_phantom(seed=3, spacing=0.8, tilt_deg=20.0)
     res = spheroseg.segment(ph.volume, apex=ph.apex, base=ph.base)
