@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from spheroseg.backends import CompiledBackend, NumpyBackend, compiled_available, select_backend
+from spheroseg.backends import CompiledBackend, NumpyBackend, compiled_available, kernel_threads, select_backend
 from spheroseg.energy import SampledSurface
 from spheroseg.phantom import make_phantom
 from spheroseg.surface import Surface
@@ -63,3 +63,24 @@ def test_geometry_observation_falls_back_to_the_reference(case):
     obs = CompiledBackend(model).observe(p, volume, geometry=True)
     assert obs.geometry is not None
     np.testing.assert_allclose(obs.f, NumpyBackend(model).observe(p, volume).f)
+
+
+def test_kernel_threads_sets_and_restores_the_count():
+    numba = pytest.importorskip("numba")
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one core: nothing to change")
+    before = numba.get_num_threads()
+    numba.set_num_threads(2)
+    with kernel_threads(None):
+        assert numba.get_num_threads() == 2
+    with pytest.raises(RuntimeError):
+        with kernel_threads(1):
+            assert numba.get_num_threads() == 1
+            with kernel_threads(1):  # nested: the same count
+                assert numba.get_num_threads() == 1
+            raise RuntimeError
+    assert numba.get_num_threads() == 2
+    with kernel_threads(10_000):  # capped at numba's NUMBA_NUM_THREADS
+        assert numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
+    numba.set_num_threads(before)
+

@@ -27,8 +27,9 @@ The methods, for a model of ``n`` sample points and parameters ``p``:
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -36,7 +37,8 @@ from .beamspace import BeamVolume
 from .coords import ProlateSpheroidal
 from .energy import Geometry, SampledSurface, normal_speed
 
-__all__ = ["Observation", "NumpyBackend", "CompiledBackend", "select_backend", "compiled_available", "MIN_COS"]
+__all__ = ["Observation", "NumpyBackend", "CompiledBackend", "select_backend", "compiled_available",
+           "kernel_threads", "MIN_COS"]
 
 #: least cosine between the normal and the v0 direction when converting a
 #: normal displacement into a v0 displacement (keeps grazing rays bounded)
@@ -268,3 +270,28 @@ def select_backend(model: SampledSurface, *, compiled: bool = True) -> NumpyBack
     if compiled and isinstance(model.system, ProlateSpheroidal) and compiled_available():
         return CompiledBackend(model)
     return NumpyBackend(model)
+
+
+@contextmanager
+def kernel_threads(threads: int | None) -> Iterator[None]:
+    """Run the compiled kernels inside on ``threads`` threads, then restore
+    numba's count (also on an exception); None, or without numba, changes
+    nothing.  numba's count belongs to the calling Python thread, so two
+    threads (the viewer's worker and its HTTP thread) do not change each
+    other's.  A count above ``NUMBA_NUM_THREADS`` is capped at it."""
+    try:
+        import numba
+    except ImportError:
+        numba = None
+    if threads is None or numba is None:
+        yield
+        return
+    previous, wanted = numba.get_num_threads(), min(int(threads), numba.config.NUMBA_NUM_THREADS)
+    if wanted == previous:  # nested (a run's iterations): nothing to set
+        yield
+        return
+    numba.set_num_threads(wanted)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(previous)
