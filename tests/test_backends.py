@@ -84,3 +84,40 @@ def test_kernel_threads_sets_and_restores_the_count():
         assert numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
     numba.set_num_threads(before)
 
+
+CONCURRENT = """
+import threading, time
+import spheroseg
+from spheroseg.phantom import make_phantom
+ph = make_phantom(seed=0, spacing=2.0)
+result = spheroseg.segment(ph.volume, ph.apex, ph.base)
+done = threading.Event()
+def masks():  # the viewer's HTTP thread saving a mask
+    while not done.is_set():
+        result.mask(ph.volume)
+thread = threading.Thread(target=masks)
+thread.start()
+started = time.perf_counter()
+while time.perf_counter() - started < 2:  # its worker thread segmenting
+    spheroseg.segment(ph.volume, ph.apex, ph.base, threads=2)
+done.set()
+thread.join()
+import numba
+print(numba.threading_layer())
+"""
+
+
+def test_two_threads_in_parallel_kernels_under_the_workqueue_layer():
+    """numba's fallback threading layer aborts the process when two Python
+    threads are in parallel regions at once (numba releases the GIL there):
+    without the lock the kernels' callers hold, this run aborts within a
+    second."""
+    import os
+    import subprocess
+    import sys
+
+    pytest.importorskip("numba")
+    env = {**os.environ, "NUMBA_THREADING_LAYER": "workqueue", "PYTHONWARNINGS": "ignore"}
+    run = subprocess.run([sys.executable, "-c", CONCURRENT], capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 0, run.stderr[-500:]
+    assert run.stdout.split() == ["workqueue"]

@@ -278,6 +278,7 @@ class Surface:
         if np.any(stop <= start):
             return out
         try:
+            from ._kernels import PARALLEL_LOCK
             from ._raster import cavity_mask
         except ImportError:  # pragma: no cover - numba is a dependency
             k, j, i = np.meshgrid(*(np.arange(a, b) for a, b in zip(start[::-1], stop[::-1])), indexing="ij")
@@ -301,8 +302,9 @@ class Surface:
         v2, v1 = np.meshgrid(np.linspace(v2_lo, v2_hi, 12 * self.grid.n2 + 1),
                              np.linspace(0, 2 * np.pi, 12 * self.grid.n1 + 1), indexing="ij")
         slopes = [1.25 * np.abs(self.evaluate(v1, v2, *d)).max() + 1e-9 for d in ((1, 0), (0, 1))]
-        box = cavity_mask(start, stop, affine, offset, name, param, self.coefficients, (v2_lo, v2_hi), planar,
-                          slopes)
+        with PARALLEL_LOCK:
+            box = cavity_mask(start, stop, affine, offset, name, param, self.coefficients, (v2_lo, v2_hi), planar,
+                              slopes)
         inside = box == 1
         ties = np.argwhere(box == 2)  # (k, j, i) in the box
         if len(ties):
