@@ -169,8 +169,10 @@ def _formation_sweep(sweep) -> list[str]:
 
 
 def _speed(sp) -> list[str]:
+    threads = sp.get("kernel_threads", 1)  # runs before the threads option: one
     out = ["## Speed", "", f"Command: `{sp['command']}`. Machine: {_machine(sp['machine'])}. "
-           "Medians over repeats, one process, one thread for spheroseg.", ""]
+           f"Medians over repeats, one process, {'one thread' if threads == 1 else f'{threads} threads'} for "
+           "spheroseg's compiled kernels (the threads section below compares the counts).", ""]
     out += ["Phantoms of one shape at three voxel sizes (2.5, 1.25, 0.625 mm). 'read' is reading the .mha into a "
             "Volume (the yardstick); 'load' adds the default search for the sector padding. Peers: one run each.", "",
             "| image | voxels | read ms | load ms | local-mode iteration us | default-mode iteration us | "
@@ -209,6 +211,7 @@ def _speed(sp) -> list[str]:
                     f"{fc['again_ms']:.1f} ms for the next one"
                     + (" (their matrices read from the on-disk cache beside numba's)." if lab == "after" else
                        " (their matrices computed).")]
+    out += _threads(sp.get("threads"))
     tr = sp["tracking"]
     out += ["", f"Tracking: {_fmt(tr['volumes_per_second'], 0)} volumes per second at "
             f"{tr['iterations_per_frame']} iterations per frame"
@@ -253,10 +256,11 @@ def _speed(sp) -> list[str]:
                 "local-mode iteration of the profile below adds the band means: "
                 f"{prof['band_samples_us']:.0f} us of samples "
                 f"({1000 * prof['band_samples_us'] / (prof['image_samples'] - prof['samples']):.0f} ns each) and "
-                f"{prof['local_means_us']:.0f} us to project them on the surface. Reaching 200 us would take the "
-                "second core for the samples (measured: 100 -> 53 us for 4096 samples with numba's prange on two "
-                "idle cores, not adopted: it is a sixth of the iteration, and with both cores busy, as in a batch "
-                "of two workers, the threads only contend) and one fused kernel for the update; neither was done.",
+                f"{prof['local_means_us']:.0f} us to project them on the surface. Reaching 200 us takes the second "
+                "core and one fused kernel for the update. The kernels of the sample points (surface, samples, "
+                "cavity sums, B p) now split the points among numba's threads (the threads section above; a "
+                "batch of several workers runs one thread in each, where threads would only contend); the fused "
+                "update was not done.",
                 "",
                 f"A whole default segmentation of the unseen-style cases takes {min(seg_unseen):.1f} to "
                 f"{max(seg_unseen):.1f} ms (target 5 ms: missed): 19 to 29 iterations, of which 10-16 on 2 x 2 and "
@@ -266,6 +270,40 @@ def _speed(sp) -> list[str]:
                 "the basis tables) is built once per machine and read from disk by a new process (see the first "
                 "segmentation above); reading a file from the page cache takes about 1 ms per million voxels, so a "
                 "segmentation still takes longer than reading the image it segments."]
+    return out
+
+
+def _threads(th) -> list[str]:
+    """The thread counts side by side (``speed.py --threads``)."""
+    if not th:
+        return []
+    counts = [str(n) for n in th["counts"]]
+    names = {"1": "1 thread"} | {n: f"{n} threads" for n in counts[1:]}
+    rows = th["unseen"]
+    med = {n: {k: float(np.median([r[n][k] for r in rows])) for k in rows[0][n]} for n in counts}
+    out = ["", "### Threads", "",
+           f"Command: `python benchmarks/speed.py --threads` ({th['date']}, numba's threading layer "
+           f"'{th['threading_layer']}'; the 1-minute load average of the 2 cores {th['load'][0]:.1f} before the run and "
+           f"{th['load'][1]:.1f} at its end, the run's own included). The compiled kernels split their sample points among numba's threads (the "
+           "`threads` option; the coefficients are equal to the last bit whatever the count, checked here on "
+           "every case). The counts alternate in 5 turns on each case, so that load weighs on all alike. The "
+           "default mode on the unseen-style cases: the whole segmentation (median of 10) and one iteration of its "
+           "last stage (median of 300), as above.", "",
+           "| formation | seed | " + " | ".join(f"segmentation ms, {names[n]}" for n in counts) + " | "
+           + " | ".join(f"last-stage iteration us, {names[n]}" for n in counts) + " |",
+           "| --- | --- |" + " --- |" * (2 * len(counts))]
+    for r in rows:
+        out.append(f"| {r['formation']} | {r['seed']} | " + " | ".join(f"{r[n]['segment_ms']:.1f}" for n in counts)
+                   + " | " + " | ".join(f"{r[n]['intensity_iteration_us']:.0f}" for n in counts) + " |")
+    iteration = " against ".join(f"{med[n]['intensity_iteration_us']:.0f}" for n in counts)
+    segmentation = " against ".join(f"{med[n]['segment_ms']:.1f}" for n in counts)
+    out += ["", "Medians over the cases, " + " against ".join(names[n] for n in counts) + ": the whole iteration "
+            f"{iteration} us, a segmentation {segmentation} ms; within the iteration, "
+            + "; ".join(f"{names[n]}: the surface and its grey levels at the 4096 sample points "
+                        f"{med[n]['surface_and_samples_us']:.0f} us, of which the samples alone "
+                        f"{med[n]['samples_us']:.0f} us (the rest, "
+                        f"{med[n]['surface_and_samples_us'] - med[n]['samples_us']:.0f} us, the surface with the "
+                        "coefficients' sparse product and the calls)" for n in counts) + "."]
     return out
 
 
@@ -434,11 +472,18 @@ def _targets(acc, sp, sweep=None, user=None) -> list[str]:
         unseen = (sp.get("default_mode") or {}).get("after", {}).get("unseen") or sp.get("unseen")
         if unseen:  # the default mode (issue 15): its last stage, and whole segmentations
             it_default = float(np.median([r["intensity_iteration_us"] for r in unseen]))
+            worst, median = max(r["segment_ms"] for r in unseen), np.median([r["segment_ms"] for r in unseen])
+            threads, cores = sp.get("threads"), ""
+            if threads:  # the most threads, when measured (speed.py --threads)
+                n = str(threads["counts"][-1])
+                cases = [r[n] for r in threads["unseen"]]
+                it_default = float(np.median([r["intensity_iteration_us"] for r in cases]))
+                worst, median = max(r["segment_ms"] for r in cases), np.median([r["segment_ms"] for r in cases])
+                cores = f" on {n} threads"
             add("<= 200 us per iteration at 8 x 8 patches, default mode (median over the unseen-style cases)",
-                f"{it_default:.0f} us", it_default <= 200)
-            worst = max(r["segment_ms"] for r in unseen)
+                f"{it_default:.0f} us{cores}", it_default <= 200)
             add("<= 5 ms per whole segmentation on the unseen-style cases (default and wide PSF; worst)",
-                f"{worst:.1f} ms (median {np.median([r['segment_ms'] for r in unseen]):.1f})", worst <= 5)
+                f"{worst:.1f} ms (median {median:.1f}){cores}", worst <= 5)
         else:
             default = next(r for r in sp["profile"] if r["patches"] == "8 x 8")
             add("<= 200 us per iteration at 8 x 8 patches, 8 x 8 samples", f"{default['iteration_us']:.0f} us",

@@ -4,6 +4,7 @@ the peers, tracking throughput, and a profile of one iteration.
 
     python benchmarks/speed.py           # about 10 minutes on 2 cores
     PYTHONPATH=<other code>/src python benchmarks/speed.py --default-mode before [--min]
+    python benchmarks/speed.py --threads  # one thread against all cores, about 3 minutes
 
 Writes docs/speed.json and regenerates docs/benchmarks.md.  With
 ``--default-mode LABEL`` it measures only the default mode (whole
@@ -12,7 +13,11 @@ first segmentation of a process) with whatever spheroseg is importable and
 keeps them under that label beside the full run's ('after'), so that two
 versions of the code are compared on the same machine; ``--min`` keeps the
 least of this run and the stored one (run the two versions in turn a few
-times on a shared machine).
+times on a shared machine).  With ``--threads`` it measures the default
+mode's segmentations and last-stage iteration, and the surface and the
+samples of that iteration, on one thread and on each count up to the
+cores (the ``threads`` option), side by side, and keeps them beside the
+full run's.
 """
 
 from __future__ import annotations
@@ -75,17 +80,22 @@ def iteration_parts(d, volume, repeats=300) -> dict:
     return out
 
 
-def intensity_iteration_us(volume, apex, base, repeats=300) -> float:
-    """Median time (us) of one iteration of the default mode's last stage
-    (the intensity interface on 8 x 8 patches, its region means frozen), as
-    the tracker runs it: observe, force, update; from the surface a
-    segmentation ends on."""
+def last_stage(volume, apex, base):
+    """The default mode's last stage (the intensity interface on 8 x 8
+    patches, its region means frozen) from the surface a segmentation ends
+    on: the descent, its data term and its start parameters."""
     s = segment(volume, apex, base).surface
     d = Descent(s, s, order=8, step=1.0, landmarks=apex[None], landmark_weights=[10.0], nu=0.0, smoothness=1.0)
     probe = d.backend.observe(d.p, volume)
     term = IntensityInterface(probe.u[np.isfinite(probe.u)])
     term.force(d.backend, volume, d.observe(volume, term))  # measures and freezes the region means
-    p0 = d.p.copy()
+    return d, term, d.p.copy()
+
+
+def intensity_iteration_us(volume, apex, base, repeats=300) -> float:
+    """Median time (us) of one iteration of the default mode's last stage
+    (:func:`last_stage`), as the tracker runs it: observe, force, update."""
+    d, term, p0 = last_stage(volume, apex, base)
 
     def one():
         d.p = p0.copy()
@@ -133,6 +143,82 @@ def unseen_cases(seeds=(0, 1, 2)) -> list[dict]:
                          "intensity_iteration_us": intensity_iteration_us(ph.volume, ph.apex, ph.base)})
             print(rows[-1], flush=True)
     return rows
+
+
+def thread_medians(fn, counts, repeats: int, rounds: int = 5) -> dict:
+    """Median time (s) of ``fn()`` with numba's thread count at each of
+    ``counts``, in ``rounds`` turns of ``repeats / rounds`` calls at each
+    count, so that a change of the machine's load weighs on all alike (the
+    count is set before each turn: a call pays nothing for it)."""
+    import numba
+
+    previous = numba.get_num_threads()
+    times = {n: [] for n in counts}
+    fn()  # warm-up
+    for _ in range(rounds):
+        for n in counts:
+            numba.set_num_threads(n)
+            for _ in range(max(1, repeats // rounds)):
+                t0 = time.perf_counter()
+                fn()
+                times[n].append(time.perf_counter() - t0)
+    numba.set_num_threads(previous)
+    return {n: float(np.median(t)) for n, t in times.items()}
+
+
+def thread_counts(seeds=(0, 1, 2)) -> dict:
+    """One thread against 2..cores for the compiled kernels (the ``threads``
+    option, numba's ``set_num_threads``), side by side in this process, on
+    the unseen-style cases of :func:`unseen_cases`: the whole default
+    segmentation, its last-stage iteration (8 x 8 patches), and in that
+    iteration the surface with its samples at the 4096 points and the
+    samples alone."""
+    import os
+
+    import numba
+
+    counts = list(range(1, numba.config.NUMBA_NUM_THREADS + 1))
+    load_start = os.getloadavg()[0]
+    rows = []
+    for name in ("default", "psf_wide"):
+        for seed in seeds:
+            ph = make_phantom(seed=seed, formation=FORMATIONS[name])
+            vol, apex, base = ph.volume, ph.apex, ph.base
+            results = [segment(vol, apex, base, threads=n) for n in counts]
+            assert all(np.array_equal(r.surface.coefficients, results[0].surface.coefficients) for r in results)
+            d, term, p0 = last_stage(vol, apex, base)
+            rows_all = np.arange(d.model.n_samples)
+            obs = d.backend.observe(p0, vol)
+            at_surface = np.array([0.0])
+
+            def iteration():
+                d.p = p0.copy()
+                o = d.observe(vol, term)
+                d.iterate(o, term.force(d.backend, vol, o))
+
+            seg = thread_medians(lambda: segment(vol, apex, base), counts, 10)
+            it = thread_medians(iteration, counts, 300)
+            observe = thread_medians(lambda: d.backend.observe(p0, vol), counts, 500)
+            samples = thread_medians(lambda: d.backend.mean_along(vol, obs, at_surface, rows_all), counts, 500)
+            d.p = p0
+            row = {"formation": name, "seed": seed, "shape": "x".join(map(str, vol.shape)),
+                   "iterations": results[0].iterations}
+            for n in counts:
+                row[str(n)] = {"segment_ms": 1000 * seg[n], "intensity_iteration_us": 1e6 * it[n],
+                               "surface_and_samples_us": 1e6 * observe[n], "samples_us": 1e6 * samples[n]}
+            rows.append(row)
+            print(row, flush=True)
+    return {"counts": counts, "unseen": rows, "threading_layer": numba.threading_layer(),
+            "load": [load_start, os.getloadavg()[0]], "machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M")}
+
+
+def _kernel_threads() -> int:
+    """The compiled kernels' thread count (numba's; 1 without numba)."""
+    if not compiled_available():
+        return 1
+    import numba
+
+    return numba.get_num_threads()
 
 
 def _previous(key: str) -> dict:
@@ -186,6 +272,15 @@ def default_mode(label: str, minimum: bool = False) -> None:
 def main():
     if len(sys.argv) >= 3 and sys.argv[1] == "--default-mode":
         return default_mode(sys.argv[2], minimum="--min" in sys.argv[3:])
+    if sys.argv[1:] == ["--threads"]:
+        import json
+
+        path = Path(__file__).resolve().parents[1] / "docs" / "speed.json"
+        data = json.loads(path.read_text()) if path.is_file() else {}
+        data["threads"] = thread_counts()
+        print("wrote", write_json("speed.json", data))
+        print("wrote", write_markdown())
+        return
     import os
 
     load_start = os.getloadavg()[0]
@@ -270,7 +365,7 @@ def main():
             "default_mode": {**_previous("default_mode"), "after": {"first_calls": first_call, "unseen": unseen,
                                                                     "machine": machine(),
                                                                     "date": time.strftime("%Y-%m-%d %H:%M")}},
-            "notes": notes}
+            "threads": _previous("threads"), "kernel_threads": _kernel_threads(), "notes": notes}
     print("wrote", write_json("speed.json", data))
     print("wrote", write_markdown())
 

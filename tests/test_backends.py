@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from spheroseg.backends import CompiledBackend, NumpyBackend, compiled_available, select_backend
+from spheroseg.backends import CompiledBackend, NumpyBackend, compiled_available, kernel_threads, select_backend
 from spheroseg.energy import SampledSurface
 from spheroseg.phantom import make_phantom
 from spheroseg.surface import Surface
@@ -63,3 +63,61 @@ def test_geometry_observation_falls_back_to_the_reference(case):
     obs = CompiledBackend(model).observe(p, volume, geometry=True)
     assert obs.geometry is not None
     np.testing.assert_allclose(obs.f, NumpyBackend(model).observe(p, volume).f)
+
+
+def test_kernel_threads_sets_and_restores_the_count():
+    numba = pytest.importorskip("numba")
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one core: nothing to change")
+    before = numba.get_num_threads()
+    numba.set_num_threads(2)
+    with kernel_threads(None):
+        assert numba.get_num_threads() == 2
+    with pytest.raises(RuntimeError):
+        with kernel_threads(1):
+            assert numba.get_num_threads() == 1
+            with kernel_threads(1):  # nested: the same count
+                assert numba.get_num_threads() == 1
+            raise RuntimeError
+    assert numba.get_num_threads() == 2
+    with kernel_threads(10_000):  # capped at numba's NUMBA_NUM_THREADS
+        assert numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
+    numba.set_num_threads(before)
+
+
+CONCURRENT = """
+import threading, time
+import spheroseg
+from spheroseg.phantom import make_phantom
+ph = make_phantom(seed=0, spacing=2.0)
+result = spheroseg.segment(ph.volume, ph.apex, ph.base)
+done = threading.Event()
+def masks():  # the viewer's HTTP thread saving a mask
+    while not done.is_set():
+        result.mask(ph.volume)
+thread = threading.Thread(target=masks)
+thread.start()
+started = time.perf_counter()
+while time.perf_counter() - started < 2:  # its worker thread segmenting
+    spheroseg.segment(ph.volume, ph.apex, ph.base, threads=2)
+done.set()
+thread.join()
+import numba
+print(numba.threading_layer())
+"""
+
+
+def test_two_threads_in_parallel_kernels_under_the_workqueue_layer():
+    """numba's fallback threading layer aborts the process when two Python
+    threads are in parallel regions at once (numba releases the GIL there):
+    without the lock the kernels' callers hold, this run aborts within a
+    second."""
+    import os
+    import subprocess
+    import sys
+
+    pytest.importorskip("numba")
+    env = {**os.environ, "NUMBA_THREADING_LAYER": "workqueue", "PYTHONWARNINGS": "ignore"}
+    run = subprocess.run([sys.executable, "-c", CONCURRENT], capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 0, run.stderr[-500:]
+    assert run.stdout.split() == ["workqueue"]

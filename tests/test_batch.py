@@ -322,6 +322,7 @@ def test_checksum_follows_every_input_byte(tmp_path):
     study = Study(id="v", image=str(tmp_path / "v.mhd"), points=str(tmp_path / "p.mrk.json"))
     first = study_checksum(study, {})
     assert study_checksum(study, {}) == first
+    assert study_checksum(study, {"threads": 2}) == first  # it changes no result (tests/test_segment.py)
     raw = tmp_path / "v.raw"
     data = bytearray(raw.read_bytes())
     data[len(data) // 2] ^= 1

@@ -184,6 +184,10 @@ def test_never_overwrites_the_input(case, tmp_path):
         (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--out", d / "o"], "base"),
         (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "notes.txt"], "is a file"),
         (lambda d, img: ["track", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o"], "3D+t"),
+        (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o", "--threads", 0],
+         "threads must be a positive integer"),
+        (lambda d, img: ["track", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o", "--threads", -2],
+         "threads must be a positive integer"),
     ],
 )
 def test_bad_input_is_one_line(case, tmp_path, make_args, pattern):
@@ -193,7 +197,9 @@ def test_bad_input_is_one_line(case, tmp_path, make_args, pattern):
     (tmp_path / "notes.txt").write_text("hello")
     (tmp_path / "bad.mrk.json").write_text("{not json")
     sitk.WriteImage(sitk.GetImageFromArray(np.zeros((5, 6), np.uint8)), str(tmp_path / "flat.mha"))
-    assert_one_line_error(run(*make_args(tmp_path, img)), pattern)
+    proc = run(*make_args(tmp_path, img))
+    assert_one_line_error(proc, pattern)
+    assert proc.returncode == 2
 
 
 @pytest.mark.skipif(os.geteuid() == 0, reason="root ignores file permissions")

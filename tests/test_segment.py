@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from conftest import cetus_file
+from spheroseg.backends import compiled_available
 from spheroseg.coords import annulus_plane
 from spheroseg.fit import annulus_of_open_mesh
 from spheroseg.metrics import dice, surface_distances
@@ -118,6 +119,30 @@ def test_deterministic(phantoms):
     np.testing.assert_array_equal(a.surface.coefficients, b.surface.coefficients)
 
 
+@pytest.mark.skipif(not compiled_available(), reason="the thread count is numba's")
+def test_thread_count_changes_no_bit(phantoms):
+    """The compiled kernels split their sample points among the threads and
+    compute each point as on one: the coefficients are equal to the last bit
+    (the default mode runs every kernel: cavity sums, band samples, the
+    surface), and numba's count is as before the call."""
+    import numba
+
+    before = numba.get_num_threads()
+    ph = phantoms[0]
+    one, two = (segment(ph.volume, ph.apex, ph.base, threads=n) for n in (1, 2))
+    assert one.iterations == two.iterations
+    np.testing.assert_array_equal(one.surface.coefficients, two.surface.coefficients)
+    assert numba.get_num_threads() == before
+    seq = make_sequence(seed=31, n_frames=3, spacing=2.0)
+    one, two = (track(seq.volumes, seq.frames[0].apex, seq.frames[0].base, threads=n) for n in (1, 2))
+    for a, b in zip(one.frames, two.frames):
+        np.testing.assert_array_equal(a.surface.coefficients, b.surface.coefficients)
+    assert numba.get_num_threads() == before
+    with pytest.raises(ValueError, match="constant"):  # raised while the count is set: restored all the same
+        segment(Volume(np.full((40, 40, 40), 80.0, np.float32)), (20, 20, 35), (20, 20, 5), threads=1)
+    assert numba.get_num_threads() == before
+
+
 def test_tracking_recovers_ejection_fraction():
     seq = make_sequence(seed=31, n_frames=8, spacing=1.25)
     tr = track(seq.volumes, seq.frames[0].apex, seq.frames[0].base)
@@ -138,6 +163,7 @@ def test_tracking_recovers_ejection_fraction():
         (dict(patches=(1, 8)), "patches must be two integers"),
         (dict(max_iterations=2.5), "max_iterations must be a non-negative integer"),
         (dict(backend="gpu"), "backend must be one of"),
+        (dict(threads=0), "threads must be a positive integer"),
         (dict(landmarks=[(0.0, 0.0, -50.0)]), r"landmark 0 \(0.00, 0.00, -50.00\) lies outside"),
     ],
 )

@@ -25,6 +25,13 @@ per level:
 - :func:`normal_displacement`: the region force of eq. 22 as a ``v0``
   displacement.
 
+The kernels over the sample points (not :func:`scatter`, which sums patches
+into shared nodes) are ``prange`` loops over points or patches: each
+iteration writes its own outputs and sums nothing across iterations, so a
+result is the same to the last bit on any number of threads (numba's count,
+the ``threads`` option).  Scratch arrays allocated in such a loop are
+hoisted by numba to the start of each thread's share of it.
+
 Equation numbers are those of Duan et al., Proc. SPIE 6144, 61444A (2006).
 
 Only the prolate spheroidal system (the default) has a surface kernel.
@@ -33,20 +40,27 @@ Only the prolate spheroidal system (the default) has a surface kernel.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 
 try:  # pragma: no cover - exercised when numba is installed
-    from numba import njit
+    from numba import njit, prange
 except ImportError:  # pragma: no cover
-    njit = None
+    njit, prange = None, range
 
 from .volume import INDEX_TOLERANCE as _EDGE
 
-__all__ = ["AVAILABLE", "prolate_surface", "sample_along", "cavity_sums", "gather", "scatter",
+__all__ = ["AVAILABLE", "PARALLEL_LOCK", "prolate_surface", "sample_along", "cavity_sums", "gather", "scatter",
            "normal_displacement"]
 
 AVAILABLE = njit is not None
+#: held by a caller of a parallel kernel (here and the mask rasteriser's):
+#: numba releases the GIL in a parallel region, and its fallback threading
+#: layer (workqueue, where neither TBB nor an OpenMP runtime is installed)
+#: aborts the process when two Python threads enter one at once, as the
+#: viewer's worker and its HTTP thread (a mask on save) could
+PARALLEL_LOCK = threading.Lock()
 _ZERO = np.zeros(3)
 
 
@@ -123,16 +137,15 @@ def gather(coefficients, order, basis1, basis2, out):
     """``out[k] = B coefficients[k]``: each field (coefficients
     ``(fields, n2+1, n1, 4)``) at every sample point."""
     n2, n1 = coefficients.shape[1] - 1, coefficients.shape[2]
-    patch, line = np.empty((4, 4)), np.empty(4)
-    for k in range(out.shape[0]):
-        for i2 in range(n2):
-            for i1 in range(n1):
-                _patch(coefficients[k], i1, i2, patch)
-                for b in range(order):
-                    _contract(patch, basis2[0, b], line)
-                    q = ((i2 * order + b) * n1 + i1) * order
-                    for a in range(order):
-                        out[k, q + a] = _dot4(basis1[0, a], line)
+    for i in prange(out.shape[0] * n2 * n1):  # the patches write disjoint points
+        k, i2, i1 = i // (n2 * n1), i // n1 % n2, i % n1
+        patch, line = np.empty((4, 4)), np.empty(4)
+        _patch(coefficients[k], i1, i2, patch)
+        for b in range(order):
+            _contract(patch, basis2[0, b], line)
+            q = ((i2 * order + b) * n1 + i1) * order
+            for a in range(order):
+                out[k, q + a] = _dot4(basis1[0, a], line)
 
 
 def scatter(values, order, basis1, basis2, out):
@@ -170,27 +183,26 @@ def prolate_surface(coefficients, order, basis1, basis2, cos_th, sin_th, cos_mu,
     and the unit outward normal (world), both ``(3, n)``, as
     :meth:`SampledSurface.geometry`."""
     n2, n1 = coefficients.shape[0] - 1, coefficients.shape[1]
-    patch, line, line_mu = np.empty((4, 4)), np.empty(4), np.empty(4)
-    for i2 in range(n2):
-        for i1 in range(n1):
-            _patch(coefficients, i1, i2, patch)
-            for b in range(order):
-                _contract(patch, basis2[0, b], line)
-                _contract(patch, basis2[1, b], line_mu)
-                q = ((i2 * order + b) * n1 + i1) * order
-                for a in range(order):
-                    out_f[q + a] = _dot4(basis1[0, a], line)
-                    out_h0[q + a] = _dot4(basis1[1, a], line)  # df/dtheta until the loop below
-                    out_cos[q + a] = _dot4(basis1[0, a], line_mu)  # df/dmu until the loop below
-    for q in range(out_f.shape[0]):
-        out_area[q] = math.exp(out_f[q])  # e^lambda until the loop below
+    for i in prange(n2 * n1):  # the patches write disjoint points
+        i2, i1 = i // n1, i % n1
+        patch, line, line_mu = np.empty((4, 4)), np.empty(4), np.empty(4)
+        _patch(coefficients, i1, i2, patch)
+        for b in range(order):
+            _contract(patch, basis2[0, b], line)
+            _contract(patch, basis2[1, b], line_mu)
+            q = ((i2 * order + b) * n1 + i1) * order
+            for a in range(order):
+                out_f[q + a] = _dot4(basis1[0, a], line)
+                out_h0[q + a] = _dot4(basis1[1, a], line)  # df/dtheta until the loop below
+                out_cos[q + a] = _dot4(basis1[0, a], line_mu)  # df/dmu until the loop below
+                out_area[q + a] = math.exp(out_f[q + a])  # e^lambda until the loop below
     # this loop calls no function and writes contiguous arrays: it runs on
     # SIMD lanes (with the world points and normals as (3, n) it does,
     # as (n, 3) or with exp inside it does not: four times slower)
     r00, r01, r02 = rotation[0, 0], rotation[0, 1], rotation[0, 2]
     r10, r11, r12 = rotation[1, 0], rotation[1, 1], rotation[1, 2]
     r20, r21, r22 = rotation[2, 0], rotation[2, 1], rotation[2, 2]
-    for q in range(out_f.shape[0]):
+    for q in prange(out_f.shape[0]):
         e, f1, f2 = out_area[q], out_h0[q], out_cos[q]
         ch, sh = 0.5 * (e + 1.0 / e), 0.5 * (e - 1.0 / e)
         ct, st, cm, sm = cos_th[q], sin_th[q], cos_mu[q], sin_mu[q]
@@ -228,7 +240,7 @@ def sample_along(image, strides, upper, to_index, image_origin, world, normal, r
     finite samples at ``world[:, q] + s normal[:, q]`` for ``s`` in
     ``offsets`` (mm); with a non-zero ``exponent`` ``a``, of ``exp(a v)`` for
     each sample ``v`` (log compression undone)."""
-    for r in range(rows.shape[0]):
+    for r in prange(rows.shape[0]):
         q = rows[r]
         # the point and the normal in voxel index: the samples are a line there
         pi, pj, pk = _index(to_index, image_origin, world[0, q], world[1, q], world[2, q])
@@ -250,7 +262,7 @@ def cavity_sums(image, strides, upper, to_index, image_origin, f, cos_th, sin_th
     """For each ``q`` in ``rows``, samples at ``lambda = t f[q]`` for ``t`` in
     ``fractions``, weighted by the volume element ``V = h0 h1 h2``: the sums
     of ``V u`` and of ``V`` over the finite samples."""
-    for r in range(rows.shape[0]):
+    for r in prange(rows.shape[0]):
         q = rows[r]
         ct, st, cm, sm = cos_th[q], sin_th[q], cos_mu[q], sin_mu[q]
         total = weight = 0.0
@@ -290,15 +302,16 @@ def normal_displacement(u, c_in, c_out, scale, clip, h0, cos, h0_floor, min_cos,
 
 if AVAILABLE:
     _compile = njit(cache=True, error_model="numpy")
+    _parallel = njit(cache=True, error_model="numpy", parallel=True)
     _inline = njit(cache=True, error_model="numpy", inline="always")
     _sample = _inline(_sample)
     _index = _inline(_index)
     _patch = _inline(_patch)
     _contract = _inline(_contract)
     _dot4 = _inline(_dot4)
-    gather = _compile(gather)
+    gather = _parallel(gather)
     scatter = _compile(scatter)
-    prolate_surface = _compile(prolate_surface)
-    sample_along = _compile(sample_along)
-    cavity_sums = _compile(cavity_sums)
+    prolate_surface = _parallel(prolate_surface)
+    sample_along = _parallel(sample_along)
+    cavity_sums = _parallel(cavity_sums)
     normal_displacement = _compile(normal_displacement)

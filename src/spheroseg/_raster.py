@@ -52,6 +52,8 @@ import sys
 import numpy as np
 from numba import njit, prange
 
+from ._kernels import PARALLEL_LOCK
+
 __all__ = ["cavity_mask", "face_connected_zeros", "compilations"]
 
 
@@ -457,7 +459,8 @@ def face_connected_zeros(array: np.ndarray) -> tuple[np.ndarray, int]:
     size = 4096
     while True:
         out = np.zeros(zero.shape, dtype=bool)
-        count = _flood_zeros(zero, out, np.empty(size, dtype=np.int64))
+        with PARALLEL_LOCK:  # its row pass is a parallel kernel
+            count = _flood_zeros(zero, out, np.empty(size, dtype=np.int64))
         if count >= 0:
             return out, int(count)
         size = min(8 * size, 5 * zero.size + 16)

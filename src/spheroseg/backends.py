@@ -27,8 +27,9 @@ The methods, for a model of ``n`` sample points and parameters ``p``:
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -36,7 +37,8 @@ from .beamspace import BeamVolume
 from .coords import ProlateSpheroidal
 from .energy import Geometry, SampledSurface, normal_speed
 
-__all__ = ["Observation", "NumpyBackend", "CompiledBackend", "select_backend", "compiled_available", "MIN_COS"]
+__all__ = ["Observation", "NumpyBackend", "CompiledBackend", "select_backend", "compiled_available",
+           "kernel_threads", "MIN_COS"]
 
 #: least cosine between the normal and the v0 direction when converting a
 #: normal displacement into a v0 displacement (keeps grazing rays bounded)
@@ -190,19 +192,22 @@ class CompiledBackend(NumpyBackend):
             return super().observe(p, volume, band_offsets=band_offsets, geometry=True, exponent=exponent)
         m, d, b = self.model, self.discretisation, self._buffers
         coefficients = (d.constraints @ p).reshape(m.grid.shape)
-        self.kernels.prolate_surface(coefficients, d.order, *d.tables, *d.trig, m.system.focal_length,
-                                     m.pose.rotation, m.pose.origin, b["f"], b["h0"], b["cos"], b["area"],
-                                     b["world"], b["normal"])
         kernels, image = self._sampling(volume)
-        kernels.sample_along(*image, b["world"], b["normal"], self._all_rows, _SURFACE_OFFSETS, exponent, b["u"],
-                             self._counts)
+        with self.kernels.PARALLEL_LOCK:
+            self.kernels.prolate_surface(coefficients, d.order, *d.tables, *d.trig, m.system.focal_length,
+                                         m.pose.rotation, m.pose.origin, b["f"], b["h0"], b["cos"], b["area"],
+                                         b["world"], b["normal"])
+            kernels.sample_along(*image, b["world"], b["normal"], self._all_rows, _SURFACE_OFFSETS, exponent, b["u"],
+                                 self._counts)
+            if band_offsets is not None:
+                rows = d.band_rows
+                counts = self._counts[:len(rows)]
+                kernels.sample_along(*image, b["world"], b["normal"], rows, -band_offsets, exponent, b["inside"],
+                                     counts)
+                kernels.sample_along(*image, b["world"], b["normal"], rows, band_offsets, exponent, b["outside"],
+                                     counts)
         obs = Observation(**b)
-        if band_offsets is not None:
-            rows = d.band_rows
-            counts = self._counts[:len(rows)]
-            kernels.sample_along(*image, b["world"], b["normal"], rows, -band_offsets, exponent, b["inside"], counts)
-            kernels.sample_along(*image, b["world"], b["normal"], rows, band_offsets, exponent, b["outside"], counts)
-        else:
+        if band_offsets is None:
             obs.inside = obs.outside = None
         return obs
 
@@ -215,15 +220,17 @@ class CompiledBackend(NumpyBackend):
     def mean_along(self, volume, obs: Observation, offsets, rows, *, exponent: float = 0.0):
         mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
         kernels, image = self._sampling(volume)
-        kernels.sample_along(*image, obs.world, obs.normal, rows, offsets, exponent, mean, count)
+        with self.kernels.PARALLEL_LOCK:
+            kernels.sample_along(*image, obs.world, obs.normal, rows, offsets, exponent, mean, count)
         return mean, count
 
     def cavity_sums(self, volume, obs: Observation, fractions, rows):
         m, d = self.model, self.discretisation
         total, weight = np.empty(len(rows)), np.empty(len(rows))
         kernels, image = self._sampling(volume)
-        kernels.cavity_sums(*image, obs.f, *d.trig, m.system.focal_length, m.pose.rotation, m.pose.origin, rows,
-                            fractions, total, weight)
+        with self.kernels.PARALLEL_LOCK:
+            kernels.cavity_sums(*image, obs.f, *d.trig, m.system.focal_length, m.pose.rotation, m.pose.origin, rows,
+                                fractions, total, weight)
         return total, weight
 
     def gather(self, p) -> np.ndarray:
@@ -231,7 +238,8 @@ class CompiledBackend(NumpyBackend):
         fields = p.reshape(len(p), -1)
         coefficients = np.ascontiguousarray((d.constraints @ fields).T).reshape((-1,) + m.grid.shape)
         out = np.empty((len(coefficients), m.n_samples))
-        self.kernels.gather(coefficients, d.order, *d.tables, out)
+        with self.kernels.PARALLEL_LOCK:
+            self.kernels.gather(coefficients, d.order, *d.tables, out)
         return out[0] if p.ndim == 1 else out
 
     def scatter(self, values, *, band: bool = False) -> np.ndarray:
@@ -268,3 +276,28 @@ def select_backend(model: SampledSurface, *, compiled: bool = True) -> NumpyBack
     if compiled and isinstance(model.system, ProlateSpheroidal) and compiled_available():
         return CompiledBackend(model)
     return NumpyBackend(model)
+
+
+@contextmanager
+def kernel_threads(threads: int | None) -> Iterator[None]:
+    """Run the compiled kernels inside on ``threads`` threads, then restore
+    numba's count (also on an exception); None, or without numba, changes
+    nothing.  numba's count belongs to the calling Python thread, so two
+    threads (the viewer's worker and its HTTP thread) do not change each
+    other's.  A count above ``NUMBA_NUM_THREADS`` is capped at it."""
+    try:
+        import numba
+    except ImportError:
+        numba = None
+    if threads is None or numba is None:
+        yield
+        return
+    previous, wanted = numba.get_num_threads(), min(int(threads), numba.config.NUMBA_NUM_THREADS)
+    if wanted == previous:  # nested (a run's iterations): nothing to set
+        yield
+        return
+    numba.set_num_threads(wanted)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(previous)

@@ -306,8 +306,10 @@ def _input_files(image: str) -> list[Path]:
 def study_checksum(study: Study, options: dict) -> str:
     """SHA-256 of the study's entry, the options and the bytes of every input
     file (an image's data file, a folder's files, the markups); a missing
-    file counts as missing, so the study runs and fails with its reason."""
+    file counts as missing, so the study runs and fails with its reason.
+    The thread count is left out: it changes no result."""
     digest = hashlib.sha256()
+    options = {k: v for k, v in options.items() if k != "threads"}
     digest.update(json.dumps({"study": study.as_entry(), "options": options}, sort_keys=True).encode())
     for path in _input_files(study.image) + ([Path(study.points)] if study.points else []):
         digest.update(f"\0{path.name}\0".encode())
@@ -559,19 +561,27 @@ def _complete(out: Path, study: Study, checksum: str) -> dict | None:
     return results if isinstance(results, dict) and results.get("checksum") == checksum else None
 
 
-def _pool_worker_init() -> None:
+def _pool_worker_init(threads: int | None) -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: running studies finish, then it stops
+    if threads is not None:
+        try:
+            import numba
+        except ImportError:
+            pass
+        else:  # this (main) thread runs the studies; a study's own threads option still applies
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     warm_up()
 
 
 def _local_pool(workers: int) -> ProcessPoolExecutor:
     import multiprocessing
 
-    # spawn: the parent holds threads (progress bar, timers), which fork must not copy
+    # spawn: the parent holds threads (progress bar, timers), which fork must not copy;
+    # several workers share the cores: one kernel thread each, or they only contend
     return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_pool_worker_init)
+                               initializer=_pool_worker_init, initargs=(1 if workers > 1 else None,))
 
 
 def _crash_message(exc: BaseException) -> str:
@@ -670,7 +680,12 @@ def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executo
         Size of the default pool.  Its workers inherit the environment:
         ``spheroseg batch`` sets ``OMP_NUM_THREADS=1`` (and OpenBLAS's, MKL's)
         unless given, as Dask does for its workers, so that the two give the
-        same numbers to the last bit.
+        same numbers to the last bit.  With more than one worker each runs
+        the compiled kernels on one thread (numba's ``set_num_threads(1)``;
+        the option ``threads`` overrides it), so that the workers do not
+        contend for the cores; a single worker uses all of them.  A Dask
+        cluster's workers do not get this: give them ``NUMBA_NUM_THREADS=1``
+        in their environment, or ``threads=1`` in ``options``.
     timeout : float, optional
         Seconds a study may take; over it the study fails.
     options : dict, optional

@@ -69,6 +69,9 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--step", type=float, default=1.0, help="largest surface motion per iteration, mm")
     p.add_argument("--max-iterations", type=int, default=60, help="per coarse-to-fine level")
     p.add_argument("--smoothness", type=float, default=1.0, help="thin-plate prior weight (0: the paper's method)")
+    p.add_argument("--threads", type=int, metavar="N",
+                   help="threads of the compiled kernels (default: all cores; a batch of several workers: 1 each); "
+                        "the results do not depend on it")
     p.add_argument("--no-data", default="auto", type=_no_data, metavar="auto|none|VALUE",
                    help="voxels without data: 'auto' (default) the zero padding around an echo sector "
                         "(a beam-space file's NoDataValue key), 'none', or a voxel value")
@@ -216,7 +219,7 @@ def _points(args):
 
 def _segment_kwargs(args) -> dict:
     return dict(system=args.system, patches=tuple(args.patches), mode=args.mode, step=args.step,
-                max_iterations=args.max_iterations, smoothness=args.smoothness)
+                max_iterations=args.max_iterations, smoothness=args.smoothness, threads=args.threads)
 
 
 def _mask_suffix(args, source: Path) -> str:
@@ -287,6 +290,7 @@ def cmd_segment(args) -> int:
 
     seconds["import"] += time.perf_counter() - t0
     source = Path(args.image)
+    SegmentOptions(**_segment_kwargs(args))  # bad options: an error before the image is read
     suffix = _mask_suffix(args, source)
     names = ["mask" + suffix, "mesh.vtk", "mesh.ply", "surface.json", "surface.exnode", "surface.exelem", "results.json",
              "report.png"] + (["mesh.stl"] if args.stl else [])
@@ -334,6 +338,7 @@ def cmd_track(args) -> int:
     from .segment import track
 
     source = Path(args.sequence)
+    SegmentOptions(**_segment_kwargs(args))  # bad options: an error before the sequence is read
     suffix = _mask_suffix(args, source)
     apex, base, landmarks, annulus = _points(args)
     names = ["masks", "meshes", "results.json", "report.png"]

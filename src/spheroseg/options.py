@@ -86,6 +86,13 @@ class SegmentOptions:
         The iteration's array work (:mod:`spheroseg.backends`): ``"auto"``
         compiles it where numba and the system allow, ``"numpy"`` runs the
         reference.
+    threads : int, optional
+        Threads of the compiled kernels during the descent (numba's
+        ``set_num_threads``, restored afterwards): each splits its sample
+        points among them.  None leaves numba's setting: all cores unless
+        ``NUMBA_NUM_THREADS`` or ``numba.set_num_threads`` said otherwise;
+        a count above ``NUMBA_NUM_THREADS`` is capped at it.  The result is
+        the same to the last bit whatever the count.
     """
 
     system: str = "prolate"
@@ -106,6 +113,7 @@ class SegmentOptions:
     order: int = 8
     radius_ratio: float = DEFAULT_RADIUS_RATIO
     backend: str = "auto"
+    threads: int | None = None
 
     def __post_init__(self):
         system = getattr(self.system, "name", self.system)  # a CoordinateSystem instance names itself
@@ -133,6 +141,11 @@ class SegmentOptions:
             value = getattr(self, name)
             if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0):
                 raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+        if self.threads is not None and not (isinstance(self.threads, (int, np.integer))
+                                             and not isinstance(self.threads, bool) and self.threads >= 1):
+            raise ValueError(f"threads must be a positive integer (or None: numba's setting), got {self.threads!r}")
+        if self.threads is not None:
+            object.__setattr__(self, "threads", int(self.threads))  # JSON-ready
         if self.order < 1:
             raise ValueError(f"order must be a positive integer, got {self.order!r}")
         for name in ("nu", "smoothness", "landmark_weight", "apex_weight"):

@@ -56,7 +56,7 @@ def segment(volume, apex, base=None, *, annulus=None, landmarks=None, init: Surf
         ``max_iterations`` (60 per level), ``tol`` (0.05 mm),
         ``coarse_to_fine``, ``band``, ``band_out``, ``interface``, ``nu``,
         ``smoothness``, ``landmark_weight``, ``apex_weight``, ``order``,
-        ``radius_ratio``, ``backend``.
+        ``radius_ratio``, ``backend``, ``threads``.
 
     Returns
     -------

@@ -279,6 +279,7 @@ class Surface:
         if np.any(stop <= start):
             return out
         try:
+            from ._kernels import PARALLEL_LOCK
             from ._raster import cavity_mask
         except ImportError:  # pragma: no cover - numba is a dependency
             k, j, i = np.meshgrid(*(np.arange(a, b) for a, b in zip(start[::-1], stop[::-1])), indexing="ij")
@@ -310,8 +311,9 @@ class Surface:
             row_max = np.abs(self.evaluate(v1, v2, *d)).max(axis=1)  # per sample row along v2
             slopes[:, column] = [row_max[n * i2 : n * i2 + n + 1].max() for i2 in range(self.grid.n2)]
         slopes = 1.25 * slopes + 1e-9
-        codes, ties = cavity_mask(grid.shape, start, stop, affine, offset, name, param, self.coefficients,
-                                  (v2_lo, v2_hi), planar, slopes)
+        with PARALLEL_LOCK:
+            codes, ties = cavity_mask(grid.shape, start, stop, affine, offset, name, param, self.coefficients,
+                                      (v2_lo, v2_hi), planar, slopes)
         if len(ties):
             codes[tuple(ties.T)] = self.contains(grid.index_to_world(ties[:, ::-1]))
         return codes.view(bool)  # 0 and 1 only

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .backends import kernel_threads
 from .coords import Pose, annulus_plane
 from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, band_offsets
 from .descent import Descent
@@ -174,7 +175,8 @@ class Tracker:
             surface = init
         self.level = 0
         self._descent = self._new_descent(surface, surface)
-        self._terms = self._prepare_terms()
+        with kernel_threads(opts.threads):
+            self._terms = self._prepare_terms()
         self.iteration, self.motion, self.status = 0, np.nan, None
         self._level_iterations = 0
         self._converged = False
@@ -270,11 +272,12 @@ class Tracker:
             raise RuntimeError(f"the tracker has stopped ({self.message}); step(volume) starts a new frame")
         started = time.perf_counter()
         term = self._terms[self.levels[self.level].data_term]
-        obs = self._descent.observe(self.volume, term)
-        force = term.force(self._descent.backend, self.volume, obs)
-        self.c_in, self.c_out = term.grey_means
-        self._last = (obs.u, force, term.spread)  # for the quality report, read when a result is made
-        self.motion = self._descent.iterate(obs, force)
+        with kernel_threads(self.options.threads):
+            obs = self._descent.observe(self.volume, term)
+            force = term.force(self._descent.backend, self.volume, obs)
+            self.c_in, self.c_out = term.grey_means
+            self._last = (obs.u, force, term.spread)  # for the quality report, read when a result is made
+            self.motion = self._descent.iterate(obs, force)
         self.iteration += 1
         self._level_iterations += 1
         if self.motion < self.options.tol:
