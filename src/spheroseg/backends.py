@@ -181,6 +181,7 @@ class CompiledBackend(NumpyBackend):
         self.beam_kernels = _beam_kernels
         n, nb = model.n_samples, len(self.discretisation.band_rows)
         self._all_rows = np.arange(n)
+        self._all_rows.flags.writeable = False  # as the band rows: one kernel signature for both
         self._buffers = dict(f=np.empty(n), h0=np.empty(n), cos=np.empty(n), area=np.empty(n),
                              world=np.empty((3, n)), normal=np.empty((3, n)), u=np.empty(n),
                              inside=np.empty(nb), outside=np.empty(nb))
