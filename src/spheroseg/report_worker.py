@@ -50,7 +50,9 @@ def _serve(connection) -> None:
 
 def _free_core() -> bool:
     """Whether a second process would find a core to itself: two or more
-    cores, and over the last minute at least one of them idle on average."""
+    cores, and over the last minute on average more than half a core idle
+    (commands run one after the other keep one core busy: the load average
+    is then about 1)."""
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not on Linux
@@ -59,7 +61,7 @@ def _free_core() -> bool:
         load = os.getloadavg()[0]
     except (AttributeError, OSError):  # pragma: no cover - not on Unix
         load = 0.0
-    return cores >= 2 and load <= cores - 1
+    return cores >= 2 and load < cores - 0.5
 
 
 class ReportWorker:
@@ -73,7 +75,7 @@ class ReportWorker:
     ----------
     parallel : bool, optional
         Draw in a second process; default: when a core is free (two or more
-        cores, the load average at most one less).
+        cores, a load average under ``cores - 0.5``).
     """
 
     def __init__(self, *, parallel: bool | None = None) -> None:
