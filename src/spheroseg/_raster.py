@@ -59,6 +59,7 @@ __all__ = ["cavity_mask", "face_connected_zeros", "compilations"]
 
 _PROLATE, _SPHERICAL, _CYLINDRICAL = 0, 1, 2
 _OUT, _IN, _TIE = 0, 1, 2
+_REDO = 3  # (never written: the point is decided again with exact coordinates)
 #: voxels this close to a decision (|g| or v2 to an end of its range, in the
 #: units of v0 and v2) are decided by the caller in numpy, as the reference
 #: does: the compiled arithmetic may round differently
@@ -120,8 +121,11 @@ def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach
             v2 = x1
             r1 = r2 = math.inf
         tie = TIE
-    return _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, standard_range, slopes,
-                     reach)
+    code, shared = _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, standard_range,
+                             slopes, reach)
+    if code == _REDO:
+        return _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach)
+    return code, shared
 
 
 @njit(cache=True, error_model="numpy")
@@ -136,28 +140,24 @@ def _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes,
                      standard_range, slopes, reach)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, standard_range, slopes, reach):
     """The status of a point from its model coordinates: too close to call
-    within ``tie`` of a decision (the fast prolate coordinates are redone
-    exactly, the exact ones left to the caller)."""
+    within ``tie`` of a decision (_REDO with the fast prolate coordinates,
+    to be redone exactly; _TIE with the exact ones, left to the caller)."""
     # distance (mm) to the boundary of the v2 range, when it is a plane
     if standard_range:
         plane = min(abs(x1), abs(param - x1)) if kind == _CYLINDRICAL else abs(x1)
     else:
         plane = 0.0
     if abs(v2 - lo) < tie or abs(v2 - hi) < tie:
-        if tie != TIE:
-            return _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach)
-        return _TIE, reach == 0.0
+        return (_TIE if tie == TIE else _REDO), reach == 0.0
     # shrunk by 1e-9: the distances are rounded
     if not (v2 >= lo and v2 <= hi):
         return _OUT, reach == 0.0 or reach < plane * (1.0 - 1e-9)
     g = v0 - _surface(x2, x3, v2, coef, lo, hi)
     if abs(g) < tie:
-        if tie != TIE:
-            return _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach)
-        return _TIE, reach == 0.0
+        return (_TIE if tie == TIE else _REDO), reach == 0.0
     code = _IN if g <= 0 else _OUT
     if reach == 0.0:
         return code, True
@@ -240,56 +240,66 @@ def _reach(affine, ei, ej, ek):
     return best
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@njit(cache=True, parallel=True)
 def _cavity_blocks(out, start, stop, affine, offset, kind, param, coef, lo, hi, standard_range, slopes, size, ties):
-    """Fill the box ``[start, stop)`` of ``out`` block by block: a block
-    whose centre's ball (its status shared, :func:`_status`) holds every
-    voxel centre of the block takes that status at once; the others split in
-    eight, down to single voxels.  ``ties[b]``: the voxels of top block ``b``
-    left too close to call."""
+    """Fill the box ``[start, stop)`` of ``out`` block by block
+    (:func:`_fill_block`), the top blocks in parallel; ``ties[b]``: the
+    voxels of top block ``b`` left too close to call."""
     ni, nj, nk = stop[0] - start[0], stop[1] - start[1], stop[2] - start[2]
     bk, bj, bi = -(-nk // size), -(-nj // size), -(-ni // size)
     for block in prange(bk * bj * bi):
-        stack = np.empty((8 * 8, 4), dtype=np.int64)  # (k0, j0, i0, size): 7 a level deep
-        stack[0, 0] = (block // (bj * bi)) * size
-        stack[0, 1] = ((block // bi) % bj) * size
-        stack[0, 2] = (block % bi) * size
-        stack[0, 3] = size
-        top = 1
-        while top > 0:
-            top -= 1
-            k0, j0, i0, s = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
-            k1, j1, i1 = min(k0 + s, nk), min(j0 + s, nj), min(i0 + s, ni)
-            if k1 <= k0 or j1 <= j0 or i1 <= i0:
-                continue
-            # the centre of the block's voxel centres, in the grid's index
-            ci = start[0] + 0.5 * (i0 + i1 - 1)
-            cj = start[1] + 0.5 * (j0 + j1 - 1)
-            ck = start[2] + 0.5 * (k0 + k1 - 1)
-            x1 = offset[0] + affine[0, 0] * ci + affine[0, 1] * cj + affine[0, 2] * ck
-            x2 = offset[1] + affine[1, 0] * ci + affine[1, 1] * cj + affine[1, 2] * ck
-            x3 = offset[2] + affine[2, 0] * ci + affine[2, 1] * cj + affine[2, 2] * ck
-            single = k1 - k0 == 1 and j1 - j0 == 1 and i1 - i0 == 1
-            reach = 0.0 if single else _reach(affine, i1 - 1 - i0, j1 - 1 - j0, k1 - 1 - k0)
-            code, shared = _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach)
-            if shared:
-                if code == _TIE:
-                    ties[block] += 1
-                if code != _OUT:
-                    for k in range(start[2] + k0, start[2] + k1):
-                        for j in range(start[1] + j0, start[1] + j1):
-                            for i in range(start[0] + i0, start[0] + i1):
-                                out[k, j, i] = code
-                continue
-            h = (s + 1) // 2
-            for dk in range(2):
-                for dj in range(2):
-                    for di in range(2):
-                        stack[top, 0] = k0 + dk * h
-                        stack[top, 1] = j0 + dj * h
-                        stack[top, 2] = i0 + di * h
-                        stack[top, 3] = h
-                        top += 1
+        ties[block] = _fill_block(out, (block // (bj * bi)) * size, ((block // bi) % bj) * size, (block % bi) * size,
+                                  start, stop, affine, offset, kind, param, coef, lo, hi, standard_range, slopes, size)
+
+
+@njit(cache=True, error_model="numpy")
+def _fill_block(out, k_top, j_top, i_top, start, stop, affine, offset, kind, param, coef, lo, hi, standard_range,
+                slopes, size):
+    """One top block (box index of its corner): a block whose centre's ball
+    (its status shared, :func:`_status`) holds every voxel centre of the
+    block takes that status at once; the others split in eight, down to
+    single voxels.  Returns the number of voxels left too close to call.
+    (A function of its own: numba compiles a parallel loop's body slowly.)"""
+    ni, nj, nk = stop[0] - start[0], stop[1] - start[1], stop[2] - start[2]
+    ties = 0
+    stack = np.empty((8 * 8, 4), dtype=np.int64)  # (k0, j0, i0, size): 7 a level deep
+    stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3] = k_top, j_top, i_top, size
+    top = 1
+    while top > 0:
+        top -= 1
+        k0, j0, i0, s = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
+        k1, j1, i1 = min(k0 + s, nk), min(j0 + s, nj), min(i0 + s, ni)
+        if k1 <= k0 or j1 <= j0 or i1 <= i0:
+            continue
+        # the centre of the block's voxel centres, in the grid's index
+        ci = start[0] + 0.5 * (i0 + i1 - 1)
+        cj = start[1] + 0.5 * (j0 + j1 - 1)
+        ck = start[2] + 0.5 * (k0 + k1 - 1)
+        x1 = offset[0] + affine[0, 0] * ci + affine[0, 1] * cj + affine[0, 2] * ck
+        x2 = offset[1] + affine[1, 0] * ci + affine[1, 1] * cj + affine[1, 2] * ck
+        x3 = offset[2] + affine[2, 0] * ci + affine[2, 1] * cj + affine[2, 2] * ck
+        single = k1 - k0 == 1 and j1 - j0 == 1 and i1 - i0 == 1
+        reach = 0.0 if single else _reach(affine, i1 - 1 - i0, j1 - 1 - j0, k1 - 1 - k0)
+        code, shared = _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach)
+        if shared:
+            if code == _TIE:
+                ties += 1
+            if code != _OUT:
+                for k in range(start[2] + k0, start[2] + k1):
+                    for j in range(start[1] + j0, start[1] + j1):
+                        for i in range(start[0] + i0, start[0] + i1):
+                            out[k, j, i] = code
+            continue
+        h = (s + 1) // 2
+        for dk in range(2):
+            for dj in range(2):
+                for di in range(2):
+                    stack[top, 0] = k0 + dk * h
+                    stack[top, 1] = j0 + dj * h
+                    stack[top, 2] = i0 + di * h
+                    stack[top, 3] = h
+                    top += 1
+    return ties
 
 
 @njit(cache=True)
