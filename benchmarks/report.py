@@ -247,8 +247,8 @@ def _speed(sp) -> list[str]:
                 "differ by 3e-16 relative).",
                 "",
                 f"An iteration of the last stage at 8 x 8 patches takes {it_default:.0f} us (median over the "
-                f"unseen-style cases above), on one thread: the surface at the {prof['samples']} sample points about "
-                "75 us (the Hermite basis patch by patch, then exp, normal and scale factor on SIMD lanes), their "
+                f"unseen-style cases above, {sp.get('kernel_threads', 1)} kernel threads); on one thread, about "
+                f"345 us: the surface at the {prof['samples']} sample points about 75 us (the Hermite basis patch by patch, then exp, normal and scale factor on SIMD lanes), their "
                 "grey levels about 100 us (25 ns a trilinear sample: its 8 voxels lie in 4 cache lines of an image "
                 "larger than the L2 cache), the least-squares update about 100 us (B^T v and B p about 10 us each "
                 "in kernels, two mat-vecs with 259 x 259 matrices 10-20 us each as they stream 0.5 MB each, the "
@@ -256,11 +256,12 @@ def _speed(sp) -> list[str]:
                 "local-mode iteration of the profile below adds the band means: "
                 f"{prof['band_samples_us']:.0f} us of samples "
                 f"({1000 * prof['band_samples_us'] / (prof['image_samples'] - prof['samples']):.0f} ns each) and "
-                f"{prof['local_means_us']:.0f} us to project them on the surface. Reaching 200 us takes the second "
-                "core and one fused kernel for the update. The kernels of the sample points (surface, samples, "
-                "cavity sums, B p) now split the points among numba's threads (the threads section above; a "
-                "batch of several workers runs one thread in each, where threads would only contend); the fused "
-                "update was not done.",
+                f"{prof['local_means_us']:.0f} us to project them on the surface. The kernels of the sample points "
+                "(surface, samples, cavity sums, B p) split the points among numba's threads (the threads section "
+                "above; a batch of several workers runs one thread in each, where threads would only contend): on "
+                "two cores the samples take 60 us instead of 109 and the surface 51 instead of 85. Reaching 200 us "
+                "would also take one fused kernel for the least-squares update and less Python per iteration; "
+                "neither was done.",
                 "",
                 f"A whole default segmentation of the unseen-style cases takes {min(seg_unseen):.1f} to "
                 f"{max(seg_unseen):.1f} ms (target 5 ms: missed): 19 to 29 iterations, of which 10-16 on 2 x 2 and "
