@@ -270,6 +270,9 @@ def default_mode(label: str, minimum: bool = False) -> None:
 
 
 def main():
+    if sys.argv[1:] and sys.argv[1] not in ("--default-mode", "--threads"):  # -h, --help, a typo: not a 10-minute run
+        print(__doc__)
+        return
     if len(sys.argv) >= 3 and sys.argv[1] == "--default-mode":
         return default_mode(sys.argv[2], minimum="--min" in sys.argv[3:])
     if sys.argv[1:] == ["--threads"]:
