@@ -89,3 +89,14 @@ def test_a_forked_worker_does_not_repeat_what_was_printed():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout == "before after\n"
+
+
+def test_ctrl_c_stops_the_worker_without_a_traceback_from_it():
+    # Ctrl-C reaches the whole process group; the command stops the worker
+    code = ("import os, signal, time\nfrom spheroseg.report_worker import ReportWorker\ntry:\n"
+            "    with ReportWorker(parallel=True):\n        time.sleep(1.5)\n        os.killpg(0, signal.SIGINT)\n"
+            "        time.sleep(30)\nexcept KeyboardInterrupt:\n    print('interrupted')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         start_new_session=True)
+    assert out.stdout == "interrupted\n"
+    assert "Traceback" not in out.stderr and "spheroseg-report" not in out.stderr, out.stderr

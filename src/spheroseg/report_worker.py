@@ -16,6 +16,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import pickle
+import signal
 import sys
 
 from .report import save_parts
@@ -25,6 +26,9 @@ __all__ = ["ReportWorker"]
 
 def _serve(connection) -> None:
     """The worker: import what drawing needs, then draw what is sent."""
+    # Ctrl-C reaches the whole process group: the command stops this process
+    # itself, without a traceback from it
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     import matplotlib
 
     matplotlib.use("Agg", force=False)
