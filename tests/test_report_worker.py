@@ -3,9 +3,11 @@ errors raised where they are waited for, and a dead process replaced by
 drawing here."""
 
 import multiprocessing
+import os
 import signal
 import subprocess
 import sys
+import time
 
 import matplotlib.image
 import numpy as np
@@ -91,12 +93,13 @@ def test_a_forked_worker_does_not_repeat_what_was_printed():
     assert out.stdout == "before after\n"
 
 
-def test_ctrl_c_stops_the_worker_without_a_traceback_from_it():
-    # Ctrl-C reaches the whole process group; the command stops the worker
-    code = ("import os, signal, time\nfrom spheroseg.report_worker import ReportWorker\ntry:\n"
-            "    with ReportWorker(parallel=True):\n        time.sleep(1.5)\n        os.killpg(0, signal.SIGINT)\n"
-            "        time.sleep(30)\nexcept KeyboardInterrupt:\n    print('interrupted')")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-                         start_new_session=True)
-    assert out.stdout == "interrupted\n"
-    assert "Traceback" not in out.stderr and "spheroseg-report" not in out.stderr, out.stderr
+def test_the_worker_leaves_ctrl_c_to_the_command():
+    # Ctrl-C reaches the whole process group: the worker must neither die
+    # of it nor print a traceback; the command stops it (as after any error)
+    with ReportWorker(parallel=True):
+        (process,) = workers()
+        time.sleep(1.0)  # into its loop
+        os.kill(process.pid, signal.SIGINT)
+        time.sleep(0.5)
+        assert process.is_alive()
+    assert process.exitcode == 0
