@@ -45,6 +45,21 @@ def test_gather_and_scatter_are_the_basis_matrix_and_its_transpose(case):
     np.testing.assert_allclose(back.reshape(2, -1).T, expected, atol=1e-12)
 
 
+def test_csr_product_equals_scipy_to_the_last_bit(case):
+    # the constraint matrices and their transposes, and a random CSR matrix
+    import scipy.sparse
+
+    _, model, p, level = case
+    rng = np.random.default_rng(2)
+    random = scipy.sparse.random(120, 90, density=0.05, random_state=3, format="csr")
+    for matrix in (level.constraints, level.constraints_t, random):
+        for _ in range(20):
+            x = rng.standard_normal(matrix.shape[1])
+            out = np.empty(matrix.shape[0])
+            _kernels.csr_product(matrix.indptr, matrix.indices, matrix.data, x, out)
+            np.testing.assert_array_equal(out, matrix @ x)
+
+
 def test_surface_kernel_matches_geometry(case):
     _, model, p, level = case
     n = model.n_samples

@@ -192,7 +192,7 @@ class CompiledBackend(NumpyBackend):
         if geometry:
             return super().observe(p, volume, band_offsets=band_offsets, geometry=True, exponent=exponent)
         m, d, b = self.model, self.discretisation, self._buffers
-        coefficients = (d.constraints @ p).reshape(m.grid.shape)
+        coefficients = self._product(d.constraints, p).reshape(m.grid.shape)
         kernels, image = self._sampling(volume)
         with self.kernels.PARALLEL_LOCK:
             self.kernels.prolate_surface(coefficients, d.order, *d.tables, *d.trig, m.system.focal_length,
@@ -211,6 +211,12 @@ class CompiledBackend(NumpyBackend):
         if band_offsets is None:
             obs.inside = obs.outside = None
         return obs
+
+    def _product(self, matrix, x) -> np.ndarray:
+        """``matrix @ x`` for a CSR matrix and a vector, as scipy computes it."""
+        out = np.empty(matrix.shape[0])
+        self.kernels.csr_product(matrix.indptr, matrix.indices, matrix.data, np.ascontiguousarray(x, dtype=float), out)
+        return out
 
     def _sampling(self, volume):
         """The kernels that sample ``volume`` (Cartesian or beam space) and
@@ -236,8 +242,10 @@ class CompiledBackend(NumpyBackend):
 
     def gather(self, p) -> np.ndarray:
         m, d = self.model, self.discretisation
-        fields = p.reshape(len(p), -1)
-        coefficients = np.ascontiguousarray((d.constraints @ fields).T).reshape((-1,) + m.grid.shape)
+        if p.ndim == 1:
+            coefficients = self._product(d.constraints, p).reshape((1,) + m.grid.shape)
+        else:
+            coefficients = np.ascontiguousarray((d.constraints @ p).T).reshape((-1,) + m.grid.shape)
         out = np.empty((len(coefficients), m.n_samples))
         with self.kernels.PARALLEL_LOCK:
             self.kernels.gather(coefficients, d.order, *d.tables, out)
@@ -249,8 +257,9 @@ class CompiledBackend(NumpyBackend):
         coefficients = np.empty((len(fields),) + m.grid.shape)
         tables = d.band_tables if band else d.tables
         self.kernels.scatter(fields, tables[0].shape[1], *tables, coefficients)
-        out = d.constraints_t @ coefficients.reshape(len(fields), -1).T
-        return out[:, 0] if values.ndim == 1 else out
+        if values.ndim == 1:
+            return self._product(d.constraints_t, coefficients.reshape(-1))
+        return d.constraints_t @ coefficients.reshape(len(fields), -1).T
 
     def displacement(self, obs: Observation, c_in, c_out, scale: float, *, step: float, h0_floor: float,
                      clip: float = 1.0, u=None, area_speed=None) -> np.ndarray:
