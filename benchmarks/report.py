@@ -304,7 +304,7 @@ def _threads(th) -> list[str]:
                         f"{med[n]['surface_and_samples_us']:.0f} us, of which the samples alone "
                         f"{med[n]['samples_us']:.0f} us (the rest, "
                         f"{med[n]['surface_and_samples_us'] - med[n]['samples_us']:.0f} us, the surface with the "
-                        "coefficients' sparse product and the calls)" for n in counts) + "."]
+                        "product of the constraints and the calls)" for n in counts) + "."]
     return out
 
 

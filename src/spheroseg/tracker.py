@@ -361,13 +361,13 @@ class Tracker:
         self.volume = volume
         self._reference = surface
         if self.level != finest[0]:
-            if self.patches == self.levels[finest[0]].patches:  # as a new descent on this grid and pose
+            same_grid = self.patches == self.levels[finest[0]].patches
+            self.level = finest[0]
+            if same_grid:  # as a new descent on this grid and pose
                 self._descent.restart(self.options.step)
                 self._descent.set_reference(surface)
             else:  # stopped on a coarser level
-                self.level = finest[0]
                 self._descent = self._new_descent(surface, surface)
-            self.level = finest[0]
         else:
             self._descent.set_surface(surface)
             self._descent.set_reference(surface)
