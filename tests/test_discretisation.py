@@ -31,7 +31,7 @@ def test_inverses(disc):
     n = disc.n_parameters
     np.testing.assert_allclose(disc.mass_inverse @ disc.mass, np.eye(n), atol=1e-8)
     for smoothness in (0.0, 1.0, 7.5):
-        system = disc.mass + disc.smoothing(smoothness)
+        system = disc.mass + disc.smoothing(smoothness).toarray()
         np.testing.assert_allclose(disc.system_inverse(smoothness) @ system, np.eye(n), atol=1e-8)
     # the mass matrix is B^T W B, from the sparse basis at the samples
     b = disc.b_f.toarray()

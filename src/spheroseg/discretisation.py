@@ -63,8 +63,9 @@ class Discretisation:
         ``f``, ``df/dv1``, ``df/dv2`` at the samples.
     mass, mass_inverse : arrays (parameters, parameters)
         ``M = B^T W B`` and ``M^-1``.
-    roughness : array (parameters, parameters)
-        The thin-plate matrix per unit area (``T`` for smoothness 1).
+    roughness : sparse (parameters, parameters)
+        The thin-plate matrix per unit area (``T`` for smoothness 1; 13 % of
+        its entries are non-zero at 8 x 8 patches).
     band_rows : int array
         Sample points of the band means.
     band_weights : array
@@ -90,7 +91,7 @@ class Discretisation:
     b_2: sp.csr_matrix
     mass: np.ndarray
     mass_inverse: np.ndarray
-    roughness: np.ndarray
+    roughness: sp.csr_matrix
     band_rows: np.ndarray
     band_weights: np.ndarray
     band_transpose: sp.csr_matrix
@@ -112,18 +113,18 @@ class Discretisation:
         """Area of the ``(v1, v2)`` domain, ``sum(weights)``."""
         return float(self.weights.sum())
 
-    def smoothing(self, smoothness: float) -> np.ndarray:
-        """``a T``: the thin-plate matrix scaled to the mass matrix.
+    def smoothing(self, smoothness: float) -> sp.csr_matrix:
+        """``a T``: the thin-plate matrix scaled to the mass matrix (sparse).
 
         ``T`` is per unit area and ``M`` is not, hence the domain's area."""
-        return float(smoothness) * self.area / ROUGHNESS_SCALE * self.roughness
+        return (float(smoothness) * self.area / ROUGHNESS_SCALE) * self.roughness
 
     def system_inverse(self, smoothness: float) -> np.ndarray:
         """``(M + a T)^-1`` (cached per smoothness, read-only)."""
         key = float(smoothness)
         if key not in self._system_inverses:
             inverse = cached_arrays("system-inverse", _key(self.grid, self.order) + (key,),
-                                    lambda: {"inverse": spd_inverse(self.mass + self.smoothing(key))},
+                                    lambda: {"inverse": spd_inverse(self.mass + self.smoothing(key).toarray())},
                                     sources=_SOURCES)["inverse"]
             inverse.flags.writeable = False
             self._system_inverses[key] = inverse
@@ -155,7 +156,7 @@ def discretise(grid: HermiteGrid, order: int = 8) -> Discretisation:
     result = Discretisation(
         grid=grid, order=int(order), v1=arrays["v1"], v2=arrays["v2"], weights=arrays["weights"], constraints=a,
         constraints_t=a.T.tocsr(), b_f=_unpack(arrays, "b_f"), b_1=_unpack(arrays, "b_1"), b_2=_unpack(arrays, "b_2"),
-        mass=arrays["mass"], mass_inverse=arrays["mass_inverse"], roughness=arrays["roughness"],
+        mass=arrays["mass"], mass_inverse=arrays["mass_inverse"], roughness=_unpack(arrays, "roughness"),
         band_rows=arrays["band_rows"], band_weights=arrays["band_weights"],
         band_transpose=_unpack(arrays, "band_transpose"), tables=(arrays["tables_1"], arrays["tables_2"]),
         band_tables=(arrays["band_tables_1"], arrays["band_tables_2"]),
@@ -194,11 +195,12 @@ def _matrices(grid: HermiteGrid, order: int) -> dict:
     band_weights = weights[band_rows] * (total / weights[band_rows].sum())
     tables = grid.patch_tables(order)
     arrays = dict(v1=v1, v2=v2, weights=weights, mass=mass, mass_inverse=spd_inverse(mass),
-                  roughness=grid.roughness_matrix().toarray(), band_rows=band_rows, band_weights=band_weights,
+                  band_rows=band_rows, band_weights=band_weights,
                   tables_1=tables[0], tables_2=tables[1], band_tables_1=np.ascontiguousarray(tables[0][:, local]),
                   band_tables_2=np.ascontiguousarray(tables[1][:, local]))
     arrays.update({f"trig_{k}": f(v) for k, (f, v) in enumerate(((np.cos, v1), (np.sin, v1), (np.cos, v2), (np.sin, v2)))})
-    for name, matrix in (("b_f", b_f), ("b_1", b_1), ("b_2", b_2), ("band_transpose", b_f[band_rows].T.tocsr())):
+    for name, matrix in (("b_f", b_f), ("b_1", b_1), ("b_2", b_2), ("band_transpose", b_f[band_rows].T.tocsr()),
+                         ("roughness", grid.roughness_matrix().tocsr())):
         arrays.update({f"{name}_data": matrix.data, f"{name}_indices": matrix.indices,
                        f"{name}_indptr": matrix.indptr, f"{name}_shape": np.array(matrix.shape)})
     return arrays
