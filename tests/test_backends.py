@@ -3,7 +3,9 @@
 import numpy as np
 import pytest
 
-from spheroseg.backends import CompiledBackend, NumpyBackend, compiled_available, kernel_threads, select_backend
+from spheroseg import backends
+from spheroseg.backends import (CompiledBackend, NumpyBackend, compiled_available, idle_cores, kernel_thread_count,
+                                kernel_threads, select_backend)
 from spheroseg.energy import SampledSurface
 from spheroseg.phantom import make_phantom
 from spheroseg.surface import Surface
@@ -83,6 +85,47 @@ def test_kernel_threads_sets_and_restores_the_count():
     with kernel_threads(10_000):  # capped at numba's NUMBA_NUM_THREADS
         assert numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
     numba.set_num_threads(before)
+
+
+BUSY = "import time\nend = time.monotonic() + 30\nwhile time.monotonic() < end: pass\n"
+
+
+def test_idle_cores_leaves_out_a_busy_process():
+    """A process spinning on a core takes that core from the count (this
+    process's own threads do not: with nothing else running, every core)."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert 1 <= idle_cores() <= cores
+    busy = subprocess.Popen([sys.executable, "-c", BUSY])
+    try:
+        time.sleep(0.5)  # its interpreter started and spins
+        counts = [idle_cores() for _ in range(20)]
+    finally:
+        busy.kill()
+        busy.wait()
+    # the spinner is runnable at nearly every instant: most samples see it
+    assert np.median(counts) <= max(cores - 1, 1), counts
+
+
+def test_kernel_thread_count_defaults_to_the_idle_cores(monkeypatch):
+    numba = pytest.importorskip("numba")
+    assert kernel_thread_count(3) == 3  # given: as given
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+        monkeypatch.setattr(backends, "idle_cores", lambda: 1)
+        assert kernel_thread_count(None) == 1
+        monkeypatch.setattr(backends, "idle_cores", lambda: 64)
+        assert kernel_thread_count(None) == numba.get_num_threads()  # never above numba's count
+        numba.set_num_threads(1)  # a batch worker's setting: kept without looking at the load
+        monkeypatch.setattr(backends, "idle_cores", lambda: pytest.fail("the load was read"))
+        assert kernel_thread_count(None) == 1
+    finally:
+        numba.set_num_threads(before)
 
 
 CONCURRENT = """

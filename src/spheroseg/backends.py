@@ -28,6 +28,7 @@ The methods, for a model of ``n`` sample points and parameters ``p``:
 
 from __future__ import annotations
 
+import os
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Callable, Iterator
@@ -39,7 +40,7 @@ from .coords import ProlateSpheroidal
 from .energy import Geometry, SampledSurface, normal_speed
 
 __all__ = ["Observation", "NumpyBackend", "CompiledBackend", "select_backend", "compiled_available",
-           "kernel_threads", "MIN_COS"]
+           "kernel_threads", "kernel_thread_count", "idle_cores", "MIN_COS"]
 
 #: least cosine between the normal and the v0 direction when converting a
 #: normal displacement into a v0 displacement (keeps grazing rays bounded)
@@ -296,6 +297,62 @@ def select_backend(model: SampledSurface, *, compiled: bool = True) -> NumpyBack
     if compiled and isinstance(model.system, ProlateSpheroidal) and compiled_available():
         return CompiledBackend(model)
     return NumpyBackend(model)
+
+
+def idle_cores() -> int:
+    """Cores this process may run on that no other process is using now
+    (at least 1).
+
+    The cores of its affinity less the tasks of other processes that are
+    running or ready to run at this instant: on Linux the runnable count of
+    ``/proc/loadavg`` less this process's own running threads; elsewhere the
+    1-minute load average less one (this process).  A sample of an instant:
+    a busy process is runnable at almost every one."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        cores = os.cpu_count() or 1
+    try:
+        with open("/proc/loadavg") as f:
+            runnable = int(f.read().split()[3].split("/")[0])
+        others = runnable - _own_running_threads()
+    except (OSError, ValueError, IndexError):  # pragma: no cover - not on Linux
+        try:
+            others = round(os.getloadavg()[0]) - 1
+        except (AttributeError, OSError):
+            others = 0
+    return max(1, min(cores, cores - others))
+
+
+def _own_running_threads() -> int:
+    """Threads of this process running or ready to run (at least this one)."""
+    running = 0
+    for task in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{task}/stat") as f:
+                stat = f.read()
+        except OSError:  # the thread ended meanwhile
+            continue
+        running += stat[stat.rindex(")") + 2] == "R"  # the state follows the command's name
+    return max(running, 1)
+
+
+def kernel_thread_count(threads: int | None) -> int | None:
+    """The compiled kernels' thread count for a segmentation or a frame.
+
+    ``threads`` when given; otherwise numba's count, reduced to the
+    :func:`idle_cores`: a parallel region waits for its slowest thread, and
+    a thread that shares its core with another process's work made whole
+    segmentations 2 to 40 times slower than on one thread.  None without
+    numba."""
+    if threads is not None:
+        return threads
+    try:
+        import numba
+    except ImportError:  # pragma: no cover - numba is a dependency
+        return None
+    count = numba.get_num_threads()
+    return count if count == 1 else min(count, idle_cores())
 
 
 @contextmanager

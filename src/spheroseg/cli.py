@@ -70,8 +70,8 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-iterations", type=int, default=60, help="per coarse-to-fine level")
     p.add_argument("--smoothness", type=float, default=1.0, help="thin-plate prior weight (0: the paper's method)")
     p.add_argument("--threads", type=int, metavar="N",
-                   help="threads of the compiled kernels (default: all cores; a batch of several workers: 1 each); "
-                        "the results do not depend on it")
+                   help="threads of the compiled kernels (default: the cores no other process is using; a batch of "
+                        "several workers: 1 each); the results do not depend on it")
     p.add_argument("--no-data", default="auto", type=_no_data, metavar="auto|none|VALUE",
                    help="voxels without data: 'auto' (default) the zero padding around an echo sector "
                         "(a beam-space file's NoDataValue key), 'none', or a voxel value")

@@ -14,11 +14,11 @@ process cannot start or dies, the report is drawn in this process.
 from __future__ import annotations
 
 import multiprocessing
-import os
 import pickle
 import signal
 import sys
 
+from .backends import idle_cores
 from .report import save_parts
 
 __all__ = ["ReportWorker"]
@@ -53,19 +53,9 @@ def _serve(connection) -> None:
 
 
 def _free_core() -> bool:
-    """Whether a second process would find a core to itself: two or more
-    cores, and over the last minute on average more than half a core idle
-    (commands run one after the other keep one core busy: the load average
-    is then about 1)."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not on Linux
-        cores = os.cpu_count() or 1
-    try:
-        load = os.getloadavg()[0]
-    except (AttributeError, OSError):  # pragma: no cover - not on Unix
-        load = 0.0
-    return cores >= 2 and load < cores - 0.5
+    """Whether a second process would find a core to itself: one besides
+    this process's, with no other process's work on it now."""
+    return idle_cores() >= 2
 
 
 class ReportWorker:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .backends import kernel_threads
+from .backends import kernel_thread_count, kernel_threads
 from .coords import Pose, annulus_plane
 from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, band_offsets
 from .descent import Descent
@@ -175,7 +175,8 @@ class Tracker:
             surface = init
         self.level = 0
         self._descent = self._new_descent(surface, surface)
-        with kernel_threads(opts.threads):
+        self._threads = kernel_thread_count(opts.threads)
+        with kernel_threads(self._threads):
             self._terms = self._prepare_terms()
         self.iteration, self.motion, self.status = 0, np.nan, None
         self._level_iterations = 0
@@ -272,7 +273,7 @@ class Tracker:
             raise RuntimeError(f"the tracker has stopped ({self.message}); step(volume) starts a new frame")
         started = time.perf_counter()
         term = self._terms[self.levels[self.level].data_term]
-        with kernel_threads(self.options.threads):
+        with kernel_threads(self._threads):
             obs = self._descent.observe(self.volume, term)
             force = term.force(self._descent.backend, self.volume, obs)
             self.c_in, self.c_out = term.grey_means
@@ -349,6 +350,7 @@ class Tracker:
         if self.status is None:
             self.run()  # the current frame first
         started = time.perf_counter()
+        self._threads = kernel_thread_count(self.options.threads)  # the machine's load, at each frame
         if follow_base:
             self._follow_base(volume)
         surface = self.surface
@@ -419,6 +421,7 @@ class Tracker:
         self.landmarks = points
         self._descent.set_landmarks(*self._held_points(self._descent.model.pose))
         self._descent.reset_step(self.options.step)
+        self._threads = kernel_thread_count(self.options.threads)
         self.level = len(self.levels) - 1 if self.status is not None else self.level
         self._level_iterations, self.status = 0, None
 
