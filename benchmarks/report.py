@@ -305,6 +305,15 @@ def _threads(th) -> list[str]:
                         f"{med[n]['samples_us']:.0f} us (the rest, "
                         f"{med[n]['surface_and_samples_us'] - med[n]['samples_us']:.0f} us, the surface with the "
                         "product of the constraints and the calls)" for n in counts) + "."]
+    busy = th.get("busy")
+    if busy:
+        d, f = busy["default"], busy["forced"]
+        out += ["", f"Beside a busy process (another process spinning on one core, started by the run): the same "
+                f"segmentations, {busy['segmentations']} with each setting in turn. The default (numba's count reduced "
+                f"at each segmentation to the cores no other process is running on, here one) took "
+                f"{d['median_ms']:.1f} ms (median; worst {d['worst_ms']:.1f}); {busy['forced_threads']} threads forced "
+                f"took {f['median_ms']:.1f} ms (worst {f['worst_ms']:.1f}): a parallel step waits for its slowest "
+                "thread, and one of them shares its core with the other process."]
     return out
 
 

@@ -208,8 +208,44 @@ def thread_counts(seeds=(0, 1, 2)) -> dict:
                                "surface_and_samples_us": 1e6 * observe[n], "samples_us": 1e6 * samples[n]}
             rows.append(row)
             print(row, flush=True)
+    load_end = os.getloadavg()[0]
+    busy = beside_a_busy_process(seeds)
+    print("beside a busy process", busy, flush=True)
     return {"counts": counts, "unseen": rows, "threading_layer": numba.threading_layer(),
-            "load": [load_start, os.getloadavg()[0]], "machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M")}
+            "load": [load_start, load_end], "busy": busy, "machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M")}
+
+
+SPIN = "import time\nend = time.monotonic() + 600\nwhile time.monotonic() < end: pass\n"
+
+
+def beside_a_busy_process(seeds=(0, 1, 2), repeats=20) -> dict:
+    """Whole default segmentations of the unseen-style cases while another
+    process spins on one core: the default thread count (numba's, reduced to
+    the idle cores) against numba's whole count forced, call by call in
+    turn; the median and the worst of each."""
+    import subprocess
+
+    import numba
+
+    forced = numba.config.NUMBA_NUM_THREADS
+    spinner = subprocess.Popen([sys.executable, "-c", SPIN])
+    times = {"default": [], "forced": []}
+    try:
+        time.sleep(0.5)
+        for name in ("default", "psf_wide"):
+            for seed in seeds:
+                ph = make_phantom(seed=seed, formation=FORMATIONS[name])
+                segment(ph.volume, ph.apex, ph.base, threads=forced)
+                for _ in range(repeats):
+                    for key, threads in (("default", None), ("forced", forced)):
+                        t0 = time.perf_counter()
+                        segment(ph.volume, ph.apex, ph.base, threads=threads)
+                        times[key].append(1000 * (time.perf_counter() - t0))
+    finally:
+        spinner.kill()
+        spinner.wait()
+    return {"forced_threads": forced, "segmentations": len(times["default"]),
+            **{key: {"median_ms": float(np.median(t)), "worst_ms": float(np.max(t))} for key, t in times.items()}}
 
 
 def _kernel_threads() -> int:
