@@ -45,7 +45,56 @@ def test_reproduces_bicubic_exactly(rng):
     v1 = rng.uniform(0, 2 * np.pi * 5 / 6, 300)  # patches not touching the seam
     v2 = rng.uniform(0.2, 1.7, 300)
     for d1, d2 in ((0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2)):
-        np.testing.assert_allclose(grid.evaluate(c, v1, v2, d1, d2), bicubic(coef, v1, v2, d1, d2), rtol=1e-9, atol=1e-9)
+        expected = bicubic(coef, v1, v2, d1, d2)
+        np.testing.assert_allclose(grid.evaluate(c, v1, v2, d1, d2), expected, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(grid.basis_matrix(v1, v2, d1, d2) @ c.ravel(), expected, rtol=1e-9, atol=1e-9)
+
+
+def test_evaluate_sums_the_terms_in_a_fixed_order(rng):
+    """evaluate's vectorised sum equals the 16 terms added one by one in
+    the order (a2, a1, e2, e1), to the last bit (segmentations that fit a
+    surface must not change)."""
+    grid = HermiteGrid(5, 3, (0.0, np.pi / 2))
+    c = rng.normal(size=grid.shape).ravel()
+    v1, v2 = rng.uniform(-1, 7, 200), rng.uniform(-0.1, 1.7, 200)
+    for d1, d2 in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        i1, t1, i2, t2 = grid._locate(v1, v2)
+        b1 = grid._factors(t1, d1, 2 * np.pi / grid.n1)
+        b2 = grid._factors(t2, d2, np.pi / 2 / grid.n2)
+        expected = np.zeros(v1.shape)
+        for a2 in (0, 1):
+            for a1 in (0, 1):
+                base = ((i2 + a2) * grid.n1 + (i1 + a1) % grid.n1) * 4
+                for e2 in (0, 1):
+                    for e1 in (0, 1):
+                        expected += (b1[2 * a1 + e1] * b2[2 * a2 + e2]) * c[base + e1 + 2 * e2]
+        np.testing.assert_array_equal(grid.evaluate(c, v1, v2, d1, d2), expected)
+
+
+@pytest.mark.parametrize("grid", [HermiteGrid(2, 2), HermiteGrid(8, 8), HermiteGrid(5, 3, (0.2, 1.7), poles=())])
+def test_parameter_rows_are_the_sparse_product(rng, grid):
+    """The dense rows equal the sparse basis times the constraints, to the
+    last bit, at the poles' rows too."""
+    v1, v2 = rng.uniform(0, 2 * np.pi, 7), np.r_[grid.v2_range[0], rng.uniform(*grid.v2_range, 5), grid.v2_range[1]]
+    expected = (grid.basis_matrix(v1, v2) @ grid.constraints).toarray()
+    np.testing.assert_array_equal(grid.parameter_rows(v1, v2), expected)
+    np.testing.assert_array_equal(grid.parameter_rows(v1[:1], v2[:1]), expected[:1])
+
+
+def test_quadrature_and_tables_are_cached_read_only():
+    """The cached quadrature and patch tables equal fresh ones, and no
+    caller can change them for the next."""
+    grid = HermiteGrid(4, 3, (0.1, 1.4))
+    again = HermiteGrid(4, 3, (0.1, 1.4))
+    for method, n in ((HermiteGrid.quadrature, 3), (HermiteGrid.patch_tables, 2)):
+        fresh = method.__wrapped__(grid, 6)
+        cached = method(again, 6)
+        assert cached is method(grid, 6)
+        assert len(cached) == n
+        for a, b in zip(cached, fresh):
+            np.testing.assert_array_equal(a, b)
+            with pytest.raises(ValueError, match="read-only"):
+                a[0] = 1.0
 
 
 def test_first_derivatives_finite_difference(rng):

@@ -72,6 +72,12 @@ def _gauss_legendre(order: int) -> tuple[np.ndarray, np.ndarray]:
     return t, w
 
 
+def _read_only(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
+
+
 def basis_norms(n1: int, n2: int, v2_range: tuple[float, float]) -> np.ndarray:
     """L2 norms of the global basis functions ``f_i^{d1,d2}`` (paper eq. 10).
 
@@ -176,6 +182,23 @@ class HermiteGrid:
         scale = np.array([1.0, width, 1.0, width]) / width**derivative
         return b * scale.reshape((4,) + (1,) * t.ndim)
 
+    def _terms(self, v1, v2, d1: int = 0, d2: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """The 16 terms of ``f`` at each point: coefficient indices and basis
+        values, ``(16, n)`` each, ordered ``(a2, a1, e2, e1)`` (node along
+        v2, node along v1, dof along v2, dof along v1), the order in which
+        :meth:`evaluate` sums them."""
+        v1, v2 = np.broadcast_arrays(np.ravel(v1), np.ravel(v2))
+        n = v1.size
+        i1, t1, i2, t2 = self._locate(v1, v2)
+        b1 = self._factors(t1, d1, 2 * np.pi / self.n1).reshape(1, 2, 1, 2, n)  # a1, e1
+        b2 = self._factors(t2, d2, (self.v2_range[1] - self.v2_range[0]) / self.n2).reshape(2, 1, 2, 1, n)  # a2, e2
+        node1 = np.stack([i1, (i1 + 1) % self.n1])
+        node2 = np.stack([i2, i2 + 1])
+        corner = (node2[:, None] * self.n1 + node1[None]) * 4  # [a2, a1, point]
+        dof = np.array([[0, 1], [2, 3]])  # [e2, e1] -> e1 + 2 e2
+        index = corner[:, :, None, None] + dof[None, None, :, :, None]
+        return index.reshape(16, n), (b1 * b2).reshape(16, n)
+
     def basis_matrix(self, v1, v2, d1: int = 0, d2: int = 0) -> sp.csr_matrix:
         """Sparse matrix ``B`` with ``B @ coefficients.ravel()`` the
         ``(d1, d2)``-th partial derivative of ``f`` at the points.
@@ -183,53 +206,41 @@ class HermiteGrid:
         ``v1`` is wrapped into ``[0, 2 pi)``; ``v2`` outside the range is
         extrapolated from the end patch.
         """
-        v1, v2 = np.broadcast_arrays(np.ravel(v1), np.ravel(v2))
-        n = v1.size
-        i1, t1, i2, t2 = self._locate(v1, v2)
-        w1 = 2 * np.pi / self.n1
-        w2 = (self.v2_range[1] - self.v2_range[0]) / self.n2
-        b1 = self._factors(t1, d1, w1)  # (4, n): node a=0/1 x dof e=0/1 -> 2a+e
-        b2 = self._factors(t2, d2, w2)
-        cols, vals = [], []
-        for a1 in (0, 1):
-            node1 = (i1 + a1) % self.n1
-            for a2 in (0, 1):
-                node2 = i2 + a2
-                base = (node2 * self.n1 + node1) * 4
-                for e1 in (0, 1):
-                    for e2 in (0, 1):
-                        cols.append(base + e1 + 2 * e2)
-                        vals.append(b1[2 * a1 + e1] * b2[2 * a2 + e2])
+        index, values = self._terms(v1, v2, d1, d2)
+        n = index.shape[1]
         # 16 distinct columns a row: built as CSR directly (through COO it
         # cost 0.6 ms for a single point), columns sorted as COO's would be
-        matrix = sp.csr_matrix((np.stack(vals, axis=1).ravel(), np.stack(cols, axis=1).ravel(),
-                                np.arange(0, 16 * n + 1, 16)), shape=(n, self.n_coefficients))
+        matrix = sp.csr_matrix((values.T.ravel(), index.T.ravel(), np.arange(0, 16 * n + 1, 16)),
+                               shape=(n, self.n_coefficients))
         matrix.sort_indices()
         return matrix
 
+    def parameter_rows(self, v1, v2) -> np.ndarray:
+        """``basis_matrix(v1, v2) @ constraints`` as a dense array: ``f`` at a
+        few points from the parameters (a landmark, the apex).  A sparse
+        product costs several times more for a handful of points; the
+        transposed product sums each entry in the same order, so the two
+        are equal to the last bit."""
+        index, values = self._terms(v1, v2)
+        rows = np.zeros((index.shape[1], self.n_coefficients))
+        rows[np.arange(index.shape[1]), index] = values
+        return (self.constraints.T @ rows.T).T
+
     def evaluate(self, coefficients, v1, v2, d1: int = 0, d2: int = 0) -> np.ndarray:
         """``d^(d1+d2) f / dv1^d1 dv2^d2`` at the points (shape of ``v1``)."""
-        # basis_matrix's 16 terms a point summed directly: building the
-        # sparse matrix cost several times the sum (a mesh evaluates 33 rings)
+        # the 16 terms a point summed directly: building the sparse matrix
+        # cost several times the sum (a mesh evaluates 33 rings)
         shape = np.broadcast_shapes(np.shape(v1), np.shape(v2))
+        index, values = self._terms(v1, v2, d1, d2)
         c = np.asarray(coefficients, dtype=float).reshape(-1)
-        v1, v2 = np.broadcast_arrays(np.ravel(v1), np.ravel(v2))
-        i1, t1, i2, t2 = self._locate(v1, v2)
-        b1 = self._factors(t1, d1, 2 * np.pi / self.n1)
-        b2 = self._factors(t2, d2, (self.v2_range[1] - self.v2_range[0]) / self.n2)
-        out = np.zeros(v1.shape)
-        for a2 in (0, 1):
-            for a1 in (0, 1):
-                base = ((i2 + a2) * self.n1 + (i1 + a1) % self.n1) * 4
-                for e2 in (0, 1):
-                    for e1 in (0, 1):
-                        out += (b1[2 * a1 + e1] * b2[2 * a2 + e2]) * c[base + e1 + 2 * e2]
-        return out.reshape(shape)
+        return (values * c[index]).sum(axis=0).reshape(shape)
 
     # -- quadrature -------------------------------------------------------
 
+    @lru_cache(maxsize=16)
     def quadrature(self, order: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Gauss-Legendre points per patch: ``(v1, v2, weights)``, flat.
+        """Gauss-Legendre points per patch: ``(v1, v2, weights)``, flat
+        (read-only: cached by value, as the matrices below).
 
         ``sum(weights * g(v1, v2))`` integrates ``g dv1 dv2`` over the whole
         domain, exactly for piecewise polynomials of degree < 2 order.
@@ -245,7 +256,7 @@ class HermiteGrid:
         wq1 = np.tile(w, self.n1) * w1
         wq2 = np.tile(w, self.n2) * w2
         v2, v1 = np.meshgrid(q2, q1, indexing="ij")
-        return v1.ravel(), v2.ravel(), np.outer(wq2, wq1).ravel()
+        return _read_only(v1.ravel(), v2.ravel(), np.outer(wq2, wq1).ravel())
 
     def quadrature_values(self, coefficients, order: int = 8) -> np.ndarray:
         """``f`` at the points of :meth:`quadrature` (same order), as
@@ -261,6 +272,7 @@ class HermiteGrid:
         f = table1[0] @ patch @ table2[0].T  # [i2, i1, a, b]
         return f.transpose(0, 3, 1, 2).ravel()
 
+    @lru_cache(maxsize=16)
     def patch_tables(self, order: int = 8) -> tuple[np.ndarray, np.ndarray]:
         """Hermite basis values and first derivatives, in global units, at the
         ``order`` Gauss-Legendre positions of a patch: ``(2, order, 4)`` for
@@ -275,7 +287,7 @@ class HermiteGrid:
         for width in (2 * np.pi / self.n1, (hi - lo) / self.n2):
             scale = np.array([1.0, width, 1.0, width])  # as _factors
             tables.append(np.stack([hermite_basis(t, 0).T * scale, hermite_basis(t, 1).T * scale / width]))
-        return tables[0], tables[1]
+        return _read_only(*tables)
 
     # -- pole constraints -------------------------------------------------
 
