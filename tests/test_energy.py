@@ -82,6 +82,17 @@ def test_landmark_gradient(rng):
     assert_gradient(lambda q: landmark_energy(lm, q), lambda q: landmark_gradient(lm, q), p, rng)
 
 
+def test_landmark_rows_are_the_sparse_basis(rng):
+    """The landmarks' rows (dense, then sparse) equal the sparse basis at
+    their (v1, v2) times the constraints, to the last bit, the apex too."""
+    model, _ = random_model("prolate", rng)
+    points = np.concatenate([APEX[None], APEX * 0.5 + BASE * 0.5 + rng.normal(scale=15, size=(3, 3)) * [1, 1, 0.2]])
+    lm = Landmarks.from_world(model, points)
+    _, v1, v2 = model.system.from_cartesian(model.pose.to_local(points))
+    expected = (model.grid.basis_matrix(v1, v2) @ model.constraints).toarray()
+    np.testing.assert_array_equal(lm.basis.toarray(), expected)
+
+
 def test_landmark_beyond_base_is_refused(rng):
     model, _ = random_model("prolate", rng)
     with pytest.raises(ValueError, match="beyond the base plane"):

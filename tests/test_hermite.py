@@ -58,9 +58,12 @@ def test_evaluate_sums_the_terms_in_a_fixed_order(rng):
     c = rng.normal(size=grid.shape).ravel()
     v1, v2 = rng.uniform(-1, 7, 200), rng.uniform(-0.1, 1.7, 200)
     for d1, d2 in ((0, 0), (1, 0), (0, 1), (1, 1)):
-        i1, t1, i2, t2 = grid._locate(v1, v2)
-        b1 = grid._factors(t1, d1, 2 * np.pi / grid.n1)
-        b2 = grid._factors(t2, d2, np.pi / 2 / grid.n2)
+        # the point's patch, local coordinates and basis in global units
+        u1, u2 = np.mod(v1, 2 * np.pi) * (grid.n1 / (2 * np.pi)), v2 * (grid.n2 / (np.pi / 2))
+        i1, i2 = np.clip(np.floor(u1).astype(int), 0, grid.n1 - 1), np.clip(np.floor(u2).astype(int), 0, grid.n2 - 1)
+        w1, w2 = 2 * np.pi / grid.n1, np.pi / 2 / grid.n2
+        b1 = hermite_basis(u1 - i1, d1) * (np.array([1.0, w1, 1.0, w1]) / w1**d1)[:, None]
+        b2 = hermite_basis(u2 - i2, d2) * (np.array([1.0, w2, 1.0, w2]) / w2**d2)[:, None]
         expected = np.zeros(v1.shape)
         for a2 in (0, 1):
             for a1 in (0, 1):

@@ -228,7 +228,9 @@ class Landmarks:
         if np.any((v2 < lo) | (v2 > hi)):
             raise ValueError("a landmark lies beyond the base plane (outside the cavity's range)")
         h0 = model.system.scale_factors(v0, v1, v2)[0]
-        return cls(v0, h0, (model.grid.basis_matrix(v1, v2) @ model.constraints).tocsr())
+        # dense rows, then sparse: for a few points (the apex) the sparse
+        # basis and its product with the constraints cost several times more
+        return cls(v0, h0, sp.csr_matrix(model.grid.parameter_rows(v1, v2)))
 
     def __len__(self) -> int:
         return len(self.v0)

@@ -224,7 +224,7 @@ class HermiteGrid:
         index, values = self._terms(v1, v2)
         rows = np.zeros((index.shape[1], self.n_coefficients))
         rows[np.arange(index.shape[1]), index] = values
-        return (self.constraints.T @ rows.T).T
+        return (self._constraints_t @ rows.T).T
 
     def evaluate(self, coefficients, v1, v2, d1: int = 0, d2: int = 0) -> np.ndarray:
         """``d^(d1+d2) f / dv1^d1 dv2^d2`` at the points (shape of ``v1``)."""
@@ -323,6 +323,11 @@ class HermiteGrid:
                 vals += [1.0] * k.size
                 n_param += k.size
         return sp.csr_matrix((vals, (rows, cols)), shape=(self.n_coefficients, n_param))
+
+    @property
+    @lru_cache(maxsize=16)
+    def _constraints_t(self) -> sp.csr_matrix:
+        return self.constraints.T.tocsr()
 
     @property
     @lru_cache(maxsize=16)
