@@ -193,3 +193,15 @@ def test_pose_from_annulus(rng):
 def test_pose_from_annulus_bad_points(annulus, apex, message):
     with pytest.raises(ValueError, match=message):
         Pose.from_annulus(apex, annulus)
+
+
+@pytest.mark.parametrize("system", [ProlateSpheroidal(35.0), Spherical(), Cylindrical(90.0)])
+def test_to_cartesian_of_a_row_and_a_column_is_the_grids(rng, system):
+    """Coordinates of different shapes broadcast: a tensor grid as a row and
+    a column gives the points of the full grid, to the last bit."""
+    v0, v1, v2 = (c.reshape(20, 25) for c in random_coords(system, rng))
+    row, column = v1[:1], v2[:, :1]
+    full_v1, full_v2 = np.broadcast_arrays(row, column)
+    np.testing.assert_array_equal(system.to_cartesian(v0, row, column), system.to_cartesian(v0, full_v1, full_v2))
+    np.testing.assert_array_equal(system.to_cartesian(v0[0, 0], row[0], column[0, 0]),
+                                  system.to_cartesian(np.full(25, v0[0, 0]), row[0], np.full(25, column[0, 0])))

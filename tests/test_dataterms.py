@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from spheroseg.backends import NumpyBackend, select_backend
-from spheroseg.dataterms import (DATA_TERMS, FixedInterface, GlobalMeans, IntensityInterface, LocalMeans,
-                                  otsu_threshold, speckle_nepers)
+from spheroseg.dataterms import (DATA_TERMS, FixedInterface, GlobalMeans, IntensityInterface, LocalMeans, band_offsets,
+                                  nanmedian, otsu_threshold, shell_offsets, speckle_nepers)
 from spheroseg.energy import SampledSurface
 from spheroseg.surface import Surface
 from spheroseg.volume import Volume
@@ -144,3 +144,31 @@ def test_the_interface_reads_the_bands_only_until_its_means_are_frozen(two_regio
     assert obs.inside is None and term.force(backend, volume, obs)[1:] == force[1:]
     term.reset()
     assert term.needs_bands
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 7, 50, 51, 1024, 4097])
+def test_nanmedian_is_numpys(rng, n):
+    """The partition median equals numpy's to the last bit, NaNs left out."""
+    x = rng.normal(size=n) * 10.0 ** rng.integers(-3, 4, n)
+    assert nanmedian(x) == np.median(x)
+    x[rng.random(n) < 0.3] = np.nan
+    if np.isnan(x).all():
+        assert np.isnan(nanmedian(x))
+    else:
+        assert nanmedian(x) == np.nanmedian(x)
+    assert nanmedian(x.reshape(1, -1)) == nanmedian(x)
+
+
+def test_nanmedian_of_nothing_and_of_a_scalar():
+    assert np.isnan(nanmedian(np.full(3, np.nan))) and np.isnan(nanmedian(np.empty(0)))
+    assert nanmedian(2.5) == 2.5
+
+
+def test_offsets_are_fresh_arrays():
+    """The cached offsets are linspace's, and a caller changing its copy
+    changes no other's."""
+    np.testing.assert_array_equal(band_offsets(8.0), np.linspace(0, 8.0, 5)[1:])
+    np.testing.assert_array_equal(shell_offsets(15.0), np.linspace(0, 15.0, 6)[1:])
+    changed = band_offsets(8.0)
+    changed *= -1
+    np.testing.assert_array_equal(band_offsets(8), np.linspace(0, 8.0, 5)[1:])

@@ -72,6 +72,12 @@ def test_evaluate_sums_the_terms_in_a_fixed_order(rng):
                     for e1 in (0, 1):
                         expected += (b1[2 * a1 + e1] * b2[2 * a2 + e2]) * c[base + e1 + 2 * e2]
         np.testing.assert_array_equal(grid.evaluate(c, v1, v2, d1, d2), expected)
+        # a tensor grid as a row and a column: the same values, point by point
+        row, column = v1[:24], v2[:10, None]
+        grid_v1, grid_v2 = np.meshgrid(row, column)
+        flat = grid.evaluate(c, grid_v1.ravel(), grid_v2.ravel(), d1, d2).reshape(grid_v1.shape)
+        np.testing.assert_array_equal(grid.evaluate(c, row, column, d1, d2), flat)
+        np.testing.assert_array_equal(grid.evaluate(c, row, column[0, 0], d1, d2), flat[0])
 
 
 @pytest.mark.parametrize("grid", [HermiteGrid(2, 2), HermiteGrid(8, 8), HermiteGrid(5, 3, (0.2, 1.7), poles=())])

@@ -115,3 +115,11 @@ def test_wall_bulge():
     wall[:, :2] *= np.where(np.cos(v1.ravel()) > np.cos(np.radians(30)), 1.5, 1.0)[:, None]
     pushed = fit_surface(wall, system=initial.system, pose=initial.pose, patches=(8, 8), v2_range=(lo, hi))
     assert 1.3 < wall_bulge(pushed, initial) < 1.7
+    # the definition, point by point (a flat grid of points, numpy's median)
+    v1, v2 = np.meshgrid(np.linspace(0, 2 * np.pi, 48, endpoint=False),
+                         np.linspace(lo + 0.15 * (hi - lo), hi - 0.05 * (hi - lo), 16))
+    axis = initial.pose.rotation[:, 0]
+    distance = [np.linalg.norm(np.cross(s.points(v1.ravel(), v2.ravel()) - initial.pose.origin, axis), axis=1)
+                for s in (pushed, initial)]
+    ratio = distance[0] / distance[1]
+    assert wall_bulge(pushed, initial) == pytest.approx(ratio.max() / np.median(ratio), rel=1e-12)

@@ -197,3 +197,16 @@ def test_from_annulus_bad_input():
         Surface.from_annulus(apex, annulus, radius_ratio=1.5)
     with pytest.raises(ValueError, match="at least 3"):
         Surface.from_annulus(apex, annulus[:2])
+
+
+@pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])
+def test_volume_is_the_quadrature_of_the_radial_volume(system):
+    """volume_ml (the trigonometry of v2 once a row of points) equals the
+    quadrature over the points one by one, to the last bit."""
+    s = Surface.from_apex_base([1.0, 2.0, 80.0], [0.0, 0.0, 0.0], system=system, patches=(4, 2))
+    s = s.with_coefficients(s.coefficients * (1 + 0.1 * np.sin(np.arange(s.coefficients.size))).reshape(s.grid.shape))
+    v1, v2, w = s.grid.quadrature(8)
+    f = np.maximum(s.evaluate(v1, v2), 0.0)
+    np.testing.assert_allclose(s.volume_ml(), w @ s.system.radial_volume(f, v2) / 1000, rtol=1e-14)
+    f = np.maximum(s.grid.quadrature_values(s.coefficients), 0.0)
+    assert s.volume_ml() == float(w @ s.system.radial_volume(f, v2)) / 1000

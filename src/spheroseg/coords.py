@@ -44,6 +44,14 @@ __all__ = [
 _TWO_PI = 2.0 * np.pi
 
 
+def _stack(*components) -> np.ndarray:
+    """Points ``(..., 3)`` from their coordinates, broadcast together.  The
+    systems compute each on the shapes of the coordinates it depends on (a
+    tensor grid of a row and a column: the trigonometry of a row and of a
+    column), then broadcast."""
+    return np.stack(np.broadcast_arrays(*components), axis=-1)
+
+
 def _check_points(x: np.ndarray, name: str = "points") -> np.ndarray:
     x = np.asarray(x, dtype=float)
     if x.shape[-1:] != (3,):
@@ -135,9 +143,9 @@ class ProlateSpheroidal(CoordinateSystem):
 
     def to_cartesian(self, v0, v1, v2):
         d = self.focal_length
-        lam, th, mu = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (v0, v1, v2)))
+        lam, th, mu = (np.asarray(v, dtype=float) for v in (v0, v1, v2))
         rho = d * np.sinh(lam) * np.sin(mu)
-        return np.stack([d * np.cosh(lam) * np.cos(mu), rho * np.cos(th), rho * np.sin(th)], axis=-1)
+        return _stack(d * np.cosh(lam) * np.cos(mu), rho * np.cos(th), rho * np.sin(th))
 
     def from_cartesian(self, x):
         x = np.asarray(x, dtype=float)
@@ -204,9 +212,9 @@ class Spherical(CoordinateSystem):
     poles = (0.0, np.pi)
 
     def to_cartesian(self, v0, v1, v2):
-        r, th, ph = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (v0, v1, v2)))
+        r, th, ph = (np.asarray(v, dtype=float) for v in (v0, v1, v2))
         rho = r * np.sin(ph)
-        return np.stack([r * np.cos(ph), rho * np.cos(th), rho * np.sin(th)], axis=-1)
+        return _stack(r * np.cos(ph), rho * np.cos(th), rho * np.sin(th))
 
     def from_cartesian(self, x):
         x = np.asarray(x, dtype=float)
@@ -263,8 +271,8 @@ class Cylindrical(CoordinateSystem):
             raise ValueError(f"height must be a positive finite number, got {self.height!r}")
 
     def to_cartesian(self, v0, v1, v2):
-        r, th, z = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (v0, v1, v2)))
-        return np.stack([z, r * np.cos(th), r * np.sin(th)], axis=-1)
+        r, th, z = (np.asarray(v, dtype=float) for v in (v0, v1, v2))
+        return _stack(z, r * np.cos(th), r * np.sin(th))
 
     def from_cartesian(self, x):
         x = np.asarray(x, dtype=float)

@@ -184,20 +184,28 @@ class HermiteGrid:
 
     def _terms(self, v1, v2, d1: int = 0, d2: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """The 16 terms of ``f`` at each point: coefficient indices and basis
-        values, ``(16, n)`` each, ordered ``(a2, a1, e2, e1)`` (node along
-        v2, node along v1, dof along v2, dof along v1), the order in which
-        :meth:`evaluate` sums them."""
-        v1, v2 = np.broadcast_arrays(np.ravel(v1), np.ravel(v2))
-        n = v1.size
+        values, ``(16,) + shape`` each (``shape`` the points', ``v1`` and
+        ``v2`` broadcast), ordered ``(a2, a1, e2, e1)`` (node along v2, node
+        along v1, dof along v2, dof along v1), the order in which
+        :meth:`evaluate` sums them.
+
+        The basis along each direction is computed on ``v1``'s and ``v2``'s
+        own shapes: a tensor grid given as a row and a column costs a row's
+        and a column's, not the grid's."""
+        v1, v2 = np.asarray(v1, dtype=float), np.asarray(v2, dtype=float)
         i1, t1, i2, t2 = self._locate(v1, v2)
-        b1 = self._factors(t1, d1, 2 * np.pi / self.n1).reshape(1, 2, 1, 2, n)  # a1, e1
-        b2 = self._factors(t2, d2, (self.v2_range[1] - self.v2_range[0]) / self.n2).reshape(2, 1, 2, 1, n)  # a2, e2
-        node1 = np.stack([i1, (i1 + 1) % self.n1])
-        node2 = np.stack([i2, i2 + 1])
-        corner = (node2[:, None] * self.n1 + node1[None]) * 4  # [a2, a1, point]
-        dof = np.array([[0, 1], [2, 3]])  # [e2, e1] -> e1 + 2 e2
-        index = corner[:, :, None, None] + dof[None, None, :, :, None]
-        return index.reshape(16, n), (b1 * b2).reshape(16, n)
+        # the points' axes, broadcast after (a2, a1, e2, e1)
+        ndim = max(v1.ndim, v2.ndim)
+        shape1, shape2 = ((1,) * (ndim - v.ndim) + v.shape for v in (v1, v2))
+        b1 = self._factors(t1, d1, 2 * np.pi / self.n1).reshape((1, 2, 1, 2) + shape1)
+        b2 = self._factors(t2, d2, (self.v2_range[1] - self.v2_range[0]) / self.n2).reshape((2, 1, 2, 1) + shape2)
+        node1 = np.stack([i1, (i1 + 1) % self.n1]).reshape((1, 2) + shape1)
+        node2 = np.stack([i2, i2 + 1]).reshape((2, 1) + shape2)
+        corner = (node2 * self.n1 + node1) * 4  # [a2, a1, ...]
+        dof = np.array([[0, 1], [2, 3]]).reshape((1, 1, 2, 2) + (1,) * ndim)  # [e2, e1] -> e1 + 2 e2
+        index = corner.reshape(corner.shape[:2] + (1, 1) + corner.shape[2:]) + dof
+        values = b1 * b2
+        return index.reshape((16,) + index.shape[4:]), values.reshape((16,) + values.shape[4:])
 
     def basis_matrix(self, v1, v2, d1: int = 0, d2: int = 0) -> sp.csr_matrix:
         """Sparse matrix ``B`` with ``B @ coefficients.ravel()`` the
@@ -206,7 +214,7 @@ class HermiteGrid:
         ``v1`` is wrapped into ``[0, 2 pi)``; ``v2`` outside the range is
         extrapolated from the end patch.
         """
-        index, values = self._terms(v1, v2, d1, d2)
+        index, values = self._terms(np.ravel(v1), np.ravel(v2), d1, d2)
         n = index.shape[1]
         # 16 distinct columns a row: built as CSR directly (through COO it
         # cost 0.6 ms for a single point), columns sorted as COO's would be
@@ -221,19 +229,20 @@ class HermiteGrid:
         product costs several times more for a handful of points; the
         transposed product sums each entry in the same order, so the two
         are equal to the last bit."""
-        index, values = self._terms(v1, v2)
+        index, values = self._terms(np.ravel(v1), np.ravel(v2))
         rows = np.zeros((index.shape[1], self.n_coefficients))
         rows[np.arange(index.shape[1]), index] = values
         return (self._constraints_t @ rows.T).T
 
     def evaluate(self, coefficients, v1, v2, d1: int = 0, d2: int = 0) -> np.ndarray:
-        """``d^(d1+d2) f / dv1^d1 dv2^d2`` at the points (shape of ``v1``)."""
+        """``d^(d1+d2) f / dv1^d1 dv2^d2`` at the points (``v1`` and ``v2``
+        broadcast; a row of ``v1`` and a column of ``v2`` evaluate a tensor
+        grid for the price of its row and column's basis)."""
         # the 16 terms a point summed directly: building the sparse matrix
         # cost several times the sum (a mesh evaluates 33 rings)
-        shape = np.broadcast_shapes(np.shape(v1), np.shape(v2))
         index, values = self._terms(v1, v2, d1, d2)
         c = np.asarray(coefficients, dtype=float).reshape(-1)
-        return (values * c[index]).sum(axis=0).reshape(shape)
+        return (values * c[index]).sum(axis=0)
 
     # -- quadrature -------------------------------------------------------
 

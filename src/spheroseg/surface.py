@@ -248,9 +248,11 @@ class Surface:
         integral of the volume element (:meth:`CoordinateSystem.radial_volume`), by
         Gauss-Legendre quadrature on every patch.
         """
-        v1, v2, w = self.grid.quadrature(order)
+        _, v2, w = self.grid.quadrature(order)
         f = np.maximum(self.grid.quadrature_values(self.coefficients, order), 0.0)  # as radius()
-        return float(w @ self.system.radial_volume(f, v2)) / 1000.0
+        # the points lie on rows of one v2 each: its trigonometry once a row
+        rows = v2.reshape(self.grid.n2 * order, -1)[:, :1]
+        return float(w @ self.system.radial_volume(f.reshape(len(rows), -1), rows).ravel()) / 1000.0
 
     def bounding_box(self, n: int = 48) -> tuple[np.ndarray, np.ndarray]:
         """World bounding box (min, max corners) of the closed cavity."""

@@ -24,7 +24,7 @@ import numpy as np
 
 from .backends import kernel_thread_count, kernel_threads
 from .coords import Pose, annulus_plane
-from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, band_offsets
+from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, band_offsets, nanmedian
 from .descent import Descent
 from .options import SegmentOptions, format_point
 from .quality import quality_report, wall_bulge
@@ -433,7 +433,7 @@ class Tracker:
         surface = self.surface
         return SegmentationResult(
             surface=surface, iterations=self.iteration, converged=self._converged,
-            c_in=float(np.nanmedian(c_in)), c_out=float(np.nanmedian(c_out)), seconds=self._seconds,
+            c_in=float(nanmedian(c_in)), c_out=float(nanmedian(c_out)), seconds=self._seconds,
             parameters=parameters, status=status, message=STATUS_MESSAGES[status], quality=self._quality(surface))
 
     def _quality(self, surface: Surface) -> dict:
@@ -443,10 +443,10 @@ class Tracker:
         else:
             no_data, contrast, spread = np.nan, np.full(1, np.nan), np.nan
         v1 = np.linspace(0, 2 * np.pi, 16, endpoint=False)
-        tip = surface.points(v1, np.full_like(v1, surface.grid.v2_range[0])).mean(axis=0)
+        tip = surface.points(v1, surface.grid.v2_range[0]).mean(axis=0)
         with np.errstate(invalid="ignore", divide="ignore"):
             return quality_report(
-                contrast=float(np.nanmedian(contrast) / spread), no_data_fraction=no_data,
+                contrast=float(nanmedian(contrast) / spread), no_data_fraction=no_data,
                 low_contrast_fraction=float(np.mean(np.broadcast_to(contrast, (1,) + np.shape(contrast)) < 0.1 * spread)),
                 converged=self.status == 0, apex_shift_mm=float(np.linalg.norm(tip - self.apex)),
                 volume_ratio=surface.volume_ml() / self._initial_volume, bulge=wall_bulge(surface, self._initial))
