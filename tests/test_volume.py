@@ -35,6 +35,11 @@ def test_outside_is_fill_value():
     out = vol.index_to_world(np.array([[-0.01, 0, 0], [0, 10.01, 0], [0, 0, 100]]))
     assert np.all(np.isnan(vol.sample(out)))
     assert np.all(vol.sample(out, fill_value=-1.0) == -1.0)
+    # points in and out along each axis: the fill exactly where contains() says out
+    rng = np.random.default_rng(1)
+    points = vol.index_to_world(rng.uniform(-1, 1, (300, 3)) * 2 + rng.choice([0.0, 4.0, 8.0, 12.0], (300, 3)))
+    for order in (0, 1):
+        np.testing.assert_array_equal(np.isnan(vol.sample(points, order=order)), ~vol.contains(points))
 
 
 def test_no_data_value_marks_missing_samples():
