@@ -190,3 +190,14 @@ def test_quadrature_values_are_the_surface_at_the_quadrature_points(rng, order):
         v1, v2, _ = grid.quadrature(order)
         np.testing.assert_allclose(grid.quadrature_values(c, order), grid.basis_matrix(v1, v2) @ c.ravel(),
                                    rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("grid", [HermiteGrid(2, 2), HermiteGrid(8, 8), HermiteGrid(5, 3, (0.2, 1.7), poles=())])
+def test_evaluate_grid_is_evaluate_on_the_grid(rng, grid):
+    """The two matrix products equal the point-by-point sum (rounding
+    apart), across the seam of v1 and beyond the v2 range."""
+    c = grid.constrain(rng.normal(size=grid.shape))
+    lo, hi = grid.v2_range
+    v1, v2 = rng.uniform(-1, 7, 40), np.r_[lo - 0.05, rng.uniform(lo, hi, 10), hi, hi + 0.05]
+    full_v1, full_v2 = np.meshgrid(v1, v2)
+    np.testing.assert_allclose(grid.evaluate_grid(c, v1, v2), grid.evaluate(c, full_v1, full_v2), rtol=1e-13, atol=1e-13)
