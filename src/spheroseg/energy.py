@@ -228,9 +228,13 @@ class Landmarks:
         if np.any((v2 < lo) | (v2 > hi)):
             raise ValueError("a landmark lies beyond the base plane (outside the cavity's range)")
         h0 = model.system.scale_factors(v0, v1, v2)[0]
-        # dense rows, then sparse: for a few points (the apex) the sparse
-        # basis and its product with the constraints cost several times more
-        return cls(v0, h0, sp.csr_matrix(model.grid.parameter_rows(v1, v2)))
+        # dense rows, then sparse from their nonzeros: for a few points (the
+        # apex) the sparse basis times the constraints costs several times
+        # more, and so does scipy's conversion of a dense array
+        rows = model.grid.parameter_rows(v1, v2)
+        point, column = np.nonzero(rows)
+        pointer = np.searchsorted(point, np.arange(len(rows) + 1))
+        return cls(v0, h0, sp.csr_matrix((rows[point, column], column, pointer), shape=rows.shape))
 
     def __len__(self) -> int:
         return len(self.v0)
