@@ -205,3 +205,22 @@ def test_to_cartesian_of_a_row_and_a_column_is_the_grids(rng, system):
     np.testing.assert_array_equal(system.to_cartesian(v0, row, column), system.to_cartesian(v0, full_v1, full_v2))
     np.testing.assert_array_equal(system.to_cartesian(v0[0, 0], row[0], column[0, 0]),
                                   system.to_cartesian(np.full(25, v0[0, 0]), row[0], np.full(25, column[0, 0])))
+
+
+@pytest.mark.parametrize("perturbation", [0.0, 1e-10, 5e-10, 2e-9, 1e-6, 1e-3, np.nan])
+def test_pose_accepts_the_rotations_allclose_accepts(rng, perturbation):
+    """A rotation is checked as np.allclose(R^T R, I, atol=1e-9) checks it,
+    off the diagonal and on it, and must be proper."""
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.linalg.det(q))
+    for k in range(9):
+        rotation = q.copy()
+        rotation.flat[k] += perturbation
+        proper = np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-9) and np.linalg.det(rotation) >= 0
+        if proper:
+            Pose(np.zeros(3), rotation)
+        else:
+            with pytest.raises(ValueError, match="proper orthonormal"):
+                Pose(np.zeros(3), rotation)
+    with pytest.raises(ValueError, match="proper orthonormal"):
+        Pose(np.zeros(3), -q)

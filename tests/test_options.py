@@ -45,3 +45,17 @@ def test_format_point():
     import numpy as np
 
     assert format_point(np.array([1.0, -2.345, 1e3])) == "(1.00, -2.35, 1000.00)"
+
+
+def test_parameters_are_the_dataclass_fields():
+    """as_parameters is dataclasses.asdict with the patches as a list, a
+    fresh dict each time."""
+    from dataclasses import asdict
+
+    opts = SegmentOptions(patches=(6, 4), interface=12.5, threads=2, mode="local")
+    expected = {**asdict(opts), "patches": [6, 4]}
+    assert opts.as_parameters() == expected
+    assert list(opts.as_parameters()) == list(expected)
+    first = opts.as_parameters()
+    first["patches"].append(3)
+    assert opts.as_parameters()["patches"] == [6, 4]

@@ -167,7 +167,7 @@ class SegmentOptions:
 
     def as_parameters(self) -> dict:
         """The options as plain JSON-ready values (what results record)."""
-        out = asdict(self)
+        out = {name: getattr(self, name) for name in self.names()}  # all scalars: asdict's deep copy cost 25 us
         out["patches"] = list(self.patches)
         return out
 
