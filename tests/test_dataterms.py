@@ -94,6 +94,25 @@ def test_log_compression_is_estimated_from_speckle(dynamic_range_db):
         speckle_nepers(np.full((len(patch), 4), 100.0), patch)
 
 
+def test_speckle_nepers_is_its_definition(rng):
+    """The variance across each patch's rays at each offset (finite values,
+    patches with at least min_rays), those over three times the median left
+    out, averaged: patch by patch with numpy's var."""
+    patch = rng.permutation(np.repeat(np.array([3, 7, 8, 20, 21, 40]), [9, 12, 5, 14, 8, 10]))
+    grey = rng.normal(size=(len(patch), 4)) * rng.uniform(1, 4, 41)[patch, None]
+    grey[rng.random(grey.shape) < 0.15] = np.nan
+    variances = []
+    for p in np.unique(patch):
+        for column in grey[patch == p].T:
+            finite = column[np.isfinite(column)]
+            if finite.size >= 6:
+                variances.append(np.var(finite, ddof=1))
+    variances = np.array(variances)
+    typical = variances[variances <= 3 * np.median(variances)]
+    expected = np.sqrt(typical.mean()) / IntensityInterface.LOG_SPREAD
+    assert speckle_nepers(grey, patch) == pytest.approx(expected, rel=1e-12)
+
+
 def speckle_cavity(spread_mm, seed=0):
     """Blood in an ellipsoidal cavity, tissue around it, 1 mm voxels: complex
     scatterers (intensity 30 dB apart) convolved with a Gaussian point-spread

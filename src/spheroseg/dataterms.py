@@ -344,16 +344,15 @@ def speckle_nepers(samples: np.ndarray, patch: np.ndarray, *, min_rays: int = 6)
     averaged over patches and offsets, gives ``k^2 pi^2 / 6``.  Variances
     over three times their median (a patch across two tissues) are left out.
     """
-    # per (patch, offset): count, sum and sum of squares of the finite values
+    # per (patch, offset): count, sum and sum of squares of the finite values,
+    # each one bincount over the bins (patch, offset), rays in order
     _, group = np.unique(patch, return_inverse=True)
     ok = np.isfinite(samples)
     values = np.where(ok, samples, 0.0)
     shape = (group.max() + 1, samples.shape[1])
-    count, total, squares = (np.zeros(shape) for _ in range(3))
-    for offset in range(samples.shape[1]):
-        count[:, offset] = np.bincount(group, ok[:, offset], minlength=shape[0])
-        total[:, offset] = np.bincount(group, values[:, offset], minlength=shape[0])
-        squares[:, offset] = np.bincount(group, values[:, offset] ** 2, minlength=shape[0])
+    bins = (group.reshape(-1, 1) * shape[1] + np.arange(shape[1])).ravel()
+    count, total, squares = (np.bincount(bins, weights.ravel(), minlength=shape[0] * shape[1]).reshape(shape)
+                             for weights in (ok, values, values**2))
     enough = count >= min_rays
     n = count[enough]
     variances = (squares[enough] - total[enough] ** 2 / n) / (n - 1)
