@@ -210,3 +210,16 @@ def test_volume_is_the_quadrature_of_the_radial_volume(system):
     np.testing.assert_allclose(s.volume_ml(), w @ s.system.radial_volume(f, v2) / 1000, rtol=1e-14)
     f = np.maximum(s.grid.quadrature_values(s.coefficients), 0.0)
     assert s.volume_ml() == float(w @ s.system.radial_volume(f, v2)) / 1000
+
+
+@pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])
+def test_grid_points_are_the_points_on_the_grid(system):
+    """grid_points (f by two matrix products) equals points at every point
+    of the grid, rows along v2, rounding apart; a single row too."""
+    s = Surface.from_apex_base(APEX, BASE, system=system, patches=(4, 2))
+    s = s.with_coefficients(s.coefficients * (1 + 0.1 * np.sin(np.arange(s.coefficients.size))).reshape(s.grid.shape))
+    lo, hi = s.grid.v2_range
+    v1, v2 = np.linspace(-0.5, 7.0, 31), np.linspace(lo, hi, 9)
+    full_v1, full_v2 = np.meshgrid(v1, v2)
+    np.testing.assert_allclose(s.grid_points(v1, v2), s.points(full_v1, full_v2), rtol=1e-13, atol=1e-11)
+    np.testing.assert_allclose(s.grid_points(v1, lo)[0], s.points(v1, np.full_like(v1, lo)), rtol=1e-13, atol=1e-11)

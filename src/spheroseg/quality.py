@@ -68,9 +68,7 @@ def wall_bulge(surface, initial) -> float:
     origin, axis = initial.pose.origin, initial.pose.rotation[:, 0]
 
     def from_axis(s):
-        # Surface.points on the grid, f by two matrix products (a third of the time)
-        f = np.maximum(s.grid.evaluate_grid(s.coefficients, v1, v2), 0.0)
-        p = s.pose.to_world(s.system.to_cartesian(f, v1, v2[:, None])).reshape(-1, 3) - origin
+        p = s.grid_points(v1, v2).reshape(-1, 3) - origin
         return np.linalg.norm(p - np.outer(p @ axis, axis), axis=1)
 
     ratio = from_axis(surface) / from_axis(initial)

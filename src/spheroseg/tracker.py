@@ -444,7 +444,7 @@ class Tracker:
         else:
             no_data, contrast, spread = np.nan, np.full(1, np.nan), np.nan
         v1 = np.linspace(0, 2 * np.pi, 16, endpoint=False)
-        tip = surface.points(v1, surface.grid.v2_range[0]).mean(axis=0)
+        tip = surface.grid_points(v1, surface.grid.v2_range[0])[0].mean(axis=0)
         with np.errstate(invalid="ignore", divide="ignore"):
             return quality_report(
                 contrast=float(nanmedian(contrast) / spread), no_data_fraction=no_data,
