@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from spheroseg.discretisation import BAND_STRIDE, discretise
+from spheroseg.discretisation import BAND_STRIDE, ROUGHNESS_SCALE, discretise
 from spheroseg.hermite import HermiteGrid
 
 
@@ -64,3 +64,15 @@ def test_shared_and_read_only():
         a.mass[0, 0] = 1.0
     with pytest.raises(ValueError, match="order"):
         discretise(HermiteGrid(4, 4, (0.0, 1.5)), 0)
+
+
+def test_smoothing_is_cached_read_only():
+    """The cached a T equals the thin-plate matrix scaled afresh, and no
+    descent can change its values for the next."""
+    d = discretise(HermiteGrid(4, 4), 8)
+    for smoothness in (1.0, 0.25):
+        expected = (smoothness * float(d.weights.sum()) / ROUGHNESS_SCALE) * d.roughness.toarray()
+        np.testing.assert_array_equal(d.smoothing(smoothness).toarray(), expected)
+        assert d.smoothing(smoothness) is d.smoothing(smoothness)
+        with pytest.raises(ValueError, match="read-only"):
+            d.smoothing(smoothness).data[0] = 1.0
