@@ -30,7 +30,7 @@ import numpy as np
 from scipy.linalg import blas
 
 from .backends import Observation, select_backend
-from .dataterms import Force
+from .dataterms import Force, nanmedian
 from .energy import Landmarks, SampledSurface, area_gradient
 from .surface import Surface
 
@@ -108,7 +108,7 @@ class Descent:
         if landmarks is not None and len(landmarks):
             self.landmarks = Landmarks.from_world(self.model, landmarks)
             self.omega = np.asarray(weights, float) * _LANDMARK_AREA * d.area
-            self._landmark_basis = self.landmarks.basis.toarray()
+            self._landmark_basis = self.landmarks.basis
             self._landmark_pull = self._landmark_basis.T * self.omega  # L^T Omega
             self.system_inverse = add_rows(self.system_inverse, self._landmark_basis, self.omega)
 
@@ -124,7 +124,7 @@ class Descent:
         the surface (mm)."""
         m = self.model
         if self.h0_floor is None:  # fixed per level: a median per iteration costs more than the rest
-            self.h0_floor = 0.3 * float(np.median(obs.h0))
+            self.h0_floor = 0.3 * float(nanmedian(obs.h0))
 
         def area_speed(normal_to_v0):
             return self.nu * self._area_speed(obs.geometry, normal_to_v0)

@@ -37,7 +37,6 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-import scipy.sparse as sp
 
 from .coords import CoordinateSystem, Pose
 from .discretisation import discretise
@@ -216,7 +215,7 @@ class Landmarks:
 
     v0: np.ndarray
     h0: np.ndarray
-    basis: sp.csr_matrix  # f at the landmarks, in the parameters
+    basis: np.ndarray  # f at the landmarks from the parameters, (landmarks, parameters): a few dense rows
 
     @classmethod
     def from_world(cls, model: SampledSurface, points) -> "Landmarks":
@@ -228,13 +227,10 @@ class Landmarks:
         if np.any((v2 < lo) | (v2 > hi)):
             raise ValueError("a landmark lies beyond the base plane (outside the cavity's range)")
         h0 = model.system.scale_factors(v0, v1, v2)[0]
-        # dense rows, then sparse from their nonzeros: for a few points (the
-        # apex) the sparse basis times the constraints costs several times
-        # more, and so does scipy's conversion of a dense array
-        rows = model.grid.parameter_rows(v1, v2)
-        point, column = np.nonzero(rows)
-        pointer = np.searchsorted(point, np.arange(len(rows) + 1))
-        return cls(v0, h0, sp.csr_matrix((rows[point, column], column, pointer), shape=rows.shape))
+        # dense: for a few points (the apex) the sparse basis times the
+        # constraints costs several times more, and the descent multiplies
+        # by the dense rows
+        return cls(v0, h0, model.grid.parameter_rows(v1, v2))
 
     def __len__(self) -> int:
         return len(self.v0)
