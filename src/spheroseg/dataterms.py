@@ -207,7 +207,7 @@ class LocalMeans(DataTerm):
         c_in, c_out = self.band_means(backend, obs)
         contrast = np.maximum(c_out - c_in, 0.0)
         self.grey_means = (c_in, c_out)  # their medians only when a result is made (60 us)
-        return Force(obs.u, c_in, c_in + contrast, max(np.median(contrast) ** 2, self.min_scale))
+        return Force(obs.u, c_in, c_in + contrast, max(nanmedian(contrast) ** 2, self.min_scale))
 
     def band_means(self, backend, obs):
         """The band means projected on the Hermite space (the band rows'
@@ -309,9 +309,9 @@ class IntensityInterface(LocalMeans):
             c_out = c_in + contrast
             k = self.nepers
             threshold = c_out + k * (np.logaddexp(c_in / k, c_out / k) - c_out / k - np.log(2.0))
-            self.grey_means = (float(np.nanmedian(c_in)), float(np.nanmedian(c_out)))
+            self.grey_means = (float(nanmedian(c_in)), float(nanmedian(c_out)))
             self._frozen = (threshold - contrast / 2, threshold + contrast / 2,
-                            max(float(np.median(contrast)) ** 2, self.min_scale))
+                            max(float(nanmedian(contrast)) ** 2, self.min_scale))
         return Force(obs.u, *self._frozen)
 
     def estimate_nepers(self, backend, volume, obs) -> float:
