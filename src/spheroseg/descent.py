@@ -108,9 +108,8 @@ class Descent:
         if landmarks is not None and len(landmarks):
             self.landmarks = Landmarks.from_world(self.model, landmarks)
             self.omega = np.asarray(weights, float) * _LANDMARK_AREA * d.area
-            self._landmark_basis = self.landmarks.basis
-            self._landmark_pull = self._landmark_basis.T * self.omega  # L^T Omega
-            self.system_inverse = add_rows(self.system_inverse, self._landmark_basis, self.omega)
+            self._landmark_pull = self.landmarks.basis.T * self.omega  # L^T Omega
+            self.system_inverse = add_rows(self.system_inverse, self.landmarks.basis, self.omega)
 
     def observe(self, volume, data_term) -> Observation:
         """The surface and the image at the sample points, with what the
@@ -138,7 +137,7 @@ class Descent:
             # rows omega |L p_new - (L p + res)|^2: move towards each landmark
             # by at most a step
             lm = self.landmarks
-            res = (lm.v0 - self._landmark_basis @ self.p) * lm.h0
+            res = (lm.v0 - lm.basis @ self.p) * lm.h0
             res = np.minimum(np.maximum(res, -self.step), self.step) / lm.h0  # np.clip costs 3 us more
             rhs += self._landmark_pull @ res
         dp = self.system_inverse @ rhs
