@@ -238,39 +238,44 @@ def _speed(sp) -> list[str]:
         out += ["", "### Where the time goes, and what it would take", "",
                 "The default mode runs four stages: the global means on 2 x 2 and 4 x 4 patches, the local means on "
                 "8 x 8, then the intensity interface on 8 x 8, whose region means are frozen after its first "
-                "iteration. Issue 15's round removed work that produced nothing: the last stage no longer samples "
+                "iteration. Issue 15's rounds removed work that produced nothing: the last stage no longer samples "
                 "the bands it does not read (two thirds of its samples), a stage on the same grid (and a tracked "
                 "frame) continues the descent instead of rebuilding its matrices and landmark rows, a volume or a "
-                "mesh no longer builds a sparse basis matrix (the quality report computes two volumes a "
-                "segmentation), and the grid matrices are read from a cache on disk. The results are unchanged "
-                "(the pinned descent reference and every accuracy test pass; evaluations off the sample points "
-                "differ by 3e-16 relative).",
+                "mesh no longer builds a sparse basis matrix, the grid matrices are read from a cache on disk, the "
+                "step is solved for directly (one dense product a step instead of two, the thin-plate matrix kept "
+                "sparse), the medians a result reports are taken once at its end, and the set-up and the quality "
+                "report evaluate the surface on tensor grids and a landmark's basis row densely. The results are "
+                "unchanged: the pinned descent reference and every accuracy test pass, and the 32 cases of the "
+                "image-formation sweep give the same iterations, Dice and volumes to 4e-13.",
                 "",
                 f"An iteration of the last stage at 8 x 8 patches takes {it_default:.0f} us (median over the "
-                f"unseen-style cases above, {sp.get('kernel_threads', 1)} kernel threads); on one thread, about "
-                f"345 us: the surface at the {prof['samples']} sample points about 75 us (the Hermite basis patch by patch, then exp, normal and scale factor on SIMD lanes), their "
-                "grey levels about 100 us (25 ns a trilinear sample: its 8 voxels lie in 4 cache lines of an image "
-                "larger than the L2 cache), the least-squares update about 100 us (B^T v and B p about 10 us each "
-                "in kernels, two mat-vecs with 259 x 259 matrices 10-20 us each as they stream 0.5 MB each, the "
-                "landmark rows and the step adaptation), and some 50 us of Python and kernel-call overhead. The "
-                "local-mode iteration of the profile below adds the band means: "
+                f"unseen-style cases above, {sp.get('kernel_threads', 1)} kernel threads): the surface at the "
+                f"{prof['samples']} sample points about 45 us (the Hermite basis patch by patch, then exp, normal and "
+                "scale factor on SIMD lanes), their grey levels about 55 us (25 ns a trilinear sample on one thread: "
+                "its 8 voxels lie in 4 cache lines of an image larger than the L2 cache), the least-squares step "
+                "about 65 us (the force, B^T v and B p 8-15 us each in kernels, the thin-plate product 12 us, the "
+                "product with the 259 x 259 system inverse 10 us, the landmark rows and the motion's norm), and some "
+                "15 us of Python. The local-mode iteration of the profile below adds the band means: "
                 f"{prof['band_samples_us']:.0f} us of samples "
                 f"({1000 * prof['band_samples_us'] / (prof['image_samples'] - prof['samples']):.0f} ns each) and "
                 f"{prof['local_means_us']:.0f} us to project them on the surface. The kernels of the sample points "
                 "(surface, samples, cavity sums, B p) split the points among numba's threads (the threads section "
-                "above; a batch of several workers runs one thread in each, where threads would only contend): on "
-                "two cores the samples take 60 us instead of 109 and the surface 51 instead of 85. Reaching 200 us "
-                "would also take one fused kernel for the least-squares update and less Python per iteration; "
-                "neither was done.",
+                "above; a batch of several workers runs one thread in each, where threads would only contend). One "
+                "fused kernel for the step would save some 25 us more: numba's dispatch of its 35 arguments costs "
+                "most of what it would save.",
                 "",
                 f"A whole default segmentation of the unseen-style cases takes {min(seg_unseen):.1f} to "
-                f"{max(seg_unseen):.1f} ms (target 5 ms: missed): 19 to 29 iterations, of which 10-16 on 2 x 2 and "
-                "4 x 4 patches (100-300 us each, mostly call overhead at 256 or 1024 sample points), plus the set-up "
-                "of each level (refinement, landmark rows, the Woodbury update of the system inverse) and the "
-                "quality report. What depends only on the grid (the mass and smoothing systems and their inverses, "
-                "the basis tables) is built once per machine and read from disk by a new process (see the first "
-                "segmentation above); reading a file from the page cache takes about 1 ms per million voxels, so a "
-                "segmentation still takes longer than reading the image it segments."]
+                f"{max(seg_unseen):.1f} ms (target 5 ms: missed). Of about 10 ms: the tracker's set-up 1.2 ms (the "
+                "initial surface, the 2 x 2 descent, the grey-level statistics around the initial surface), the "
+                "2 x 2 and 4 x 4 levels 2.5-3.5 ms (9 to 19 iterations of 120-200 us, mostly call overhead at 256 "
+                "and 1024 sample points, and the set-up of each level), the local means 1.3-2 ms (2 or 3 "
+                "iterations of 650 us: the band samples and their projection), the interface stage 2.8-3.9 ms (its "
+                "first iteration 1.3 ms: the log-compression estimate and the region means; then 200 us each), "
+                "and the result 0.8 ms (the quality report). Reaching 5 ms would take fewer iterations (a change of "
+                "method, to be checked again across the image formations) or the coarse levels' Python per "
+                "iteration gone (a whole level in one compiled loop). What depends only on the grid (the mass and "
+                "smoothing systems and their inverses, the basis tables) is built once per machine and read from "
+                "disk by a new process (see the first segmentation above)."]
     return out
 
 

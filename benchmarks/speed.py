@@ -196,7 +196,8 @@ def thread_counts(seeds=(0, 1, 2)) -> dict:
                 o = d.observe(vol, term)
                 d.iterate(o, term.force(d.backend, vol, o))
 
-            seg = thread_medians(lambda: segment(vol, apex, base), counts, 10)
+            # the count set, not the default's idle cores (a busy moment would lower it)
+            seg = thread_medians(lambda: segment(vol, apex, base, threads=numba.get_num_threads()), counts, 10)
             it = thread_medians(iteration, counts, 300)
             observe = thread_medians(lambda: d.backend.observe(p0, vol), counts, 500)
             samples = thread_medians(lambda: d.backend.mean_along(vol, obs, at_surface, rows_all), counts, 500)
@@ -282,7 +283,9 @@ def memory_bytes(d) -> int:
     backend's buffers, and the discretisation it shares with every level of
     the same resolution (with one smoothing's inverse)."""
     shared = _nbytes(vars(d.discretisation)) + _nbytes(d.discretisation.system_inverse(1.0))
-    return int(_nbytes(vars(d)) + _nbytes(vars(d.backend)) + shared)
+    # the backend keeps the last image's sampling views: the image itself
+    backend = {k: v for k, v in vars(d.backend).items() if k != "_sampling_arrays"}
+    return int(_nbytes(vars(d)) + _nbytes(backend) + shared)
 
 
 def default_mode(label: str, minimum: bool = False) -> None:
