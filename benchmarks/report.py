@@ -261,8 +261,8 @@ def _speed(sp) -> list[str]:
                 f"{prof['local_means_us']:.0f} us to project them on the surface. The kernels of the sample points "
                 "(surface, samples, cavity sums, B p) split the points among numba's threads (the threads section "
                 "above; a batch of several workers runs one thread in each, where threads would only contend). One "
-                "fused kernel for the step would save some 25 us more: numba's dispatch of its 35 arguments costs "
-                "most of what it would save.",
+                "fused kernel for the step was not tried: by estimate (not measured) numba's dispatch of its some "
+                "35 arguments would cost most of the 35 us it could save.",
                 "",
                 f"A whole default segmentation of the unseen-style cases takes {min(seg_unseen):.1f} to "
                 f"{max(seg_unseen):.1f} ms (target 5 ms: missed). Of about 10 ms: the tracker's set-up 1.2 ms (the "
@@ -315,7 +315,10 @@ def _threads(th) -> list[str]:
         d, f = busy["default"], busy["forced"]
         out += ["", f"Beside a busy process (another process spinning on one core, started by the run): the same "
                 f"segmentations, {busy['segmentations']} with each setting in turn. The default (numba's count reduced "
-                f"at each segmentation to the cores no other process is running on, here one) took "
+                f"at each segmentation to the cores no other process is running on"
+                + (f", {busy['default_threads']} thread{'' if busy['default_threads'] == 1 else 's'} when checked"
+                   if "default_threads" in busy else "")
+                + ") took "
                 f"{d['median_ms']:.1f} ms (median; worst {d['worst_ms']:.1f}); {busy['forced_threads']} threads forced "
                 f"took {f['median_ms']:.1f} ms (worst {f['worst_ms']:.1f}): a parallel step waits for its slowest "
                 "thread, and one of them shares its core with the other process."]

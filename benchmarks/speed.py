@@ -35,7 +35,7 @@ from common import PEER_PARAMS, machine, median_time, run_sitk, run_skimage, wri
 from report import write_markdown  # noqa: E402
 
 import spheroseg  # noqa: E402
-from spheroseg.backends import compiled_available  # noqa: E402
+from spheroseg.backends import compiled_available, kernel_thread_count  # noqa: E402
 from spheroseg.dataterms import IntensityInterface, LocalMeans  # noqa: E402
 from spheroseg.descent import Descent  # noqa: E402
 from spheroseg.phantom import FORMATIONS, make_phantom, make_sequence  # noqa: E402
@@ -233,6 +233,7 @@ def beside_a_busy_process(seeds=(0, 1, 2), repeats=20) -> dict:
     times = {"default": [], "forced": []}
     try:
         time.sleep(0.5)
+        chosen = kernel_thread_count(None)  # what the default picks beside the spinner
         for name in ("default", "psf_wide"):
             for seed in seeds:
                 ph = make_phantom(seed=seed, formation=FORMATIONS[name])
@@ -245,7 +246,7 @@ def beside_a_busy_process(seeds=(0, 1, 2), repeats=20) -> dict:
     finally:
         spinner.kill()
         spinner.wait()
-    return {"forced_threads": forced, "segmentations": len(times["default"]),
+    return {"forced_threads": forced, "default_threads": chosen, "segmentations": len(times["default"]),
             **{key: {"median_ms": float(np.median(t)), "worst_ms": float(np.max(t))} for key, t in times.items()}}
 
 

@@ -87,7 +87,7 @@ def test_kernel_threads_sets_and_restores_the_count():
     numba.set_num_threads(before)
 
 
-BUSY = "import time\nend = time.monotonic() + 30\nwhile time.monotonic() < end: pass\n"
+BUSY = "import time\nprint('spinning', flush=True)\nend = time.monotonic() + 30\nwhile time.monotonic() < end: pass\n"
 
 
 def test_idle_cores_leaves_out_a_busy_process():
@@ -100,9 +100,10 @@ def test_idle_cores_leaves_out_a_busy_process():
 
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     assert 1 <= idle_cores() <= cores
-    busy = subprocess.Popen([sys.executable, "-c", BUSY])
+    busy = subprocess.Popen([sys.executable, "-c", BUSY], stdout=subprocess.PIPE, text=True)
     try:
-        time.sleep(0.5)  # its interpreter started and spins
+        assert busy.stdout.readline().strip() == "spinning"  # its interpreter started (however loaded the machine)
+        time.sleep(0.05)
         counts = [idle_cores() for _ in range(20)]
     finally:
         busy.kill()
