@@ -103,6 +103,30 @@ def test_samples_match_volume_sample_including_no_data(case):
     np.testing.assert_allclose(mean, expected, rtol=1e-9, atol=1e-9)
 
 
+def test_samples_at_are_volume_sample_nearest_and_trilinear(case):
+    """The raw samples along normals against Volume.sample: the nearest voxel
+    to the last bit (the speckle estimate reads them), trilinear to rounding."""
+    ph, model, p, _ = case
+    vol = ph.volume
+    g = model.geometry(p)
+    rng = np.random.default_rng(5)
+    world = (g.world + rng.normal(0, 30, g.world.shape)).T.copy()
+    normal = g.normal.T.copy()
+    offsets = np.array([-4.0, 0.0, 0.5, 3.0])
+    rows = np.arange(0, model.n_samples, 3)
+    points = world.T[rows, None, :] + offsets[None, :, None] * normal.T[rows, None, :]
+    for order in (0, 1):
+        out = np.empty((len(rows), len(offsets)))
+        _kernels.samples_at(*vol.sampling_view(), world, normal, rows, offsets, order == 0, out)
+        expected = vol.sample(points, order=order)
+        assert 0 < np.isnan(expected).sum() < expected.size  # on and off the data
+        np.testing.assert_array_equal(np.isnan(out), np.isnan(expected))
+        if order == 0:
+            np.testing.assert_array_equal(out, expected)
+        else:
+            np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-9)
+
+
 def test_normal_displacement_matches_the_numpy_backend(case):
     """The kernel against NumpyBackend.displacement (through energy.normal_speed)."""
     _, model, _, _ = case

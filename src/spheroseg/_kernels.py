@@ -17,6 +17,7 @@ per level:
   scale factor ``h0``, the unit normal in world space, ``A_K``, ...):
   paper eq. 1 (the coordinates) and eqs. 16-17 (tangents, ``A_K``);
 - :func:`sample_along`: the mean of trilinear samples along normals;
+  :func:`samples_at`: the samples themselves, trilinear or the nearest voxel;
 - :func:`cavity_sums`: samples along the rays inside the cavity, weighted by
   the volume element ``V = h0 h1 h2`` of eq. 19 (the global Chan-Vese mean);
 - :func:`gather`, :func:`scatter`: ``B H`` and ``B^T v`` for the Hermite
@@ -51,8 +52,8 @@ except ImportError:  # pragma: no cover
 
 from .volume import INDEX_TOLERANCE as _EDGE
 
-__all__ = ["AVAILABLE", "PARALLEL_LOCK", "prolate_surface", "sample_along", "cavity_sums", "gather", "scatter",
-           "normal_displacement", "csr_product"]
+__all__ = ["AVAILABLE", "PARALLEL_LOCK", "prolate_surface", "sample_along", "samples_at", "cavity_sums", "gather",
+           "scatter", "normal_displacement", "csr_product"]
 
 AVAILABLE = njit is not None
 #: held by a caller of a parallel kernel (here and the mask rasteriser's):
@@ -90,6 +91,19 @@ def _sample(image, strides, upper, fi, fj, fk):
     c10 = image[c + sz] * (1.0 - ti) + image[c + sz + one] * ti
     c11 = image[c + sy + sz] * (1.0 - ti) + image[c + sy + sz + one] * ti
     return (c00 * (1.0 - tj) + c01 * tj) * (1.0 - tk) + (c10 * (1.0 - tj) + c11 * tj) * tk
+
+
+def _nearest(image, strides, upper, fi, fj, fk):
+    """The voxel nearest the continuous index ``(fi, fj, fk)``, as
+    :meth:`spheroseg.Volume.sample` with ``order=0`` (halves rounded to even,
+    as ``np.rint``): NaN outside the image and on no-data."""
+    if not (fi >= -_EDGE and fj >= -_EDGE and fk >= -_EDGE
+            and fi <= upper[0] + _EDGE and fj <= upper[1] + _EDGE and fk <= upper[2] + _EDGE):
+        return np.nan
+    i = np.rint(min(max(fi, 0.0), upper[0]))
+    j = np.rint(min(max(fj, 0.0), upper[1]))
+    k = np.rint(min(max(fk, 0.0), upper[2]))
+    return float(image[np.uint64(i) + np.uint64(j) * np.uint64(strides[1]) + np.uint64(k) * np.uint64(strides[2])])
 
 
 def _index(matrix, offset, x, y, z):
@@ -257,6 +271,22 @@ def sample_along(image, strides, upper, to_index, image_origin, world, normal, r
         out_count[r] = count
 
 
+def samples_at(image, strides, upper, to_index, image_origin, world, normal, rows, offsets, nearest, out):
+    """``out[r, k]``: the sample at ``world[:, q] + offsets[k] normal[:, q]``
+    for ``q = rows[r]``, as :meth:`spheroseg.Volume.sample` (the reference):
+    trilinear, or with ``nearest`` the nearest voxel; NaN off the data."""
+    for r in prange(rows.shape[0]):
+        q = rows[r]
+        pi, pj, pk = _index(to_index, image_origin, world[0, q], world[1, q], world[2, q])
+        ni, nj, nk = _index(to_index, _ZERO, normal[0, q], normal[1, q], normal[2, q])
+        for k in range(offsets.shape[0]):
+            s = offsets[k]
+            if nearest:
+                out[r, k] = _nearest(image, strides, upper, pi + s * ni, pj + s * nj, pk + s * nk)
+            else:
+                out[r, k] = _sample(image, strides, upper, pi + s * ni, pj + s * nj, pk + s * nk)
+
+
 def cavity_sums(image, strides, upper, to_index, image_origin, f, cos_th, sin_th, cos_mu, sin_mu, d, rotation, origin,
                 rows, fractions, out_sum, out_weight):
     """For each ``q`` in ``rows``, samples at ``lambda = t f[q]`` for ``t`` in
@@ -318,6 +348,7 @@ if AVAILABLE:
     _parallel = njit(cache=True, error_model="numpy", parallel=True)
     _inline = njit(cache=True, error_model="numpy", inline="always")
     _sample = _inline(_sample)
+    _nearest = _inline(_nearest)
     _index = _inline(_index)
     _patch = _inline(_patch)
     _contract = _inline(_contract)
@@ -326,6 +357,7 @@ if AVAILABLE:
     scatter = _compile(scatter)
     prolate_surface = _parallel(prolate_surface)
     sample_along = _parallel(sample_along)
+    samples_at = _parallel(samples_at)
     cavity_sums = _parallel(cavity_sums)
     normal_displacement = _compile(normal_displacement)
     csr_product = _compile(csr_product)

@@ -235,6 +235,17 @@ class CompiledBackend(NumpyBackend):
             self._sampled, self._sampling_arrays = volume, (kernels, volume.sampling_view())
         return self._sampling_arrays
 
+    def samples_along(self, volume, obs: Observation, offsets, rows=slice(None), *, exponent: float = 0.0,
+                      order: int = 1) -> np.ndarray:
+        if isinstance(volume, BeamVolume) or exponent or isinstance(rows, slice) or order not in (0, 1):
+            return super().samples_along(volume, obs, offsets, rows, exponent=exponent, order=order)
+        offsets = np.ascontiguousarray(offsets, dtype=float)
+        out = np.empty((len(rows), len(offsets)))
+        kernels, image = self._sampling(volume)
+        with self.kernels.PARALLEL_LOCK:
+            kernels.samples_at(*image, obs.world, obs.normal, rows, offsets, order == 0, out)
+        return out
+
     def mean_along(self, volume, obs: Observation, offsets, rows, *, exponent: float = 0.0):
         mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
         kernels, image = self._sampling(volume)
