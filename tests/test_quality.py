@@ -104,7 +104,7 @@ def test_wall_bulge():
     ratio of its push there to elsewhere."""
     from spheroseg import Surface
     from spheroseg.fit import fit_surface
-    from spheroseg.quality import wall_bulge
+    from spheroseg.quality import axis_distances, wall_bulge
 
     initial = Surface.from_apex_base([0.0, 0.0, 80.0], [0.0, 0.0, 0.0])
     assert wall_bulge(initial, initial) == pytest.approx(1.0, abs=1e-12)
@@ -123,3 +123,6 @@ def test_wall_bulge():
                 for s in (pushed, initial)]
     ratio = distance[0] / distance[1]
     assert wall_bulge(pushed, initial) == pytest.approx(ratio.max() / np.median(ratio), rel=1e-12)
+    # the initial surface's distances computed once for a sequence's frames
+    np.testing.assert_allclose(axis_distances(initial, initial), distance[1], rtol=1e-12)
+    assert wall_bulge(pushed, initial, reference=axis_distances(initial, initial)) == wall_bulge(pushed, initial)

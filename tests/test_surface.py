@@ -223,3 +223,19 @@ def test_grid_points_are_the_points_on_the_grid(system):
     full_v1, full_v2 = np.meshgrid(v1, v2)
     np.testing.assert_allclose(s.grid_points(v1, v2), s.points(full_v1, full_v2), rtol=1e-13, atol=1e-11)
     np.testing.assert_allclose(s.grid_points(v1, lo)[0], s.points(v1, np.full_like(v1, lo)), rtol=1e-13, atol=1e-11)
+
+
+@pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])
+def test_tip_is_the_centre_of_the_end_ring(system):
+    """tip(): at a pole the whole end ring is the one point of the first
+    node's value; without a pole (cylindrical) the ring's centre."""
+    s = Surface.from_apex_base(APEX, BASE, system=system, patches=(4, 2))
+    wavy = s.coefficients * (1 + 0.1 * np.sin(np.arange(s.coefficients.size))).reshape(s.grid.shape)
+    s = s.with_coefficients(s.grid.constrain(wavy))  # a well-formed surface: one point at a pole
+    lo = s.grid.v2_range[0]
+    ring = s.points(np.linspace(0, 2 * np.pi, 16, endpoint=False), np.full(16, lo))
+    if lo in s.grid.poles:
+        np.testing.assert_allclose(ring, np.broadcast_to(s.tip(), ring.shape), rtol=0, atol=1e-9)
+    else:
+        assert np.ptp(ring, axis=0).max() > 1.0  # a ring, not a point
+    np.testing.assert_allclose(s.tip(), ring.mean(axis=0), rtol=0, atol=1e-9)

@@ -45,14 +45,14 @@ import numpy as np
 
 from .dataterms import nanmedian
 
-__all__ = ["quality_report", "quality_warning", "wall_bulge"]
+__all__ = ["quality_report", "quality_warning", "wall_bulge", "axis_distances"]
 
 #: the bounds of a plausible result
 LIMITS = {"contrast": 0.5, "low_contrast_fraction": 0.3, "no_data_fraction": 0.1, "apex_shift_mm": 10.0,
           "volume_ratio": (1 / 3, 3.0), "bulge": 1.6}
 
 
-def wall_bulge(surface, initial) -> float:
+def wall_bulge(surface, initial, *, reference: np.ndarray | None = None) -> float:
     """The largest ratio of the wall's distance from the long axis to the
     initial surface's, over the median ratio.
 
@@ -60,19 +60,25 @@ def wall_bulge(surface, initial) -> float:
     the apex cap and the base rim left out: 15 % and 5 % of the ``v2``
     range); distances are from the initial surface's axis (through its
     origin along its pose's first axis).  1 for a wall that moved out (or
-    in) by the same factor everywhere.
+    in) by the same factor everywhere.  ``reference`` is
+    ``axis_distances(initial, initial)`` when already computed (the frames
+    of a sequence compare with one initial surface).
     """
+    if reference is None:
+        reference = axis_distances(initial, initial)
+    ratio = axis_distances(surface, initial) / reference
+    return float(ratio.max() / nanmedian(ratio))  # NaN if any is: so is the max
+
+
+def axis_distances(surface, initial) -> np.ndarray:
+    """Distances (mm) of ``surface``'s wall from ``initial``'s long axis at
+    the parameters :func:`wall_bulge` compares."""
     lo, hi = initial.grid.v2_range
     v1 = np.linspace(0, 2 * np.pi, 48, endpoint=False)
     v2 = np.linspace(lo + 0.15 * (hi - lo), hi - 0.05 * (hi - lo), 16)
     origin, axis = initial.pose.origin, initial.pose.rotation[:, 0]
-
-    def from_axis(s):
-        p = s.grid_points(v1, v2).reshape(-1, 3) - origin
-        return np.linalg.norm(p - np.outer(p @ axis, axis), axis=1)
-
-    ratio = from_axis(surface) / from_axis(initial)
-    return float(ratio.max() / nanmedian(ratio))  # NaN if any is: so is the max
+    p = surface.grid_points(v1, v2).reshape(-1, 3) - origin
+    return np.linalg.norm(p - np.outer(p @ axis, axis), axis=1)
 
 
 def quality_report(*, contrast: float, low_contrast_fraction: float, no_data_fraction: float, converged: bool,

@@ -237,6 +237,18 @@ class Surface:
         f = np.maximum(self.grid.evaluate_grid(self.coefficients, v1, v2), 0.0)  # as radius()
         return self.pose.to_world(self.system.to_cartesian(f, v1, v2[:, None]))
 
+    def tip(self) -> np.ndarray:
+        """World point (mm) of the surface's end at the start of the ``v2``
+        range: the apex.  Where that end is a pole of the coordinates the
+        whole end ring is one point, whose ``f`` is the value of the first
+        node (the Hermite basis there is 1 on it and 0 on every other
+        coefficient); elsewhere the centre of the ring (16 points)."""
+        lo = self.grid.v2_range[0]
+        if lo in self.grid.poles:
+            f = max(float(self.coefficients[0, 0, 0]), 0.0)  # as radius()
+            return self.pose.to_world(self.system.to_cartesian(f, 0.0, lo))
+        return self.grid_points(np.linspace(0, 2 * np.pi, 16, endpoint=False), lo)[0].mean(axis=0)
+
     def model_coordinates(self, world) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(v0, v1, v2)`` of world points."""
         return self.system.from_cartesian(self.pose.to_local(world))

@@ -27,7 +27,7 @@ from .coords import Pose, annulus_plane
 from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, band_offsets, nanmedian
 from .descent import Descent
 from .options import SegmentOptions, format_point
-from .quality import quality_report, wall_bulge
+from .quality import axis_distances, quality_report, wall_bulge
 from .results import STATUS_MESSAGES, Intermediate, SegmentationResult
 from .surface import Surface
 
@@ -183,6 +183,7 @@ class Tracker:
         self._converged = False
         self._initial_volume = surface.volume_ml()
         self._initial = surface  # the quality report's reference shape
+        self._bulge_reference = None
         self._seconds = time.perf_counter() - started
         self._skip_empty_levels()
 
@@ -443,11 +444,12 @@ class Tracker:
             no_data, contrast = float(np.mean(~np.isfinite(u))), np.asarray(force.c_out - force.c_in, float)
         else:
             no_data, contrast, spread = np.nan, np.full(1, np.nan), np.nan
-        v1 = np.linspace(0, 2 * np.pi, 16, endpoint=False)
-        tip = surface.grid_points(v1, surface.grid.v2_range[0])[0].mean(axis=0)
+        if self._bulge_reference is None:  # the initial surface's: once for every frame
+            self._bulge_reference = axis_distances(self._initial, self._initial)
         with np.errstate(invalid="ignore", divide="ignore"):
             return quality_report(
                 contrast=float(nanmedian(contrast) / spread), no_data_fraction=no_data,
                 low_contrast_fraction=float(np.mean(np.broadcast_to(contrast, (1,) + np.shape(contrast)) < 0.1 * spread)),
-                converged=self.status == 0, apex_shift_mm=float(np.linalg.norm(tip - self.apex)),
-                volume_ratio=surface.volume_ml() / self._initial_volume, bulge=wall_bulge(surface, self._initial))
+                converged=self.status == 0, apex_shift_mm=float(np.linalg.norm(surface.tip() - self.apex)),
+                volume_ratio=surface.volume_ml() / self._initial_volume,
+                bulge=wall_bulge(surface, self._initial, reference=self._bulge_reference))
