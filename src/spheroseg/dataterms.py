@@ -205,9 +205,13 @@ class LocalMeans(DataTerm):
 
     def force(self, backend, volume, obs) -> Force:
         c_in, c_out = self.band_means(backend, obs)
+        self.band_fields = (c_in, c_out)  # what the intensity interface starts from
         contrast = np.maximum(c_out - c_in, 0.0)
         self.grey_means = (c_in, c_out)  # their medians only when a result is made (60 us)
         return Force(obs.u, c_in, c_in + contrast, max(nanmedian(contrast) ** 2, self.min_scale))
+
+    def reset(self) -> None:
+        self.band_fields = None
 
     def band_means(self, backend, obs):
         """The band means projected on the Hermite space (the band rows'
@@ -302,17 +306,25 @@ class IntensityInterface(LocalMeans):
 
     def force(self, backend, volume, obs) -> Force:
         if self._frozen is None:
-            if self.nepers is None:
-                self.nepers = self.estimate_nepers(backend, volume, obs)
-            c_in, c_out = self.band_means(backend, obs)
-            contrast = np.maximum(c_out - c_in, 0.0)
-            c_out = c_in + contrast
-            k = self.nepers
-            threshold = c_out + k * (np.logaddexp(c_in / k, c_out / k) - c_out / k - np.log(2.0))
-            self.grey_means = (float(nanmedian(c_in)), float(nanmedian(c_out)))
-            self._frozen = (threshold - contrast / 2, threshold + contrast / 2,
-                            max(float(nanmedian(contrast)) ** 2, self.min_scale))
+            self.freeze(backend, volume, obs, *self.band_means(backend, obs))
         return Force(obs.u, *self._frozen)
+
+    def freeze(self, backend, volume, obs, c_in, c_out) -> None:
+        """Set the frozen levels from the band means ``c_in``, ``c_out``
+        (fields at the sample points, :meth:`LocalMeans.band_means`) about
+        the surface of ``obs`` (an observation with its bands).  The
+        schedule hands over the local means' last ones, measured about the
+        wall they settled on, so that this stage's first observation needs
+        no bands."""
+        if self.nepers is None:
+            self.nepers = self.estimate_nepers(backend, volume, obs)
+        contrast = np.maximum(c_out - c_in, 0.0)
+        c_out = c_in + contrast
+        k = self.nepers
+        threshold = c_out + k * (np.logaddexp(c_in / k, c_out / k) - c_out / k - np.log(2.0))
+        self.grey_means = (float(nanmedian(c_in)), float(nanmedian(c_out)))
+        self._frozen = (threshold - contrast / 2, threshold + contrast / 2,
+                        max(float(nanmedian(contrast)) ** 2, self.min_scale))
 
     def estimate_nepers(self, backend, volume, obs) -> float:
         """``k`` from the spread of the grey levels in the outer band at

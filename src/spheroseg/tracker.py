@@ -280,6 +280,7 @@ class Tracker:
             force = term.force(self._descent.backend, self.volume, obs)
             self.c_in, self.c_out = term.grey_means
             self._last = (obs.u, force, term.spread)  # for the quality report, read when a result is made
+            self._observation = obs  # valid until the next observation (a stage's hand-over reads it)
             self.motion = self._descent.iterate(obs, force)
         self.iteration += 1
         self._level_iterations += 1
@@ -297,12 +298,23 @@ class Tracker:
             self._level_iterations = 0
             self._terms[self.levels[self.level].data_term].reset()
             if self.levels[self.level].patches == self.levels[self.level - 1].patches:
+                self._hand_over()
                 self._descent.restart(self.options.step)  # the intensity stage: same grid, same landmarks
             else:
                 self._descent = self._new_descent(self._descent.surface, self._reference)
             self._skip_empty_levels()
         else:
             self.status = 0 if converged else 1
+
+    def _hand_over(self) -> None:
+        """The intensity interface starts from the local means' last band
+        means, about the wall where they stopped (when they ran in this frame)."""
+        previous = self._terms[self.levels[self.level - 1].data_term]
+        term = self._terms[self.levels[self.level].data_term]
+        fields = getattr(previous, "band_fields", None)
+        if fields is not None and hasattr(term, "freeze"):
+            with kernel_threads(self._threads):
+                term.freeze(self._descent.backend, self.volume, self._observation, *fields)
 
     def _skip_empty_levels(self) -> None:
         if self.status is None and self.levels[self.level].max_iterations == 0:
