@@ -85,6 +85,30 @@ def test_iterating_by_hand_equals_segment(phantom):
         tracker.iterate()
 
 
+def test_the_interface_starts_from_the_local_means(monkeypatch):
+    """The intensity stage is handed the local means' last band means, on
+    every frame: it measures none itself, and its region means are theirs."""
+    monkeypatch.setattr(IntensityInterface, "band_means", lambda *args: pytest.fail("the interface measured again"))
+
+    def run_by_hand(tracker):
+        while tracker.status is None:
+            stage = tracker.levels[tracker.level].data_term
+            tracker.iterate()
+            if stage is LocalMeans:
+                c_in, c_out = tracker.c_in.copy(), tracker.c_out.copy()  # the local means' fields
+            elif stage is IntensityInterface:
+                assert tracker.c_in == float(np.median(c_in))
+                assert tracker.c_out == float(np.median(c_in + np.maximum(c_out - c_in, 0.0)))
+        assert tracker.levels[tracker.level].data_term is IntensityInterface and tracker.status == 0
+
+    seq = make_sequence(seed=5, n_frames=2, spacing=2.0)
+    first = seq.frames[0]
+    tracker = Tracker(seq.volumes[0], first.apex, first.base)
+    run_by_hand(tracker)
+    assert tracker.step(seq.volumes[1], max_iterations=4).iterations > 0  # a new frame: handed over again
+    run_by_hand(Tracker(seq.volumes[1], first.apex, first.base, init=tracker.surface))
+
+
 def test_stepping_frames_equals_track():
     seq = make_sequence(seed=5, n_frames=3, spacing=2.0)
     first = seq.frames[0]
