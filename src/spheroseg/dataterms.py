@@ -259,9 +259,10 @@ class IntensityInterface(LocalMeans):
 
     It is the second stage of the finest level: :class:`LocalMeans` first
     finds the wall (robustly: a log-domain midpoint lies well below the
-    myocardium whatever lies beyond it), then this term measures ``c_in``,
-    ``c_out`` in bands about that wall, freezes them, and moves the surface
-    to ``g*``.  Frozen, because measured about the moving surface the outer
+    myocardium whatever lies beyond it), then this term takes ``c_in``,
+    ``c_out`` from their last band means about that wall (:meth:`freeze`;
+    measured on its first observation when none were handed over), freezes
+    them, and moves the surface to ``g*``.  Frozen, because measured about the moving surface the outer
     band would reach past a myocardium dimmer than what lies beyond it
     (pericardium, lung interface), raise ``g*`` above the myocardium and let
     the wall creep outwards through it.  :meth:`reset` measures them again
