@@ -167,9 +167,11 @@ class DataTerm:
         cavity, volume_sum = backend.cavity_sums(volume, obs, _CAVITY_FRACTIONS, rows)
         shell, count = backend.mean_along(volume, obs, self.shell_offsets, rows)
         # per ray: cavity = sum of V u, volume = sum of V over the finite samples
-        w_in = d.weights[rows] * obs.f[rows]
-        w_out = d.weights[rows] * obs.area[rows] * count
-        return _ratio(w_in @ cavity, w_in @ volume_sum), _ratio(w_out @ np.nan_to_num(shell), w_out.sum())
+        weights = d.weights[rows]
+        w_in = weights * obs.f[rows]
+        w_out = weights * obs.area[rows] * count
+        shell[count == 0] = 0.0  # no sample, no weight (np.nan_to_num costs five times this)
+        return _ratio(w_in @ cavity, w_in @ volume_sum), _ratio(w_out @ shell, w_out.sum())
 
 
 class FixedInterface(DataTerm):
