@@ -109,6 +109,20 @@ def test_the_interface_starts_from_the_local_means(monkeypatch):
     run_by_hand(Tracker(seq.volumes[1], first.apex, first.base, init=tracker.surface))
 
 
+def test_the_interface_stage_takes_twice_the_step(phantom):
+    """The interface stage starts at the wall, its force linear in the
+    distance: it moves by up to twice the step option (the other stages by
+    up to the step, here all under it)."""
+    tracker = Tracker(phantom.volume, phantom.apex, phantom.base, step=0.5)
+    motions = {}
+    while tracker.status is None:
+        stage = tracker.levels[tracker.level].data_term
+        motions.setdefault(stage, []).append(tracker.iterate())
+    assert IntensityInterface.step_factor == 2.0 and LocalMeans.step_factor == GlobalMeans.step_factor == 1.0
+    assert 0.55 < motions[IntensityInterface][0] <= 1.0
+    assert max(motions[GlobalMeans] + motions[LocalMeans]) < 0.5
+
+
 def test_stepping_frames_equals_track():
     seq = make_sequence(seed=5, n_frames=3, spacing=2.0)
     first = seq.frames[0]

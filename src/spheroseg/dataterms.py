@@ -138,10 +138,13 @@ class DataTerm:
     exponent : float or None
         The observation reads ``exp(exponent * v)`` for each grey level
         ``v`` (0: the grey levels; None: not known yet).
+    step_factor : float
+        The step of this term's stage, in multiples of the ``step`` option.
     """
 
     needs_bands = False
     exponent: float | None = 0.0
+    step_factor = 1.0
 
     def __init__(self, samples: np.ndarray, *, band: float = 8.0, band_out: float = 15.0,
                  interface: float | None = None):
@@ -291,6 +294,13 @@ class IntensityInterface(LocalMeans):
 
     #: standard deviation of ln I for exponential (fully developed speckle) intensity
     LOG_SPREAD = np.pi / np.sqrt(6.0)
+    #: The stage starts at the local means' wall, within the blurred edge,
+    #: where the force grows with the distance to the interface: at the
+    #: option's step an iteration there removed about a quarter of that
+    #: distance, and the stage stopped (on ``tol``) some 0.15 mm short of the
+    #: interface.  Twice the step halves it each iteration (the adaptive
+    #: step halves it back if the surface oscillates).
+    step_factor = 2.0
 
     def __init__(self, samples, *, band=8.0, band_out=15.0, interface=None):
         self.reset()  # first: the base class reads needs_bands

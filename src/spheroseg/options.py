@@ -39,12 +39,15 @@ class SegmentOptions:
     patches : (int, int)
         Hermite patches around (theta) and along (apex to base) the cavity;
         the paper's 8 x 8 by default.
-    mode : {"local", "chan-vese", "fast"}
-        Data term (:mod:`spheroseg.dataterms`).
+    mode : {"intensity", "local", "chan-vese", "fast"}
+        Data term (:mod:`spheroseg.dataterms`); "intensity", the default,
+        runs the local means and then moves the wall to the intensity
+        interface.
     step : float
         Largest normal displacement of the surface per iteration, mm.  The
         default 1 mm is about 4 % of a ventricle's radius: the paper's
-        ``dt = 0.04``.
+        ``dt = 0.04``.  The intensity mode's last stage, which starts at the
+        wall, takes twice it (:class:`spheroseg.dataterms.IntensityInterface`).
     adaptive_step : bool
         Halve the step whenever the surface moves back against its last
         motion (it oscillates about the wall instead of settling).

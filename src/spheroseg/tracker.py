@@ -225,9 +225,14 @@ class Tracker:
         self._reference = reference
         points, weights = self._held_points(surface.pose)
         opts = self.options
-        return Descent(surface, reference, order=opts.order, step=opts.step, smoothness=opts.smoothness, nu=opts.nu,
+        return Descent(surface, reference, order=opts.order, step=self._stage_step(), smoothness=opts.smoothness, nu=opts.nu,
                        landmarks=points, landmark_weights=weights, backend=opts.backend,
                        adaptive_step=opts.adaptive_step)
+
+    def _stage_step(self) -> float:
+        """The step (mm) of the current level: the option's, times its data
+        term's ``step_factor``."""
+        return self.options.step * self.levels[self.level].data_term.step_factor
 
     def _prepare_terms(self) -> dict:
         """The data terms of the schedule, from the grey levels around the
@@ -299,7 +304,7 @@ class Tracker:
             self._terms[self.levels[self.level].data_term].reset()
             if self.levels[self.level].patches == self.levels[self.level - 1].patches:
                 self._hand_over()
-                self._descent.restart(self.options.step)  # the intensity stage: same grid, same landmarks
+                self._descent.restart(self._stage_step())  # the intensity stage: same grid, same landmarks
             else:
                 self._descent = self._new_descent(self._descent.surface, self._reference)
             self._skip_empty_levels()
@@ -380,14 +385,14 @@ class Tracker:
             same_grid = self.patches == self.levels[finest[0]].patches
             self.level = finest[0]
             if same_grid:  # as a new descent on this grid and pose
-                self._descent.restart(self.options.step)
+                self._descent.restart(self._stage_step())
                 self._descent.set_reference(surface)
             else:  # stopped on a coarser level
                 self._descent = self._new_descent(surface, surface)
         else:
             self._descent.set_surface(surface)
             self._descent.set_reference(surface)
-            self._descent.reset_step(self.options.step)
+            self._descent.reset_step(self._stage_step())
         self._terms[self.levels[self.level].data_term].reset()
         self.iteration, self._level_iterations, self.status, self._converged = 0, 0, None, False
         self._seconds = time.perf_counter() - started
@@ -434,9 +439,9 @@ class Tracker:
         points = self._check_landmarks(landmarks)
         self.landmarks = points
         self._descent.set_landmarks(*self._held_points(self._descent.model.pose))
-        self._descent.reset_step(self.options.step)
-        self._threads = kernel_thread_count(self.options.threads)
         self.level = len(self.levels) - 1 if self.status is not None else self.level
+        self._descent.reset_step(self._stage_step())
+        self._threads = kernel_thread_count(self.options.threads)
         self._level_iterations, self.status = 0, None
 
     def result(self) -> SegmentationResult:
