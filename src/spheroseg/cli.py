@@ -282,8 +282,10 @@ def _report_worker(args):
 
 
 def cmd_segment(args) -> int:
-    # CPU time of the process so far: the interpreter and the package imports
-    seconds = {"import": time.process_time()}
+    # CPU time of the main thread so far: the interpreter and the package
+    # imports (the process's would add BLAS's and numba's threads, and could
+    # exceed the wall time it stands for)
+    seconds = {"import": time.thread_time()}
     t0 = time.perf_counter()
     from .outputs import write_segmentation_outputs
     from .segment import segment
