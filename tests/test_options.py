@@ -20,6 +20,7 @@ def test_defaults_round_trip_through_json():
     (dict(patches=(8, 2.5)), "patches must be two integers >= 2"),
     (dict(step=-1.0), "step must be a positive number, got -1.0"),
     (dict(tol=float("nan")), "tol must be a positive number"),
+    (dict(coarse_tol=0.0), "coarse_tol must be a positive number"),
     (dict(max_iterations=True), "max_iterations must be a non-negative integer"),
     (dict(order=0), "order must be a positive integer"),
     (dict(nu=-0.1), "nu must be a number >= 0"),

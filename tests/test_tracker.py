@@ -19,7 +19,7 @@ from spheroseg.tracker import schedule
 DATA = Path(__file__).parent / "data"
 SRC = Path(spheroseg.__file__).parent
 # options added after the reference was recorded, as they reproduce the descent it recorded
-LEGACY = dict(adaptive_step=False)
+LEGACY = dict(adaptive_step=False, coarse_tol=0.05)
 KERNEL_MODULES = ("_kernels", "_beam_kernels")
 NAMEDTUPLE_API = ("_replace", "_asdict", "_fields", "_make")  # public, despite the underscore
 STDLIB_API = ("os._exit",)  # public, despite the underscore
@@ -57,8 +57,10 @@ def test_results_equal_the_recorded_reference(reference):
 
 def test_schedule_is_data():
     levels = schedule(SegmentOptions())
-    assert [(lv.patches, lv.data_term, lv.max_iterations) for lv in levels] == [
-        ((2, 2), GlobalMeans, 60), ((4, 4), GlobalMeans, 60), ((8, 8), LocalMeans, 60), ((8, 8), IntensityInterface, 60)]
+    assert [(lv.patches, lv.data_term, lv.max_iterations, lv.tol) for lv in levels] == [
+        ((2, 2), GlobalMeans, 60, 0.1), ((4, 4), GlobalMeans, 60, 0.1), ((8, 8), LocalMeans, 60, 0.05),
+        ((8, 8), IntensityInterface, 60, 0.05)]
+    assert [lv.tol for lv in schedule(SegmentOptions(tol=0.02, coarse_tol=0.3))] == [0.3, 0.3, 0.02, 0.02]
     assert schedule(SegmentOptions(mode="local"))[-1].data_term is LocalMeans
     assert [lv.data_term for lv in schedule(SegmentOptions(mode="fast"))] == [FixedInterface] * 3
     assert [lv.patches for lv in schedule(SegmentOptions(patches=(6, 8), mode="local"))] == [(3, 4), (6, 8)]
@@ -73,10 +75,17 @@ def phantom():
 def test_iterating_by_hand_equals_segment(phantom):
     tracker = Tracker(phantom.volume, phantom.apex, phantom.base)
     assert tracker.status is None and tracker.iteration == 0 and tracker.patches == (2, 2)
-    motions = []
+    motions, ends = [], []
     while tracker.status is None:
+        level = tracker.level
         motions.append(tracker.iterate())
+        if tracker.level != level or tracker.status is not None:
+            ends.append((motions[-1], tracker.levels[level].tol))
     by_hand = tracker.result()
+    # each level stopped below its own tolerance: the coarse ones' is twice tol,
+    # and they stopped before the finest one's
+    assert all(motion < tol for motion, tol in ends) and ends[0][1] == 0.1 and ends[-1][1] == 0.05
+    assert max(motion for motion, _ in ends[:2]) >= 0.05
     whole = segment(phantom.volume, phantom.apex, phantom.base)
     assert by_hand.iterations == whole.iterations == len(motions)
     np.testing.assert_array_equal(by_hand.surface.coefficients, whole.surface.coefficients)

@@ -36,11 +36,14 @@ __all__ = ["Tracker", "Level", "schedule"]
 
 @dataclass(frozen=True)
 class Level:
-    """One level of the coarse-to-fine schedule."""
+    """One level of the coarse-to-fine schedule: it stops when the RMS
+    motion of an iteration falls below ``tol`` mm, or after
+    ``max_iterations``."""
 
     patches: tuple[int, int]
     data_term: type[DataTerm]
     max_iterations: int
+    tol: float
 
 
 def schedule(options: SegmentOptions, *, coarse_to_fine: bool | None = None) -> list[Level]:
@@ -48,7 +51,8 @@ def schedule(options: SegmentOptions, *, coarse_to_fine: bool | None = None) -> 
     stay even and at least 2 (coarse to fine, unless disabled), each capped
     at ``options.max_iterations``.  The local data terms run on the finest
     patches only; the coarser ones use the global means, which bring the
-    surface to the walls from afar.  :class:`IntensityInterface` runs after
+    surface to the walls from afar, and stop at ``options.coarse_tol``
+    (default twice ``tol``).  :class:`IntensityInterface` runs after
     :class:`LocalMeans` on the finest patches (it measures its statistics
     where the local means put the wall)."""
     coarse_to_fine = options.coarse_to_fine if coarse_to_fine is None else coarse_to_fine
@@ -57,10 +61,13 @@ def schedule(options: SegmentOptions, *, coarse_to_fine: bool | None = None) -> 
         patches.insert(0, (patches[0][0] // 2, patches[0][1] // 2))
     term = DATA_TERMS[options.mode]
     coarse = GlobalMeans if issubclass(term, LocalMeans) else term
-    levels = [Level(p, term if k == len(patches) - 1 else coarse, options.max_iterations)
+    finest = len(patches) - 1
+    coarse_tol = 2.0 * options.tol if options.coarse_tol is None else options.coarse_tol
+    levels = [Level(p, term if k == finest else coarse, options.max_iterations,
+                    options.tol if k == finest else coarse_tol)
               for k, p in enumerate(patches)]
     if term is IntensityInterface:  # found by the local means first, then moved to the interface
-        levels.insert(-1, Level(levels[-1].patches, LocalMeans, options.max_iterations))
+        levels.insert(-1, Level(levels[-1].patches, LocalMeans, options.max_iterations, options.tol))
     return levels
 
 
@@ -289,7 +296,7 @@ class Tracker:
             self.motion = self._descent.iterate(obs, force)
         self.iteration += 1
         self._level_iterations += 1
-        if self.motion < self.options.tol:
+        if self.motion < self.levels[self.level].tol:
             self._end_level(converged=True)
         elif self._level_iterations >= self.levels[self.level].max_iterations:
             self._end_level(converged=False)
@@ -378,7 +385,7 @@ class Tracker:
         # the local means, then the interface measured where they end)
         finest = [k for k, level in enumerate(self.levels) if level.patches == self.levels[-1].patches]
         for k in finest:
-            self.levels[k] = Level(self.levels[k].patches, self.levels[k].data_term, cap)
+            self.levels[k] = Level(self.levels[k].patches, self.levels[k].data_term, cap, self.levels[k].tol)
         self.volume = volume
         self._reference = surface
         if self.level != finest[0]:
