@@ -299,7 +299,8 @@ class IntensityInterface(LocalMeans):
     #: option's step an iteration there removed about a quarter of that
     #: distance, and the stage stopped (on ``tol``) some 0.15 mm short of the
     #: interface.  Twice the step halves it each iteration (the adaptive
-    #: step halves it back if the surface oscillates).
+    #: step halves it back if the surface oscillates); taken only when the
+    #: local means settled (see ``Tracker``).
     step_factor = 2.0
 
     def __init__(self, samples, *, band=8.0, band_out=15.0, interface=None):

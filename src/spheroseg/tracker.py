@@ -236,10 +236,12 @@ class Tracker:
                        landmarks=points, landmark_weights=weights, backend=opts.backend,
                        adaptive_step=opts.adaptive_step)
 
-    def _stage_step(self) -> float:
+    def _stage_step(self, *, settled: bool = True) -> float:
         """The step (mm) of the current level: the option's, times its data
-        term's ``step_factor``."""
-        return self.options.step * self.levels[self.level].data_term.step_factor
+        term's ``step_factor`` when the stage starts where the previous one
+        ``settled`` (a stage that hit its cap left the surface moving: a
+        larger step would carry that motion further)."""
+        return self.options.step * (self.levels[self.level].data_term.step_factor if settled else 1.0)
 
     def _prepare_terms(self) -> dict:
         """The data terms of the schedule, from the grey levels around the
@@ -311,7 +313,8 @@ class Tracker:
             self._terms[self.levels[self.level].data_term].reset()
             if self.levels[self.level].patches == self.levels[self.level - 1].patches:
                 self._hand_over()
-                self._descent.restart(self._stage_step())  # the intensity stage: same grid, same landmarks
+                # the intensity stage: same grid, same landmarks
+                self._descent.restart(self._stage_step(settled=converged))
             else:
                 self._descent = self._new_descent(self._descent.surface, self._reference)
             self._skip_empty_levels()
