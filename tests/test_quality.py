@@ -40,10 +40,11 @@ def test_a_click_5_mm_off_is_survived():
 
 
 def test_a_collapse_is_reported():
-    """With the apex free to move (round 1's weak hold), strong clutter pulls
-    the surface towards the base: the report says so."""
+    """With the apex free to move (round 1's weak hold, and its tolerance on
+    every level), strong clutter pulls the surface towards the base: the
+    report says so."""
     ph = make_phantom(seed=0, spacing=1.5, formation=FORMATIONS["clutter_strong"])
-    weak = segment(ph.volume, ph.apex, ph.base, apex_weight=1.0)
+    weak = segment(ph.volume, ph.apex, ph.base, apex_weight=1.0, coarse_tol=0.05)
     assert weak.quality["poor"] and weak.quality["apex_shift_mm"] > 10
     held = segment(ph.volume, ph.apex, ph.base)
     assert not held.quality["poor"], held.quality
