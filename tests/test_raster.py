@@ -214,3 +214,52 @@ def test_padding_equals_reference_on_random_zeros(seed):
     mask, count = face_connected_zeros(noise)
     assert count == mask.sum()
     np.testing.assert_array_equal(mask, reference_padding(noise, min_fraction=0.0))
+
+
+def sector_like(rng, dtype):
+    """A cone of data in zero padding, with zeros inside it (some reach the
+    padding through zero runs inside rows, some not)."""
+    k, j, i = np.indices((21, 17, 26))
+    cone = (i - 12.5) ** 2 + (j - 8) ** 2 <= (0.5 * k + 2) ** 2
+    a = np.where(cone, 1 + rng.integers(0, 5, cone.shape), 0).astype(dtype)
+    a[rng.random(a.shape) < 0.25] = 0
+    return a
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.uint8, np.int16])
+def test_padding_equals_reference_for_every_type_and_layout(dtype, rng, tmp_path):
+    # float32 is searched in place, other types by their non-zeros: a
+    # float64 1e-50 is data though float32 rounds it to 0; -0.0 is a zero
+    # and NaN is data, as for ==; read-only, non-contiguous inputs and
+    # load give the same, and the input is left as it was
+    a = sector_like(rng, dtype)
+    if a.dtype.kind == "f":
+        a[0, :3, :3] = 1e-50 if dtype == np.float64 else np.nan
+        a[0, 5, :4] = -0.0
+    expected = reference_padding(a)
+    assert expected is not None
+    if a.dtype.kind == "f":
+        assert not expected[0, 0, 0] and expected[0, 5, 0]
+    before = a.copy()
+    np.testing.assert_array_equal(outside_sector(a), expected)
+    np.testing.assert_array_equal(a, before)
+    from spheroseg._raster import face_connected_zeros  # rows of zeros counted too
+
+    assert face_connected_zeros(a)[1] == expected.sum()
+    assert a.flags.writeable
+    wide = np.zeros(a.shape[:2] + (2 * a.shape[2],), dtype)
+    wide[:, :, ::2] = a
+    np.testing.assert_array_equal(outside_sector(wide[:, :, ::2]), expected)
+    a.flags.writeable = False
+    np.testing.assert_array_equal(outside_sector(a), expected)
+    if dtype != np.float32 or not np.isnan(a).any():  # (a Volume refuses NaN)
+        np.save(tmp_path / "a.npy", a)
+        np.testing.assert_array_equal(spheroseg.load(tmp_path / "a.npy", spacing=(1, 1, 1)).no_data_mask, expected)
+
+
+def test_padding_of_a_2d_array_is_a_clear_error(tmp_path):
+    with pytest.raises(ValueError, match="expected a 3D array"):
+        outside_sector(np.zeros((4, 5)))
+    np.save(tmp_path / "flat.npy", np.zeros((4, 5), np.uint8))
+    with pytest.raises(ValueError, match="3D"):
+        spheroseg.load(tmp_path / "flat.npy", spacing=(1, 1, 1))

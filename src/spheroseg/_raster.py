@@ -39,8 +39,9 @@ Cavity mask (:func:`cavity_mask`)
 
 Sector padding (:func:`face_connected_zeros`)
     The exact zeros 6-connected to the image's faces: the zero runs at the
-    ends of each row along x (most of a sector's padding) in one pass, then
-    a span flood fill from the runs inside rows that touch them.
+    ends of each row along x (most of a sector's padding) in one parallel
+    pass over the image's values, then a span flood fill from the runs
+    inside rows that touch them.
 """
 
 from __future__ import annotations
@@ -356,69 +357,73 @@ def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v
 
 
 @njit(cache=True, parallel=True)
-def _end_runs(zero, out, first, last):
+def _row_ends(values, out, first, last, inner):
     """The zero runs at both ends of every row along x into ``out``, each
-    row's first and last non-zero (``first = nx`` for a row of zeros), and
-    the number of voxels filled; rows in parallel (they are independent)."""
-    nz, ny, nx = zero.shape
+    row's first and last non-zero (``first = nx``, ``last = nx - 1`` for a
+    row of zeros) and its number of zeros between them, and the number of
+    voxels filled; rows in parallel (they are independent), so that the
+    serial flood visits only the rows with zeros inside."""
+    nz, ny, nx = values.shape
     counts = np.zeros(nz, dtype=np.int64)
     for k in prange(nz):
         for j in range(ny):
-            a = 0
-            while a < nx and zero[k, j, a]:
-                out[k, j, a] = True
-                a += 1
-            counts[k] += a
+            # a loop without an exit or a branch (LLVM vectorises it): the
+            # scans that stopped at the ends' first non-zero took 2-3 times as long
+            a, b, zeros = nx, -1, 0
+            for i in range(nx):
+                data = values[k, j, i] != 0
+                zeros += not data
+                a = min(a, i if data else nx)
+                b = max(b, i if data else -1)
+            b = max(b, a - 1)
+            out[k, j, :a] = True
+            out[k, j, b + 1:] = True
             first[k, j] = a
-            last[k, j] = a - 1
-            if a == nx:
-                continue
-            b = nx - 1
-            while zero[k, j, b]:
-                out[k, j, b] = True
-                b -= 1
-            counts[k] += nx - 1 - b
             last[k, j] = b
+            ends = a + nx - 1 - b
+            inner[k, j] = zeros - ends
+            counts[k] += ends
     return counts.sum()
 
 
 @njit(cache=True)
-def _flood_zeros(zero, out, stack):
-    """The zeros of ``zero`` (bool) 6-connected to the faces, into ``out``;
+def _flood_zeros(values, out, stack):
+    """The zeros of ``values`` 6-connected to the faces, into ``out``;
     their count, or -1 if ``stack`` overflows.
 
     A sector's padding is mostly the zero runs at both ends of each row
-    along x, which touch an x face: they are filled in one pass that reads
-    nothing else.  The zeros left (runs inside rows) are padding when they
-    lie on a y or z face or touch padding in one of the four neighbouring
-    rows: those runs seed a span flood fill (fill a run, then seed the runs
-    of the neighbouring rows that touch it) through the remaining zeros."""
-    nz, ny, nx = zero.shape
+    along x, which touch an x face: they are filled in one parallel pass
+    that also finds the rows with zeros inside.  Those zero runs are
+    padding when they lie on a y or z face or touch an end run of one of
+    the four neighbouring rows: they seed a span flood fill (fill a run,
+    then seed the runs of the neighbouring rows that touch it) through the
+    remaining zeros."""
+    nz, ny, nx = values.shape
     first = np.empty((nz, ny), dtype=np.int64)  # the row's first and last non-zero
     last = np.empty((nz, ny), dtype=np.int64)
-    count = _end_runs(zero, out, first, last)
+    inner = np.empty((nz, ny), dtype=np.int64)  # its zeros between them, unfilled
+    count = _row_ends(values, out, first, last, inner)
     top = 0
     for k in range(nz):
         for j in range(ny):
+            if inner[k, j] == 0:
+                continue
             face = k == 0 or k == nz - 1 or j == 0 or j == ny - 1
             m = first[k, j] + 1
             while m < last[k, j]:
-                if not zero[k, j, m]:
+                if values[k, j, m] != 0:
                     m += 1
                     continue
                 a = m
-                while zero[k, j, m]:  # ends at the row's last non-zero
+                while values[k, j, m] == 0:  # ends at the row's last non-zero
                     m += 1
                 seed = face
                 for dk, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
                     if seed:
                         break
                     kk, jj = k + dk, j + dj
-                    if 0 <= kk < nz and 0 <= jj < ny:
-                        for q in range(a, m):
-                            if out[kk, jj, q]:
-                                seed = True
-                                break
+                    if 0 <= kk < nz and 0 <= jj < ny:  # [a, m) meets the end runs of row (kk, jj)
+                        seed = a < first[kk, jj] or m - 1 > last[kk, jj]
                 if seed:
                     if top == len(stack):
                         return -1
@@ -433,26 +438,27 @@ def _flood_zeros(zero, out, stack):
         if out[k, j, i]:
             continue
         a = i
-        while a > 0 and zero[k, j, a - 1] and not out[k, j, a - 1]:
+        while a > 0 and values[k, j, a - 1] == 0 and not out[k, j, a - 1]:
             a -= 1
         b = i
-        while b < nx - 1 and zero[k, j, b + 1] and not out[k, j, b + 1]:
+        while b < nx - 1 and values[k, j, b + 1] == 0 and not out[k, j, b + 1]:
             b += 1
         for m in range(a, b + 1):
             out[k, j, m] = True
         count += b - a + 1
+        inner[k, j] -= b - a + 1
         for dk, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
             kk, jj = k + dk, j + dj
-            if kk < 0 or kk >= nz or jj < 0 or jj >= ny:
+            if kk < 0 or kk >= nz or jj < 0 or jj >= ny or inner[kk, jj] == 0:  # nothing left to fill there
                 continue
             m = a
             while m <= b:
-                if zero[kk, jj, m] and not out[kk, jj, m]:
+                if values[kk, jj, m] == 0 and not out[kk, jj, m]:
                     if top == len(stack):
                         return -1  # the caller retries with a larger stack
                     stack[top] = (kk * ny + jj) * nx + m
                     top += 1
-                    while m <= b and zero[kk, jj, m] and not out[kk, jj, m]:
+                    while m <= b and values[kk, jj, m] == 0 and not out[kk, jj, m]:
                         m += 1
                 else:
                     m += 1
@@ -461,19 +467,26 @@ def _flood_zeros(zero, out, stack):
 
 def face_connected_zeros(array: np.ndarray) -> tuple[np.ndarray, int]:
     """The exact zeros 6-connected to the faces of a 3D array, and their count."""
-    zero = np.ascontiguousarray(array) == 0  # one kernel signature for every dtype
+    array = np.asarray(array)
+    # the kernel reads float32 (a volume's voxels) in place; other types as
+    # their non-zeros, exactly (float64's tiny values would round to 0)
+    if array.dtype == np.float32:
+        values = np.ascontiguousarray(array).view()
+    else:
+        values = np.not_equal(array, 0, out=np.empty(array.shape, dtype=np.float32))
+    values.flags.writeable = False  # one kernel signature, whether or not the input was read-only
     # seeds (one a run), then run starts: a voxel can be pushed from each of
     # its four neighbouring rows before it is filled, so in the worst case 5
     # a voxel (a sector's padding needs a few hundred); a stack that
     # overflows makes the kernel return -1
     size = 4096
     while True:
-        out = np.zeros(zero.shape, dtype=bool)
+        out = np.zeros(values.shape, dtype=bool)
         with PARALLEL_LOCK:  # its row pass is a parallel kernel
-            count = _flood_zeros(zero, out, np.empty(size, dtype=np.int64))
+            count = _flood_zeros(values, out, np.empty(size, dtype=np.int64))
         if count >= 0:
             return out, int(count)
-        size = min(8 * size, 5 * zero.size + 16)
+        size = min(8 * size, 5 * values.size + 16)
 
 
 def compilations() -> int:

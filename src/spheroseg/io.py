@@ -94,6 +94,11 @@ def _make_volume(array, no_data_value, **geometry) -> Volume:
     if isinstance(no_data_value, str):
         if no_data_value != "auto":
             raise ValueError(f"no_data_value must be a number, None or 'auto', got {no_data_value!r}")
+        array = np.asarray(array)
+        if array.dtype.kind in "iu":
+            # the float32 voxels the Volume keeps (it converts them to no
+            # copy) have the same zeros: search them, not the integers
+            array = np.ascontiguousarray(array, dtype=np.float32)
         return Volume(array, **geometry, no_data_mask=outside_sector(array))
     return Volume(array, **geometry, no_data_value=no_data_value)
 
