@@ -22,9 +22,10 @@ Cavity mask (:func:`cavity_mask`)
     ``h1`` is the distance to the long axis in every system, so ``min h1 =
     rho - delta``; prolate ``h0 = h2 = sqrt(r1 r2)`` with ``r1, r2`` the
     distances to the foci; spherical ``h2 = r``; the others are 1.  ``F1``,
-    ``F2`` bound ``|df/dv1|``, ``|df/dv2|`` over the rows of patches along
-    ``v2`` that the ball reaches (``v2`` moves by at most ``delta / min h2``
-    on it; the caller samples each row densely, with a margin).  A ball
+    ``F2`` bound ``|df/dv1|``, ``|df/dv2|`` over the patches that the ball
+    reaches (``v2`` moves by at most ``delta / min h2`` on it, ``v1`` by at
+    most ``delta / min h1``; each patch sampled densely, with a margin, and
+    each row of patches by the caller: the smaller bound).  A ball
     never reaches the axis or a focus, where the bound fails.  The boundary of the ``v2`` range is
     the base plane ``x1 = 0`` (prolate, spherical with ``v2_range = (0,
     pi/2)``) or the planes ``z = 0``, ``z = height`` (cylindrical): its
@@ -70,6 +71,12 @@ TIE = 1e-9
 FAST = 1e-6
 #: voxels across the largest blocks (a power of 2)
 BLOCK = 8
+#: the slopes of f bounded patch by patch as Surface.mask bounds them row by
+#: row: their largest over (SLOPE_SAMPLES + 1)^2 points of a patch, times
+#: SLOPE_MARGIN (a derivative is at most cubic along an axis of a patch:
+#: between samples 1/12 apart it exceeds their largest by at most 8 %)
+SLOPE_SAMPLES = 12
+SLOPE_MARGIN = 1.25
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -97,7 +104,7 @@ def _prolate_fast(x1, rho, param):
 
 
 @njit(cache=True, error_model="numpy")
-def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach):
+def status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach):
     """Status of the local point (_OUT, _IN or _TIE: too close to call), and
     whether every point within ``reach`` (mm) provably shares it (always
     for ``reach = 0``; never for _TIE at ``reach > 0``)."""
@@ -131,7 +138,7 @@ def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach
 
 @njit(cache=True, error_model="numpy")
 def _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach):
-    """:func:`_status` of a prolate point with its coordinates as the
+    """:func:`status` of a prolate point with its coordinates as the
     reference computes them (the complex arccosh)."""
     rho = math.hypot(x2, x3)
     w = cmath.acosh(complex(x1, rho) / param)
@@ -156,7 +163,8 @@ def _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, s
     # shrunk by 1e-9: the distances are rounded
     if not (v2 >= lo and v2 <= hi):
         return _OUT, reach == 0.0 or reach < plane * (1.0 - 1e-9)
-    g = v0 - _surface(x2, x3, v2, coef, lo, hi)
+    f, v1 = _surface(x2, x3, v2, coef, lo, hi)
+    g = v0 - f
     if abs(g) < tie:
         return (_TIE if tie == TIE else _REDO), reach == 0.0
     code = _IN if g <= 0 else _OUT
@@ -164,13 +172,13 @@ def _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, s
         return code, True
     if not reach < 0.999 * min(rho, r1, r2) or (code == _IN and not reach < plane * (1.0 - 1e-9)):
         return code, False
-    bound = _gradient_bound(reach, kind, r1, r2, rho, v2, lo, hi, slopes)
+    bound = gradient_bound(reach, kind, r1, r2, rho, v1, v2, lo, hi, slopes)
     return code, reach * bound < abs(g) * (1.0 - 1e-9)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _surface(x2, x3, v2, coef, lo, hi):
-    """``f(v1, v2)`` with ``v1 = atan2(x3, x2)``."""
+    """``f(v1, v2)`` and ``v1 = atan2(x3, x2)``."""
     # as np.mod(arctan2, 2 pi) does for angles in [-pi, pi]
     v1 = math.atan2(x3, x2)
     if v1 < 0:
@@ -189,16 +197,17 @@ def _surface(x2, x3, v2, coef, lo, hi):
             for e1 in range(2):
                 for e2 in range(2):
                     f += b1[2 * a1 + e1] * b2[2 * a2 + e2] * coef[i2 + a2, node1, e1 + 2 * e2]
-    return f
+    return f, v1
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _gradient_bound(delta, kind, r1, r2, rho, v2, lo, hi, slopes):
+def gradient_bound(delta, kind, r1, r2, rho, v1, v2, lo, hi, slopes):
     """Upper bound of ``|grad g|`` on the ball of radius ``delta`` (mm)
-    around a point at ``v2``: the root sum of squares of the three terms
-    (the coordinates are orthogonal), each with its scale factor bounded
-    below on the ball, and the slopes of ``f`` bounded over the rows of
-    patches the ball reaches (``slopes[i2]``: ``|df/dv1|``, ``|df/dv2|``)."""
+    around a point at ``(v1, v2)``: the root sum of squares of the three
+    terms (the coordinates are orthogonal), each with its scale factor
+    bounded below on the ball, and the slopes of ``f`` bounded over the
+    patches the ball reaches (``slopes[i2, i1]``: ``|df/dv1|``,
+    ``|df/dv2|``)."""
     if kind == _PROLATE:  # h0 = h2 >= sqrt((r1 - delta) (r2 - delta))
         m2 = math.sqrt((r1 - delta) * (r2 - delta))
     elif kind == _SPHERICAL:  # h0 = 1, h2 = r >= r1 - delta
@@ -206,24 +215,35 @@ def _gradient_bound(delta, kind, r1, r2, rho, v2, lo, hi, slopes):
     else:
         m2 = 1.0
     # |grad v2| = 1 / h2: on the ball v2 stays within delta / m2 of the centre's
-    n2 = slopes.shape[0]
+    n2, n1 = slopes.shape[0], slopes.shape[1]
     spread = delta / m2
     first, last = 0, n2 - 1
     if spread < hi - lo:
         first = min(max(int(math.floor((v2 - spread - lo) * n2 / (hi - lo))), 0), n2 - 1)
         last = min(max(int(math.floor((v2 + spread - lo) * n2 / (hi - lo))), first), n2 - 1)
+    m1 = rho - delta  # h1 = rho
+    # |grad v1| = 1 / h1: v1 stays within delta / m1 of the centre's (it
+    # wraps; 1e-9 more for its rounding)
+    spread = delta / m1 + 1e-9
+    left, right = 0, n1 - 1
+    if spread < math.pi:
+        left = int(math.floor((v1 - spread) * n1 / (2 * math.pi)))
+        right = int(math.floor((v1 + spread) * n1 / (2 * math.pi)))
     f1 = 0.0
     f2 = 0.0
     for row in range(first, last + 1):
-        f1 = max(f1, slopes[row, 0])
-        f2 = max(f2, slopes[row, 1])
+        for column in range(left, right + 1):
+            c = column % n1
+            if c < 0:
+                c += n1
+            f1 = max(f1, slopes[row, c, 0])
+            f2 = max(f2, slopes[row, c, 1])
     if kind == _PROLATE:
         radial = (1.0 + f2 * f2) / (m2 * m2)
     elif kind == _SPHERICAL:
         radial = 1.0 + (f2 / m2) ** 2
     else:
         radial = 1.0 + f2 * f2
-    m1 = rho - delta  # h1 = rho
     return math.sqrt(radial + (f1 / m1) ** 2)
 
 
@@ -257,7 +277,7 @@ def _cavity_blocks(out, start, stop, affine, offset, kind, param, coef, lo, hi, 
 def _fill_block(out, k_top, j_top, i_top, start, stop, affine, offset, kind, param, coef, lo, hi, standard_range,
                 slopes, size):
     """One top block (box index of its corner): a block whose centre's ball
-    (its status shared, :func:`_status`) holds every voxel centre of the
+    (its status shared, :func:`status`) holds every voxel centre of the
     block takes that status at once; the others split in eight, down to
     single voxels.  Returns the number of voxels left too close to call.
     (A function of its own: numba compiles a parallel loop's body slowly.)"""
@@ -281,7 +301,7 @@ def _fill_block(out, k_top, j_top, i_top, start, stop, affine, offset, kind, par
         x3 = offset[2] + affine[2, 0] * ci + affine[2, 1] * cj + affine[2, 2] * ck
         single = k1 - k0 == 1 and j1 - j0 == 1 and i1 - i0 == 1
         reach = 0.0 if single else _reach(affine, i1 - 1 - i0, j1 - 1 - j0, k1 - 1 - k0)
-        code, shared = _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach)
+        code, shared = status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach)
         if shared:
             if code == _TIE:
                 ties += 1
@@ -327,6 +347,35 @@ def _positions(out, start, stop, size, ties):
     return found
 
 
+def patch_slopes(coefficients, lo, hi, samples):
+    """The largest ``|df/dv1|``, ``|df/dv2|`` over ``samples + 1`` squared
+    points of each patch (its edges included), ``[i2, i1, 2]``.  (numpy: a
+    kernel would add a second to the first run's compilation.)"""
+    n2, n1 = coefficients.shape[0] - 1, coefficients.shape[1]
+    t = np.arange(samples + 1) / samples
+    # as _hermite: [sample, 2 node + dof], the value and slope dofs in global units
+    def basis(width):
+        value = np.stack([1 - 3 * t**2 + 2 * t**3, width * t * (t - 1) ** 2, t**2 * (3 - 2 * t),
+                          width * t**2 * (t - 1)], axis=-1)
+        slope = np.stack([6 * t * (t - 1) / width, (3 * t - 1) * (t - 1), 6 * t * (1 - t) / width,
+                          t * (3 * t - 2)], axis=-1)
+        return value, slope
+
+    b1, d1 = basis(2 * np.pi / n1)
+    b2, d2 = basis((hi - lo) / n2)
+    # each patch's 16 dofs [i2, i1, 2 a2 + e2, 2 a1 + e1] (the last column wraps to node 0)
+    columns = (np.arange(n1), np.roll(np.arange(n1), -1))
+    dofs = np.empty((n2, n1, 4, 4))
+    for a2 in range(2):
+        for e2 in range(2):
+            for a1 in range(2):
+                for e1 in range(2):
+                    dofs[:, :, 2 * a2 + e2, 2 * a1 + e1] = coefficients[a2:a2 + n2][:, columns[a1], e1 + 2 * e2]
+    df1 = b2 @ dofs @ d1.T  # [i2, i1, sample along v2, sample along v1]
+    df2 = d2 @ dofs @ b1.T
+    return np.stack([np.abs(df1).max(axis=(2, 3)), np.abs(df2).max(axis=(2, 3))], axis=-1)
+
+
 def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v2_range, standard_range, slopes):
     """Voxel status in the index box ``[start, stop)`` (x, y, z order) of a
     grid of ``shape`` ([z, y, x]): 0 outside the cavity (and outside the
@@ -337,7 +386,8 @@ def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v
     ``standard_range``: the ``v2`` range ends on the base plane (and for
     cylinders the plane ``z = height``); ``slopes``: upper bounds of
     ``|df/dv1|`` and ``|df/dv2|`` over each row of patches along ``v2``
-    (shape ``(n2, 2)``; one row: over the whole surface).
+    (shape ``(n2, 2)``; one row: over the whole surface), tightened here
+    patch by patch (the same samples and margin, :data:`SLOPE_SAMPLES`).
 
     Returns
     -------
@@ -349,10 +399,16 @@ def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v
     codes = np.zeros(shape, dtype=np.uint8)
     blocks = np.prod(-(-(stop - start) // BLOCK))
     ties = np.zeros(blocks, dtype=np.int64)
+    coefficients = np.ascontiguousarray(coefficients, dtype=float)
+    lo, hi = float(v2_range[0]), float(v2_range[1])
+    # a ball reaches one or two patches around the axis, not the whole row:
+    # their own slopes decide more blocks at once (256^3: a third fewer
+    # evaluations); either bound holds, so the smaller
+    patches = SLOPE_MARGIN * patch_slopes(coefficients, lo, hi, SLOPE_SAMPLES) + 1e-9
+    slopes = np.minimum(patches, np.asarray(slopes, dtype=float).reshape(-1, 1, 2))
     _cavity_blocks(codes, start, stop, np.ascontiguousarray(affine, dtype=float), np.asarray(offset, dtype=float),
                    {"prolate": _PROLATE, "spherical": _SPHERICAL, "cylindrical": _CYLINDRICAL}[kind], float(param),
-                   np.ascontiguousarray(coefficients, dtype=float), float(v2_range[0]), float(v2_range[1]),
-                   bool(standard_range), np.ascontiguousarray(slopes, dtype=float).reshape(-1, 2), BLOCK, ties)
+                   coefficients, lo, hi, bool(standard_range), slopes, BLOCK, ties)
     return codes, _positions(codes, start, stop, BLOCK, ties)
 
 
