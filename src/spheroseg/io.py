@@ -96,8 +96,8 @@ def _make_volume(array, no_data_value, **geometry) -> Volume:
             raise ValueError(f"no_data_value must be a number, None or 'auto', got {no_data_value!r}")
         array = np.asarray(array)
         if array.dtype.kind in "iu":
-            # the float32 voxels the Volume keeps (it converts them to no
-            # copy) have the same zeros: search them, not the integers
+            # the Volume keeps these float32 voxels (it takes them without a
+            # copy) and they have the same zeros: the search reads them in place
             array = np.ascontiguousarray(array, dtype=np.float32)
         return Volume(array, **geometry, no_data_mask=outside_sector(array))
     return Volume(array, **geometry, no_data_value=no_data_value)
