@@ -178,12 +178,13 @@ def report_section(data: dict) -> str:
     labels = [k for k in ("before", "after") if k in data]
     lines = ["## The whole command, stage by stage (issue 15)", "",
              "Command: `PYTHONPATH=<code>/src python benchmarks/userspeed.py --label before|after --repeats 3`, "
-             "then `--report`.  `before` is main when issue 15 was filed, `after` main at the end of its "
-             "second round (the compiled mask by blocks, the report drawn in a second process while a core is "
-             "free, the command ending without the interpreter's teardown, kernels on numba's threads); "
+             "then `--report`.  `before` is main when issue 15 was filed, `after` the end of its third round "
+             "(the compiled mask by blocks, the report drawn in a second process while a core is "
+             "free, the command ending without the interpreter's teardown, kernels on numba's threads; then the "
+             "padding search on the float32 voxels in place and the mask's slopes bounded patch by patch); "
              + ", ".join(f"{k}: {data[k]['commit']} on {data[k]['date']}"
                          + (f" ({data[k]['machine']})" if data[k].get("machine") else "") for k in labels) + ".  "
-             "Medians over 3 runs on a 2-core machine, one label after the other on the same quiet machine; "
+             "Medians over 3 runs on a 2-core machine, the labels on the same machine (its load average with each); "
              "each stage runs in a fresh interpreter, as in a command (the report stage draws in that process). "
              "Volumes: CETUS Patient 7 ED (201 x 140 x 140, 0.9 mm assumed) and the same resampled to 256^3, "
              "as MetaImage files.  Milliseconds.", ""]

@@ -6,6 +6,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import spheroseg
+from spheroseg._raster import SLOPE_MARGIN, SLOPE_SAMPLES, gradient_bound, patch_slopes, status
 from spheroseg.phantom import make_phantom
 from spheroseg.surface import ImageGrid, Surface
 from spheroseg.volume import outside_sector
@@ -131,6 +132,25 @@ def test_mask_equals_reference_where_the_slope_changes_from_row_to_row(step_at, 
     np.testing.assert_array_equal(s.mask(g), reference_mask(s, g))
 
 
+@pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])
+@pytest.mark.parametrize("column, height", [(3, 0.5), (7, 0.7), (0, 0.4)])
+def test_mask_equals_reference_where_the_slope_changes_around_the_axis(system, column, height):
+    # the radius steps up across one column of patches around the axis (at
+    # the seam v1 = 0 for the last) and is flat elsewhere: a ball centred in
+    # a flat patch must take the steep patch's slopes when it reaches it
+    s = Surface.from_apex_base(np.array([0.0, 0.0, 80.0]), np.zeros(3), system=system, patches=(8, 8))
+    coefficients = np.zeros(s.grid.shape)
+    steep = np.arange(s.grid.n1) > column if column else np.arange(s.grid.n1) == 0
+    coefficients[:, :, 0] = 0.45 + height * steep[None, :] * (s.grid.node_v2 > 0.3)[:, None]
+    if system != "prolate":
+        coefficients[:, :, 0] *= 40.0
+    s = s.with_coefficients(s.grid.constrain(coefficients))
+    g = ImageGrid((90, 90, 100), spacing=(0.9, 0.9, 0.9), origin=(-40.0, -40.0, -5.0))
+    mask = s.mask(g)
+    assert mask.sum() > 1000
+    np.testing.assert_array_equal(mask, reference_mask(s, g))
+
+
 def test_mask_of_segmentation_equals_reference():
     ph = make_phantom(seed=3, spacing=0.8, tilt_deg=20.0)
     res = spheroseg.segment(ph.volume, apex=ph.apex, base=ph.base)
@@ -214,3 +234,122 @@ def test_padding_equals_reference_on_random_zeros(seed):
     mask, count = face_connected_zeros(noise)
     assert count == mask.sum()
     np.testing.assert_array_equal(mask, reference_padding(noise, min_fraction=0.0))
+
+
+def sector_like(rng, dtype):
+    """A cone of data in zero padding, with zeros inside it (some reach the
+    padding through zero runs inside rows, some not)."""
+    k, j, i = np.indices((21, 17, 26))
+    cone = (i - 12.5) ** 2 + (j - 8) ** 2 <= (0.5 * k + 2) ** 2
+    a = np.where(cone, 1 + rng.integers(0, 5, cone.shape), 0).astype(dtype)
+    a[rng.random(a.shape) < 0.25] = 0
+    return a
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.uint8, np.int16])
+def test_padding_equals_reference_for_every_type_and_layout(dtype, rng, tmp_path):
+    # float32 is searched in place, other types by their non-zeros: a
+    # float64 1e-50 is data though float32 rounds it to 0; -0.0 is a zero
+    # and NaN is data, as for ==; read-only, non-contiguous inputs and
+    # load give the same, and the input is left as it was
+    a = sector_like(rng, dtype)
+    if a.dtype.kind == "f":
+        a[0, :3, :3] = 1e-50 if dtype == np.float64 else np.nan
+        a[0, 5, :4] = -0.0
+    expected = reference_padding(a)
+    assert expected is not None
+    if a.dtype.kind == "f":
+        assert not expected[0, 0, 0] and expected[0, 5, 0]
+    before = a.copy()
+    np.testing.assert_array_equal(outside_sector(a), expected)
+    np.testing.assert_array_equal(a, before)
+    from spheroseg._raster import face_connected_zeros  # rows of zeros counted too
+
+    assert face_connected_zeros(a)[1] == expected.sum()
+    assert a.flags.writeable
+    wide = np.zeros(a.shape[:2] + (2 * a.shape[2],), dtype)
+    wide[:, :, ::2] = a
+    np.testing.assert_array_equal(outside_sector(wide[:, :, ::2]), expected)
+    a.flags.writeable = False
+    np.testing.assert_array_equal(outside_sector(a), expected)
+    if dtype != np.float32 or not np.isnan(a).any():  # (a Volume refuses NaN)
+        np.save(tmp_path / "a.npy", a)
+        np.testing.assert_array_equal(spheroseg.load(tmp_path / "a.npy", spacing=(1, 1, 1)).no_data_mask, expected)
+
+
+def test_padding_of_a_2d_array_is_a_clear_error(tmp_path):
+    with pytest.raises(ValueError, match="expected a 3D array"):
+        outside_sector(np.zeros((4, 5)))
+    np.save(tmp_path / "flat.npy", np.zeros((4, 5), np.uint8))
+    with pytest.raises(ValueError, match="3D"):
+        spheroseg.load(tmp_path / "flat.npy", spacing=(1, 1, 1))
+
+
+def test_patch_slopes_are_the_largest_sampled_derivatives(rng):
+    s = bumpy("prolate", rng, 0.15, patches=(5, 7))
+    lo, hi = s.grid.v2_range
+    n = SLOPE_SAMPLES
+    v2, v1 = np.meshgrid(np.linspace(lo, hi, n * s.grid.n2 + 1), np.linspace(0, 2 * np.pi, n * s.grid.n1 + 1),
+                         indexing="ij")
+    got = patch_slopes(np.ascontiguousarray(s.coefficients), lo, hi, n)
+    for column, d in enumerate(((1, 0), (0, 1))):
+        e = np.abs(s.evaluate(v1, v2, *d))
+        expected = [[e[n * i2:n * i2 + n + 1, n * i1:n * i1 + n + 1].max() for i1 in range(s.grid.n1)]
+                    for i2 in range(s.grid.n2)]
+        np.testing.assert_allclose(got[..., column], expected, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("stepped", [False, True])
+@pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])
+def test_a_ball_the_rasteriser_decides_at_once_shares_its_status(system, stepped, rng):
+    # every point of a ball whose status _status says it shares (its
+    # centre near the wall, its radius up to 6 mm, or up to 0.95 of the
+    # distance to the axis: it reaches several patches around it) has that status,
+    # the reference's; on a bumpy surface, and on one whose radius steps up
+    # across one column of patches and is flat on the others
+    s = bumpy(system, rng, 0.2, patches=(6, 8))
+    if stepped:
+        coefficients = np.zeros(s.grid.shape)
+        coefficients[:, :, 0] = np.where(np.arange(s.grid.n1) == 2, 1.8, 1.0)[None, :] * s.coefficients[:, :, 0].mean()
+        s = s.with_coefficients(s.grid.constrain(coefficients))
+    lo, hi = s.grid.v2_range
+    coefficients = np.ascontiguousarray(s.coefficients)
+    slopes = SLOPE_MARGIN * patch_slopes(coefficients, lo, hi, SLOPE_SAMPLES) + 1e-9
+    kind = {"prolate": 0, "spherical": 1, "cylindrical": 2}[system]
+    param = s.system.height if system == "cylindrical" else getattr(s.system, "focal_length", 1.0)
+    planar = lo == 0 and abs(hi - (param if system == "cylindrical" else np.pi / 2)) < 1e-12
+    m = 2000
+    v1, v2 = rng.uniform(0, 2 * np.pi, m), rng.uniform(lo, hi, m)
+    centres = s.system.to_cartesian(s.evaluate(v1, v2) * (1 + rng.uniform(-0.25, 0.25, m)), v1, v2)
+    rho = np.hypot(centres[:, 1], centres[:, 2])
+    reaches = np.where(np.arange(m) % 2, rng.uniform(0.3, 6.0, m), rng.uniform(0.2, 0.95, m) * np.minimum(rho, 10.0))
+    directions = rng.normal(size=(300, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    decided = 0
+    for x, reach in zip(centres, reaches):
+        code, shared = status(*x, kind, param, coefficients, lo, hi, planar, slopes, reach)
+        if not shared or code == 2:
+            continue
+        decided += 1
+        ball = x + reach * rng.uniform(0, 1, (len(directions), 1)) ** (1 / 3) * directions
+        assert np.all(s.contains(s.pose.to_world(ball)) == (code == 1))
+    assert decided > 150
+
+
+def test_the_gradient_bound_takes_the_slopes_of_the_patches_the_ball_reaches():
+    # one steep patch (the last column, next to the seam v1 = 0) among flat
+    # ones: a ball 2 mm across at 20 mm from the axis spans 0.11 rad of v1
+    n2, n1 = 4, 8
+    slopes = np.zeros((n2, n1, 2))
+    slopes[1, n1 - 1, 0] = 50.0
+    width, v2 = 2 * np.pi / n1, 1.5 * (np.pi / 2) / n2  # in row 1
+    rho, delta = 20.0, 2.0
+
+    def bound(v1):
+        return gradient_bound(delta, 0, 100.0, 100.0, rho, v1, v2, 0.0, np.pi / 2, slopes)
+
+    steep = 50.0 / (rho - delta)
+    for v1 in ((n1 - 0.5) * width, (n1 - 1) * width - 0.1, 0.1, 2 * np.pi - 1e-12):
+        assert bound(v1) > steep
+    for v1 in ((n1 - 1) * width - 0.2, 0.2, 3.5 * width):
+        assert bound(v1) < 0.1 * steep

@@ -22,9 +22,10 @@ Cavity mask (:func:`cavity_mask`)
     ``h1`` is the distance to the long axis in every system, so ``min h1 =
     rho - delta``; prolate ``h0 = h2 = sqrt(r1 r2)`` with ``r1, r2`` the
     distances to the foci; spherical ``h2 = r``; the others are 1.  ``F1``,
-    ``F2`` bound ``|df/dv1|``, ``|df/dv2|`` over the rows of patches along
-    ``v2`` that the ball reaches (``v2`` moves by at most ``delta / min h2``
-    on it; the caller samples each row densely, with a margin).  A ball
+    ``F2`` bound ``|df/dv1|``, ``|df/dv2|`` over the patches that the ball
+    reaches (``v2`` moves by at most ``delta / min h2`` on it, ``v1`` by at
+    most ``delta / min h1``; each patch sampled densely, with a margin, and
+    each row of patches by the caller: the smaller bound).  A ball
     never reaches the axis or a focus, where the bound fails.  The boundary of the ``v2`` range is
     the base plane ``x1 = 0`` (prolate, spherical with ``v2_range = (0,
     pi/2)``) or the planes ``z = 0``, ``z = height`` (cylindrical): its
@@ -39,8 +40,9 @@ Cavity mask (:func:`cavity_mask`)
 
 Sector padding (:func:`face_connected_zeros`)
     The exact zeros 6-connected to the image's faces: the zero runs at the
-    ends of each row along x (most of a sector's padding) in one pass, then
-    a span flood fill from the runs inside rows that touch them.
+    ends of each row along x (most of a sector's padding) in one parallel
+    pass over the image's values, then a span flood fill from the runs
+    inside rows that touch them.
 """
 
 from __future__ import annotations
@@ -69,6 +71,12 @@ TIE = 1e-9
 FAST = 1e-6
 #: voxels across the largest blocks (a power of 2)
 BLOCK = 8
+#: the slopes of f bounded patch by patch as Surface.mask bounds them row by
+#: row: their largest over (SLOPE_SAMPLES + 1)^2 points of a patch, times
+#: SLOPE_MARGIN (a derivative is at most cubic along an axis of a patch:
+#: between samples 1/12 apart it exceeds their largest by at most 8 %)
+SLOPE_SAMPLES = 12
+SLOPE_MARGIN = 1.25
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -96,7 +104,7 @@ def _prolate_fast(x1, rho, param):
 
 
 @njit(cache=True, error_model="numpy")
-def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach):
+def status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach):
     """Status of the local point (_OUT, _IN or _TIE: too close to call), and
     whether every point within ``reach`` (mm) provably shares it (always
     for ``reach = 0``; never for _TIE at ``reach > 0``)."""
@@ -130,7 +138,7 @@ def _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach
 
 @njit(cache=True, error_model="numpy")
 def _status_exact(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach):
-    """:func:`_status` of a prolate point with its coordinates as the
+    """:func:`status` of a prolate point with its coordinates as the
     reference computes them (the complex arccosh)."""
     rho = math.hypot(x2, x3)
     w = cmath.acosh(complex(x1, rho) / param)
@@ -155,7 +163,8 @@ def _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, s
     # shrunk by 1e-9: the distances are rounded
     if not (v2 >= lo and v2 <= hi):
         return _OUT, reach == 0.0 or reach < plane * (1.0 - 1e-9)
-    g = v0 - _surface(x2, x3, v2, coef, lo, hi)
+    f, v1 = _surface(x2, x3, v2, coef, lo, hi)
+    g = v0 - f
     if abs(g) < tie:
         return (_TIE if tie == TIE else _REDO), reach == 0.0
     code = _IN if g <= 0 else _OUT
@@ -163,13 +172,13 @@ def _classify(x1, x2, x3, rho, v0, v2, r1, r2, tie, kind, param, coef, lo, hi, s
         return code, True
     if not reach < 0.999 * min(rho, r1, r2) or (code == _IN and not reach < plane * (1.0 - 1e-9)):
         return code, False
-    bound = _gradient_bound(reach, kind, r1, r2, rho, v2, lo, hi, slopes)
+    bound = gradient_bound(reach, kind, r1, r2, rho, v1, v2, lo, hi, slopes)
     return code, reach * bound < abs(g) * (1.0 - 1e-9)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _surface(x2, x3, v2, coef, lo, hi):
-    """``f(v1, v2)`` with ``v1 = atan2(x3, x2)``."""
+    """``f(v1, v2)`` and ``v1 = atan2(x3, x2)``."""
     # as np.mod(arctan2, 2 pi) does for angles in [-pi, pi]
     v1 = math.atan2(x3, x2)
     if v1 < 0:
@@ -188,16 +197,17 @@ def _surface(x2, x3, v2, coef, lo, hi):
             for e1 in range(2):
                 for e2 in range(2):
                     f += b1[2 * a1 + e1] * b2[2 * a2 + e2] * coef[i2 + a2, node1, e1 + 2 * e2]
-    return f
+    return f, v1
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _gradient_bound(delta, kind, r1, r2, rho, v2, lo, hi, slopes):
+def gradient_bound(delta, kind, r1, r2, rho, v1, v2, lo, hi, slopes):
     """Upper bound of ``|grad g|`` on the ball of radius ``delta`` (mm)
-    around a point at ``v2``: the root sum of squares of the three terms
-    (the coordinates are orthogonal), each with its scale factor bounded
-    below on the ball, and the slopes of ``f`` bounded over the rows of
-    patches the ball reaches (``slopes[i2]``: ``|df/dv1|``, ``|df/dv2|``)."""
+    around a point at ``(v1, v2)``: the root sum of squares of the three
+    terms (the coordinates are orthogonal), each with its scale factor
+    bounded below on the ball, and the slopes of ``f`` bounded over the
+    patches the ball reaches (``slopes[i2, i1]``: ``|df/dv1|``,
+    ``|df/dv2|``)."""
     if kind == _PROLATE:  # h0 = h2 >= sqrt((r1 - delta) (r2 - delta))
         m2 = math.sqrt((r1 - delta) * (r2 - delta))
     elif kind == _SPHERICAL:  # h0 = 1, h2 = r >= r1 - delta
@@ -205,24 +215,35 @@ def _gradient_bound(delta, kind, r1, r2, rho, v2, lo, hi, slopes):
     else:
         m2 = 1.0
     # |grad v2| = 1 / h2: on the ball v2 stays within delta / m2 of the centre's
-    n2 = slopes.shape[0]
+    n2, n1 = slopes.shape[0], slopes.shape[1]
     spread = delta / m2
     first, last = 0, n2 - 1
     if spread < hi - lo:
         first = min(max(int(math.floor((v2 - spread - lo) * n2 / (hi - lo))), 0), n2 - 1)
         last = min(max(int(math.floor((v2 + spread - lo) * n2 / (hi - lo))), first), n2 - 1)
+    m1 = rho - delta  # h1 = rho
+    # |grad v1| = 1 / h1: v1 stays within delta / m1 of the centre's (it
+    # wraps; 1e-9 more for its rounding)
+    spread = delta / m1 + 1e-9
+    left, right = 0, n1 - 1
+    if spread < math.pi:
+        left = int(math.floor((v1 - spread) * n1 / (2 * math.pi)))
+        right = int(math.floor((v1 + spread) * n1 / (2 * math.pi)))
     f1 = 0.0
     f2 = 0.0
     for row in range(first, last + 1):
-        f1 = max(f1, slopes[row, 0])
-        f2 = max(f2, slopes[row, 1])
+        for column in range(left, right + 1):
+            c = column % n1
+            if c < 0:
+                c += n1
+            f1 = max(f1, slopes[row, c, 0])
+            f2 = max(f2, slopes[row, c, 1])
     if kind == _PROLATE:
         radial = (1.0 + f2 * f2) / (m2 * m2)
     elif kind == _SPHERICAL:
         radial = 1.0 + (f2 / m2) ** 2
     else:
         radial = 1.0 + f2 * f2
-    m1 = rho - delta  # h1 = rho
     return math.sqrt(radial + (f1 / m1) ** 2)
 
 
@@ -256,7 +277,7 @@ def _cavity_blocks(out, start, stop, affine, offset, kind, param, coef, lo, hi, 
 def _fill_block(out, k_top, j_top, i_top, start, stop, affine, offset, kind, param, coef, lo, hi, standard_range,
                 slopes, size):
     """One top block (box index of its corner): a block whose centre's ball
-    (its status shared, :func:`_status`) holds every voxel centre of the
+    (its status shared, :func:`status`) holds every voxel centre of the
     block takes that status at once; the others split in eight, down to
     single voxels.  Returns the number of voxels left too close to call.
     (A function of its own: numba compiles a parallel loop's body slowly.)"""
@@ -280,7 +301,7 @@ def _fill_block(out, k_top, j_top, i_top, start, stop, affine, offset, kind, par
         x3 = offset[2] + affine[2, 0] * ci + affine[2, 1] * cj + affine[2, 2] * ck
         single = k1 - k0 == 1 and j1 - j0 == 1 and i1 - i0 == 1
         reach = 0.0 if single else _reach(affine, i1 - 1 - i0, j1 - 1 - j0, k1 - 1 - k0)
-        code, shared = _status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach)
+        code, shared = status(x1, x2, x3, kind, param, coef, lo, hi, standard_range, slopes, reach)
         if shared:
             if code == _TIE:
                 ties += 1
@@ -326,6 +347,35 @@ def _positions(out, start, stop, size, ties):
     return found
 
 
+def patch_slopes(coefficients, lo, hi, samples):
+    """The largest ``|df/dv1|``, ``|df/dv2|`` over ``samples + 1`` squared
+    points of each patch (its edges included), ``[i2, i1, 2]``.  (numpy: a
+    kernel would add a second to the first run's compilation.)"""
+    n2, n1 = coefficients.shape[0] - 1, coefficients.shape[1]
+    t = np.arange(samples + 1) / samples
+    # as _hermite: [sample, 2 node + dof], the value and slope dofs in global units
+    def basis(width):
+        value = np.stack([1 - 3 * t**2 + 2 * t**3, width * t * (t - 1) ** 2, t**2 * (3 - 2 * t),
+                          width * t**2 * (t - 1)], axis=-1)
+        slope = np.stack([6 * t * (t - 1) / width, (3 * t - 1) * (t - 1), 6 * t * (1 - t) / width,
+                          t * (3 * t - 2)], axis=-1)
+        return value, slope
+
+    b1, d1 = basis(2 * np.pi / n1)
+    b2, d2 = basis((hi - lo) / n2)
+    # each patch's 16 dofs [i2, i1, 2 a2 + e2, 2 a1 + e1] (the last column wraps to node 0)
+    columns = (np.arange(n1), np.roll(np.arange(n1), -1))
+    dofs = np.empty((n2, n1, 4, 4))
+    for a2 in range(2):
+        for e2 in range(2):
+            for a1 in range(2):
+                for e1 in range(2):
+                    dofs[:, :, 2 * a2 + e2, 2 * a1 + e1] = coefficients[a2:a2 + n2][:, columns[a1], e1 + 2 * e2]
+    df1 = b2 @ dofs @ d1.T  # [i2, i1, sample along v2, sample along v1]
+    df2 = d2 @ dofs @ b1.T
+    return np.stack([np.abs(df1).max(axis=(2, 3)), np.abs(df2).max(axis=(2, 3))], axis=-1)
+
+
 def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v2_range, standard_range, slopes):
     """Voxel status in the index box ``[start, stop)`` (x, y, z order) of a
     grid of ``shape`` ([z, y, x]): 0 outside the cavity (and outside the
@@ -336,7 +386,8 @@ def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v
     ``standard_range``: the ``v2`` range ends on the base plane (and for
     cylinders the plane ``z = height``); ``slopes``: upper bounds of
     ``|df/dv1|`` and ``|df/dv2|`` over each row of patches along ``v2``
-    (shape ``(n2, 2)``; one row: over the whole surface).
+    (shape ``(n2, 2)``; one row: over the whole surface), tightened here
+    patch by patch (the same samples and margin, :data:`SLOPE_SAMPLES`).
 
     Returns
     -------
@@ -348,77 +399,87 @@ def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v
     codes = np.zeros(shape, dtype=np.uint8)
     blocks = np.prod(-(-(stop - start) // BLOCK))
     ties = np.zeros(blocks, dtype=np.int64)
+    coefficients = np.ascontiguousarray(coefficients, dtype=float)
+    lo, hi = float(v2_range[0]), float(v2_range[1])
+    # a ball reaches one or two patches around the axis, not the whole row:
+    # their own slopes decide more blocks at once (256^3: a third fewer
+    # evaluations); either bound holds, so the smaller
+    patches = SLOPE_MARGIN * patch_slopes(coefficients, lo, hi, SLOPE_SAMPLES) + 1e-9
+    slopes = np.minimum(patches, np.asarray(slopes, dtype=float).reshape(-1, 1, 2))
     _cavity_blocks(codes, start, stop, np.ascontiguousarray(affine, dtype=float), np.asarray(offset, dtype=float),
                    {"prolate": _PROLATE, "spherical": _SPHERICAL, "cylindrical": _CYLINDRICAL}[kind], float(param),
-                   np.ascontiguousarray(coefficients, dtype=float), float(v2_range[0]), float(v2_range[1]),
-                   bool(standard_range), np.ascontiguousarray(slopes, dtype=float).reshape(-1, 2), BLOCK, ties)
+                   coefficients, lo, hi, bool(standard_range), slopes, BLOCK, ties)
     return codes, _positions(codes, start, stop, BLOCK, ties)
 
 
 @njit(cache=True, parallel=True)
-def _end_runs(zero, out, first, last):
+def _row_ends(values, out, first, last, inner):
     """The zero runs at both ends of every row along x into ``out``, each
-    row's first and last non-zero (``first = nx`` for a row of zeros), and
-    the number of voxels filled; rows in parallel (they are independent)."""
-    nz, ny, nx = zero.shape
+    row's first and last non-zero (``first = nx``, ``last = nx - 1`` for a
+    row of zeros) and its number of zeros between them, and the number of
+    voxels filled; rows in parallel (they are independent), so that the
+    serial flood visits only the rows with zeros inside."""
+    nz, ny, nx = values.shape
     counts = np.zeros(nz, dtype=np.int64)
     for k in prange(nz):
         for j in range(ny):
-            a = 0
-            while a < nx and zero[k, j, a]:
-                out[k, j, a] = True
-                a += 1
-            counts[k] += a
+            # a loop without an exit or a branch (LLVM vectorises it): the
+            # scans that stopped at the ends' first non-zero took 2-3 times as long
+            a, b, zeros = nx, -1, 0
+            for i in range(nx):
+                data = values[k, j, i] != 0
+                zeros += not data
+                a = min(a, i if data else nx)
+                b = max(b, i if data else -1)
+            b = max(b, a - 1)
+            out[k, j, :a] = True
+            out[k, j, b + 1:] = True
             first[k, j] = a
-            last[k, j] = a - 1
-            if a == nx:
-                continue
-            b = nx - 1
-            while zero[k, j, b]:
-                out[k, j, b] = True
-                b -= 1
-            counts[k] += nx - 1 - b
             last[k, j] = b
+            ends = a + nx - 1 - b
+            inner[k, j] = zeros - ends
+            counts[k] += ends
     return counts.sum()
 
 
 @njit(cache=True)
-def _flood_zeros(zero, out, stack):
-    """The zeros of ``zero`` (bool) 6-connected to the faces, into ``out``;
+def _flood_zeros(values, out, stack):
+    """The zeros of ``values`` 6-connected to the faces, into ``out``;
     their count, or -1 if ``stack`` overflows.
 
     A sector's padding is mostly the zero runs at both ends of each row
-    along x, which touch an x face: they are filled in one pass that reads
-    nothing else.  The zeros left (runs inside rows) are padding when they
-    lie on a y or z face or touch padding in one of the four neighbouring
-    rows: those runs seed a span flood fill (fill a run, then seed the runs
-    of the neighbouring rows that touch it) through the remaining zeros."""
-    nz, ny, nx = zero.shape
+    along x, which touch an x face: they are filled in one parallel pass
+    that also finds the rows with zeros inside.  Those zero runs are
+    padding when they lie on a y or z face or touch an end run of one of
+    the four neighbouring rows: they seed a span flood fill (fill a run,
+    then seed the runs of the neighbouring rows that touch it) through the
+    remaining zeros."""
+    nz, ny, nx = values.shape
     first = np.empty((nz, ny), dtype=np.int64)  # the row's first and last non-zero
     last = np.empty((nz, ny), dtype=np.int64)
-    count = _end_runs(zero, out, first, last)
+    inner = np.empty((nz, ny), dtype=np.int64)  # its zeros between them, unfilled
+    count = _row_ends(values, out, first, last, inner)
     top = 0
     for k in range(nz):
         for j in range(ny):
+            if inner[k, j] == 0:
+                continue
             face = k == 0 or k == nz - 1 or j == 0 or j == ny - 1
             m = first[k, j] + 1
             while m < last[k, j]:
-                if not zero[k, j, m]:
+                if values[k, j, m] != 0:
                     m += 1
                     continue
                 a = m
-                while zero[k, j, m]:  # ends at the row's last non-zero
+                while values[k, j, m] == 0:  # ends at the row's last non-zero
                     m += 1
                 seed = face
                 for dk, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
                     if seed:
                         break
                     kk, jj = k + dk, j + dj
-                    if 0 <= kk < nz and 0 <= jj < ny:
-                        for q in range(a, m):
-                            if out[kk, jj, q]:
-                                seed = True
-                                break
+                    if 0 <= kk < nz and 0 <= jj < ny:  # [a, m) meets the end runs of row (kk, jj)
+                        seed = a < first[kk, jj] or m - 1 > last[kk, jj]
                 if seed:
                     if top == len(stack):
                         return -1
@@ -433,26 +494,27 @@ def _flood_zeros(zero, out, stack):
         if out[k, j, i]:
             continue
         a = i
-        while a > 0 and zero[k, j, a - 1] and not out[k, j, a - 1]:
+        while a > 0 and values[k, j, a - 1] == 0 and not out[k, j, a - 1]:
             a -= 1
         b = i
-        while b < nx - 1 and zero[k, j, b + 1] and not out[k, j, b + 1]:
+        while b < nx - 1 and values[k, j, b + 1] == 0 and not out[k, j, b + 1]:
             b += 1
         for m in range(a, b + 1):
             out[k, j, m] = True
         count += b - a + 1
+        inner[k, j] -= b - a + 1
         for dk, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
             kk, jj = k + dk, j + dj
-            if kk < 0 or kk >= nz or jj < 0 or jj >= ny:
+            if kk < 0 or kk >= nz or jj < 0 or jj >= ny or inner[kk, jj] == 0:  # nothing left to fill there
                 continue
             m = a
             while m <= b:
-                if zero[kk, jj, m] and not out[kk, jj, m]:
+                if values[kk, jj, m] == 0 and not out[kk, jj, m]:
                     if top == len(stack):
                         return -1  # the caller retries with a larger stack
                     stack[top] = (kk * ny + jj) * nx + m
                     top += 1
-                    while m <= b and zero[kk, jj, m] and not out[kk, jj, m]:
+                    while m <= b and values[kk, jj, m] == 0 and not out[kk, jj, m]:
                         m += 1
                 else:
                     m += 1
@@ -461,19 +523,26 @@ def _flood_zeros(zero, out, stack):
 
 def face_connected_zeros(array: np.ndarray) -> tuple[np.ndarray, int]:
     """The exact zeros 6-connected to the faces of a 3D array, and their count."""
-    zero = np.ascontiguousarray(array) == 0  # one kernel signature for every dtype
+    array = np.asarray(array)
+    # the kernel reads float32 (a volume's voxels) in place; other types as
+    # their non-zeros, exactly (float64's tiny values would round to 0)
+    if array.dtype == np.float32:
+        values = np.ascontiguousarray(array).view()
+    else:
+        values = np.not_equal(array, 0, out=np.empty(array.shape, dtype=np.float32))
+    values.flags.writeable = False  # one kernel signature, whether or not the input was read-only
     # seeds (one a run), then run starts: a voxel can be pushed from each of
     # its four neighbouring rows before it is filled, so in the worst case 5
     # a voxel (a sector's padding needs a few hundred); a stack that
     # overflows makes the kernel return -1
     size = 4096
     while True:
-        out = np.zeros(zero.shape, dtype=bool)
+        out = np.zeros(values.shape, dtype=bool)
         with PARALLEL_LOCK:  # its row pass is a parallel kernel
-            count = _flood_zeros(zero, out, np.empty(size, dtype=np.int64))
+            count = _flood_zeros(values, out, np.empty(size, dtype=np.int64))
         if count >= 0:
             return out, int(count)
-        size = min(8 * size, 5 * zero.size + 16)
+        size = min(8 * size, 5 * values.size + 16)
 
 
 def compilations() -> int:

@@ -94,6 +94,11 @@ def _make_volume(array, no_data_value, **geometry) -> Volume:
     if isinstance(no_data_value, str):
         if no_data_value != "auto":
             raise ValueError(f"no_data_value must be a number, None or 'auto', got {no_data_value!r}")
+        array = np.asarray(array)
+        if array.dtype.kind in "iu":
+            # the Volume keeps these float32 voxels (it takes them without a
+            # copy) and they have the same zeros: the search reads them in place
+            array = np.ascontiguousarray(array, dtype=np.float32)
         return Volume(array, **geometry, no_data_mask=outside_sector(array))
     return Volume(array, **geometry, no_data_value=no_data_value)
 

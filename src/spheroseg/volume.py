@@ -220,9 +220,11 @@ def outside_sector(array: np.ndarray, *, min_fraction: float = 0.01) -> np.ndarr
     ``min_fraction`` of the image.
     """
     array = np.asarray(array)
+    if array.ndim != 3:
+        raise ValueError(f"expected a 3D array [z, y, x], got {array.ndim}D with shape {array.shape}")
     n = array.size
-    if n - np.count_nonzero(array) < min_fraction * n:
-        return None
+    # (no count of the zeros first: the padding is some of them, so too
+    # few zeros means too little padding; the search costs no more)
     try:
         from ._raster import face_connected_zeros
     except ImportError:  # pragma: no cover - numba is a dependency
