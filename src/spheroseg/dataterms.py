@@ -267,11 +267,11 @@ class IntensityInterface(LocalMeans):
     myocardium whatever lies beyond it), then this term takes ``c_in``,
     ``c_out`` from their last band means about that wall (:meth:`freeze`;
     measured on its first observation when none were handed over), freezes
-    them, and moves the surface to ``g*``.  Frozen, because measured about the moving surface the outer
-    band would reach past a myocardium dimmer than what lies beyond it
-    (pericardium, lung interface), raise ``g*`` above the myocardium and let
-    the wall creep outwards through it.  :meth:`reset` measures them again
-    (a new frame of a sequence).
+    them, and moves the surface to ``g*``.  Frozen, because measured about
+    the moving surface the outer band would reach past a myocardium dimmer
+    than what lies beyond it (pericardium, lung interface), raise ``g*``
+    above the myocardium and let the wall creep outwards through it.
+    :meth:`reset` measures them again (a new frame of a sequence).
 
     ``k`` is estimated from the data, once: fully developed speckle has an
     exponential intensity, so ``ln I`` has a standard deviation of

@@ -47,7 +47,8 @@ class SegmentOptions:
         Largest normal displacement of the surface per iteration, mm.  The
         default 1 mm is about 4 % of a ventricle's radius: the paper's
         ``dt = 0.04``.  The intensity mode's last stage, which starts at the
-        wall, takes twice it (:class:`spheroseg.dataterms.IntensityInterface`).
+        wall, takes twice it when the local means settled
+        (:class:`spheroseg.dataterms.IntensityInterface`).
     adaptive_step : bool
         Halve the step whenever the surface moves back against its last
         motion (it oscillates about the wall instead of settling).

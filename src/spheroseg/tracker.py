@@ -232,8 +232,8 @@ class Tracker:
         self._reference = reference
         points, weights = self._held_points(surface.pose)
         opts = self.options
-        return Descent(surface, reference, order=opts.order, step=self._stage_step(), smoothness=opts.smoothness, nu=opts.nu,
-                       landmarks=points, landmark_weights=weights, backend=opts.backend,
+        return Descent(surface, reference, order=opts.order, step=self._stage_step(), smoothness=opts.smoothness,
+                       nu=opts.nu, landmarks=points, landmark_weights=weights, backend=opts.backend,
                        adaptive_step=opts.adaptive_step)
 
     def _stage_step(self, *, settled: bool = True) -> float:
