@@ -242,8 +242,7 @@ class CompiledBackend(NumpyBackend):
         offsets = np.ascontiguousarray(offsets, dtype=float)
         out = np.empty((len(rows), len(offsets)))
         kernels, image = self._sampling(volume)
-        with self.kernels.PARALLEL_LOCK:
-            kernels.samples_at(*image, obs.world, obs.normal, rows, offsets, order == 0, out)
+        kernels.samples_at(*image, obs.world, obs.normal, rows, offsets, order == 0, out)
         return out
 
     def mean_along(self, volume, obs: Observation, offsets, rows, *, exponent: float = 0.0):
