@@ -27,7 +27,8 @@ per level:
   displacement.
 
 The kernels over the sample points (not :func:`scatter`, which sums patches
-into shared nodes) are ``prange`` loops over points or patches: each
+into shared nodes, nor :func:`samples_at`, run once a segmentation) are
+``prange`` loops over points or patches: each
 iteration writes its own outputs and sums nothing across iterations, so a
 result is the same to the last bit on any number of threads (numba's count,
 the ``threads`` option).  Scratch arrays allocated in such a loop are
@@ -357,7 +358,7 @@ if AVAILABLE:
     scatter = _compile(scatter)
     prolate_surface = _parallel(prolate_surface)
     sample_along = _parallel(sample_along)
-    samples_at = _compile(samples_at)  # a few thousand samples a segmentation: serial compiles in half the time
+    samples_at = _compile(samples_at)  # serial: its few thousand samples do not repay a parallel compile
     cavity_sums = _parallel(cavity_sums)
     normal_displacement = _compile(normal_displacement)
     csr_product = _compile(csr_product)
