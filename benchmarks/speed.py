@@ -129,6 +129,31 @@ def first_calls(repeats=5) -> dict:
     return {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
 
 
+def stage_ms(volume, apex, base, repeats=10) -> dict:
+    """Median times (ms) of a default segmentation's stages, stepping a
+    :class:`Tracker` by hand: the set-up (``Tracker()``), each level's
+    iterations (a level's end builds the next level's descent: counted in
+    it), and the result (with its quality report)."""
+    runs = []
+    for _ in range(repeats + 1):
+        t0 = time.perf_counter()
+        tracker = Tracker(volume, apex, base)
+        row = {"setup": time.perf_counter() - t0}
+        while tracker.status is None:
+            level = f"level {tracker.level}: {tracker.levels[tracker.level].data_term.__name__}"
+            t0 = time.perf_counter()
+            tracker.iterate()
+            row[level] = row.get(level, 0.0) + time.perf_counter() - t0
+            row[level + " iterations"] = row.get(level + " iterations", 0) + 1
+        t0 = time.perf_counter()
+        tracker.result()
+        row["result"] = time.perf_counter() - t0
+        runs.append(row)
+    runs = runs[1:]  # the first one warms the caches
+    return {key: float(np.median([r.get(key, 0.0) for r in runs])) * (1 if key.endswith("iterations") else 1000)
+            for key in runs[0]}
+
+
 def unseen_cases(seeds=(0, 1, 2)) -> list[dict]:
     """Whole default segmentations of the accuracy sweep's image formations
     ('default' and the wider point-spread function), 1 mm phantoms."""
@@ -140,7 +165,8 @@ def unseen_cases(seeds=(0, 1, 2)) -> list[dict]:
             rows.append({"formation": name, "seed": seed, "shape": "x".join(map(str, ph.volume.shape)),
                          "segment_ms": 1000 * median_time(lambda: segment(ph.volume, ph.apex, ph.base), 10),
                          "iterations": res.iterations,
-                         "intensity_iteration_us": intensity_iteration_us(ph.volume, ph.apex, ph.base)})
+                         "intensity_iteration_us": intensity_iteration_us(ph.volume, ph.apex, ph.base),
+                         "stages_ms": stage_ms(ph.volume, ph.apex, ph.base)})
             print(rows[-1], flush=True)
     return rows
 

@@ -52,9 +52,10 @@ def segment(volume, apex, base=None, *, annulus=None, landmarks=None, init: Surf
         ``StopIteration`` ends the run (``status`` 2), as in scipy.
     **options
         Keyword options of :class:`spheroseg.SegmentOptions`: ``system``,
-        ``patches`` (8 x 8), ``mode`` (``"local"``), ``step`` (1 mm),
-        ``max_iterations`` (60 per level), ``tol`` (0.05 mm),
-        ``coarse_to_fine``, ``band``, ``band_out``, ``interface``, ``nu``,
+        ``patches`` (8 x 8), ``mode`` (``"intensity"``), ``step`` (1 mm),
+        ``adaptive_step``, ``max_iterations`` (60 per level), ``tol``
+        (0.05 mm), ``coarse_tol`` (twice ``tol``), ``coarse_to_fine``,
+        ``band``, ``band_out``, ``interface``, ``nu``,
         ``smoothness``, ``landmark_weight``, ``apex_weight``, ``order``,
         ``radius_ratio``, ``backend``, ``threads``.
 
