@@ -77,14 +77,18 @@ def test_surface_kernel_matches_geometry(case):
     np.testing.assert_allclose(cos, expected_cos, atol=1e-10)
 
 
+def scattered_points(model, p, seed):
+    """The surface's points moved up to far off it (some out of the sector
+    and out of the image), with its normals: ``(3, n)`` each, as the kernels read them."""
+    g = model.geometry(p)
+    world = (g.world + np.random.default_rng(seed).normal(0, 30, g.world.shape)).T.copy()
+    return world, g.normal.T.copy()
+
+
 def test_samples_match_volume_sample_including_no_data(case):
     ph, model, p, level = case
     vol = ph.volume
-    g = model.geometry(p)
-    rng = np.random.default_rng(2)
-    # points on and far off the surface: some out of the sector and out of the image
-    world = (g.world + rng.normal(0, 30, g.world.shape)).T.copy()
-    normal = g.normal.T.copy()
+    world, normal = scattered_points(model, p, 2)
     offsets = np.array([-4.0, 0.0, 3.0])
     rows = np.arange(model.n_samples)
     mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
@@ -108,10 +112,7 @@ def test_samples_at_are_volume_sample_nearest_and_trilinear(case):
     to the last bit (the speckle estimate reads them), trilinear to rounding."""
     ph, model, p, _ = case
     vol = ph.volume
-    g = model.geometry(p)
-    rng = np.random.default_rng(5)
-    world = (g.world + rng.normal(0, 30, g.world.shape)).T.copy()
-    normal = g.normal.T.copy()
+    world, normal = scattered_points(model, p, 5)
     offsets = np.array([-4.0, 0.0, 0.5, 3.0])
     rows = np.arange(0, model.n_samples, 3)
     points = world.T[rows, None, :] + offsets[None, :, None] * normal.T[rows, None, :]
