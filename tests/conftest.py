@@ -18,3 +18,13 @@ def cetus_file(name: str) -> Path:
     if not path.is_file():
         pytest.skip(f"{path} not available")
     return path
+
+
+def interruptible() -> None:
+    """``preexec_fn`` of a command a test stops with Ctrl-C (SIGINT): its
+    default disposition back.  A shell starts a background job with SIGINT
+    ignored, children inherit that, and Python then installs no
+    KeyboardInterrupt: the command would not stop."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

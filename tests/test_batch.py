@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from conftest import interruptible
 
 from spheroseg import segment_many
 from spheroseg.batch import (SUMMARY_FIELDS, TEST_HOOK_VARIABLE, ManifestError, Study, read_manifest, select_shard,
@@ -244,7 +245,7 @@ def test_interrupted_run_then_rerun_completes_with_identical_summary(cohort, ref
     env = {TEST_HOOK_VARIABLE: ",".join(f"{s['id']}=sleep:1.5" for s in studies)}
     proc = subprocess.Popen([sys.executable, "-m", "spheroseg", "batch", str(folder / "cohort.json"), "--out",
                              str(out), "--workers", "2", *FAST], env={**os.environ, **env},
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=interruptible)
     deadline = time.monotonic() + 300
     while not (out.is_dir() and any(p.is_dir() and not p.name.startswith(".") for p in out.iterdir())):
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()

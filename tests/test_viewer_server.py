@@ -15,6 +15,7 @@ import time
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from conftest import interruptible
 
 import spheroseg
 from spheroseg.io import save_volume, write_markups
@@ -280,7 +281,8 @@ def test_command_prints_the_address_and_stops_on_ctrl_c(phantom, tmp_path):
     path = tmp_path / "study.mha"
     save_volume(path, phantom.volume)
     process = subprocess.Popen([sys.executable, "-m", "spheroseg", "view", str(path), "--no-browser"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                               preexec_fn=interruptible)
     try:
         first = process.stdout.readline().strip()
         assert first.startswith("http://127.0.0.1:") and "/?token=" in first
