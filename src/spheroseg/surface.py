@@ -244,7 +244,7 @@ class Surface:
         node (the Hermite basis there is 1 on it and 0 on every other
         coefficient); elsewhere the centre of the ring (16 points)."""
         lo = self.grid.v2_range[0]
-        if lo in self.grid.poles:
+        if 0 in self.grid.pole_rows:
             f = max(float(self.coefficients[0, 0, 0]), 0.0)  # as radius()
             return self.pose.to_world(self.system.to_cartesian(f, 0.0, lo))
         return self.grid_points(np.linspace(0, 2 * np.pi, 16, endpoint=False), lo)[0].mean(axis=0)
