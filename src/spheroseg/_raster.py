@@ -24,11 +24,11 @@ Cavity mask (:func:`cavity_mask`)
     distances to the foci; spherical ``h2 = r``; the others are 1.  ``F1``,
     ``F2`` bound ``|df/dv1|``, ``|df/dv2|`` over the patches that the ball
     reaches (``v2`` moves by at most ``delta / min h2`` on it, ``v1`` by at
-    most ``delta / min h1``; each patch sampled densely, with a margin, and
-    each row of patches by the caller: the smaller bound).  A ball
-    never reaches the axis or a focus, where the bound fails.  The boundary of the ``v2`` range is
-    the base plane ``x1 = 0`` (prolate, spherical with ``v2_range = (0,
-    pi/2)``) or the planes ``z = 0``, ``z = height`` (cylindrical): its
+    most ``delta / min h1``; each patch sampled densely, with a margin).
+    A ball never reaches the axis or a focus, where the bound fails.  The
+    boundary of the ``v2`` range is the base plane ``x1 = 0`` (prolate,
+    spherical with ``v2_range = (0, pi/2)``) or the planes ``z = 0``,
+    ``z = height`` (cylindrical): its
     distance is exact, and a segment that leaves that convex range does not
     come back.  The prolate coordinates come from the distances to the
     foci, without the complex logarithm of the reference; a point within
@@ -71,10 +71,11 @@ TIE = 1e-9
 FAST = 1e-6
 #: voxels across the largest blocks (a power of 2)
 BLOCK = 8
-#: the slopes of f bounded patch by patch as Surface.mask bounds them row by
-#: row: their largest over (SLOPE_SAMPLES + 1)^2 points of a patch, times
+#: the slopes of f bounded patch by patch: their largest over
+#: (SLOPE_SAMPLES + 1)^2 points of a patch (its edges included), times
 #: SLOPE_MARGIN (a derivative is at most cubic along an axis of a patch:
-#: between samples 1/12 apart it exceeds their largest by at most 8 %)
+#: between samples 1/12 apart a cubic exceeds their largest by at most
+#: 96 / (8 * 144) = 8 %, by Markov's inequality)
 SLOPE_SAMPLES = 12
 SLOPE_MARGIN = 1.25
 
@@ -376,7 +377,7 @@ def patch_slopes(coefficients, lo, hi, samples):
     return np.stack([np.abs(df1).max(axis=(2, 3)), np.abs(df2).max(axis=(2, 3))], axis=-1)
 
 
-def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v2_range, standard_range, slopes):
+def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v2_range, standard_range):
     """Voxel status in the index box ``[start, stop)`` (x, y, z order) of a
     grid of ``shape`` ([z, y, x]): 0 outside the cavity (and outside the
     box), 1 inside, 2 too close to call (left to the caller, with their
@@ -384,10 +385,8 @@ def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v
     ``affine @ idx + offset``; ``kind`` is ``"prolate"``, ``"spherical"`` or
     ``"cylindrical"`` and ``param`` its focal length or height;
     ``standard_range``: the ``v2`` range ends on the base plane (and for
-    cylinders the plane ``z = height``); ``slopes``: upper bounds of
-    ``|df/dv1|`` and ``|df/dv2|`` over each row of patches along ``v2``
-    (shape ``(n2, 2)``; one row: over the whole surface), tightened here
-    patch by patch (the same samples and margin, :data:`SLOPE_SAMPLES`).
+    cylinders the plane ``z = height``).  The slopes of ``f`` are bounded
+    patch by patch (:func:`patch_slopes`, :data:`SLOPE_SAMPLES`).
 
     Returns
     -------
@@ -401,11 +400,9 @@ def cavity_mask(shape, start, stop, affine, offset, kind, param, coefficients, v
     ties = np.zeros(blocks, dtype=np.int64)
     coefficients = np.ascontiguousarray(coefficients, dtype=float)
     lo, hi = float(v2_range[0]), float(v2_range[1])
-    # a ball reaches one or two patches around the axis, not the whole row:
-    # their own slopes decide more blocks at once (256^3: a third fewer
-    # evaluations); either bound holds, so the smaller
-    patches = SLOPE_MARGIN * patch_slopes(coefficients, lo, hi, SLOPE_SAMPLES) + 1e-9
-    slopes = np.minimum(patches, np.asarray(slopes, dtype=float).reshape(-1, 1, 2))
+    # per patch, not per row of patches: a ball reaches one or two patches
+    # around the axis, whose own slopes decide more blocks at once
+    slopes = SLOPE_MARGIN * patch_slopes(coefficients, lo, hi, SLOPE_SAMPLES) + 1e-9
     _cavity_blocks(codes, start, stop, np.ascontiguousarray(affine, dtype=float), np.asarray(offset, dtype=float),
                    {"prolate": _PROLATE, "spherical": _SPHERICAL, "cylindrical": _CYLINDRICAL}[kind], float(param),
                    coefficients, lo, hi, bool(standard_range), slopes, BLOCK, ties)

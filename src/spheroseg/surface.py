@@ -293,20 +293,20 @@ class Surface:
         in voxels, not with the grid; without numba every voxel of the box is
         converted.
         """
-        out = np.zeros(grid.shape, dtype=bool)
         lo, hi = self.bounding_box()
         corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         idx = grid.world_to_index(corners)
         start = np.clip(np.floor(idx.min(0)).astype(int), 0, np.array(grid.shape[::-1]))
         stop = np.clip(np.ceil(idx.max(0)).astype(int) + 1, 0, np.array(grid.shape[::-1]))
         if np.any(stop <= start):
-            return out
+            return np.zeros(grid.shape, dtype=bool)
         try:
             from ._kernels import PARALLEL_LOCK
             from ._raster import cavity_mask
         except ImportError:  # pragma: no cover - numba is a dependency
             k, j, i = np.meshgrid(*(np.arange(a, b) for a, b in zip(start[::-1], stop[::-1])), indexing="ij")
             world = grid.index_to_world(np.stack([i, j, k], axis=-1).reshape(-1, 3))
+            out = np.zeros(grid.shape, dtype=bool)
             out[start[2] : stop[2], start[1] : stop[1], start[0] : stop[0]] = self.contains(world).reshape(i.shape)
             return out
         # local model point of a voxel index: R^T (D diag(spacing) idx + origin - pose origin)
@@ -321,22 +321,9 @@ class Surface:
         else:
             param = getattr(self.system, "focal_length", 1.0)
             planar = v2_lo == 0 and abs(v2_hi - np.pi / 2) < 1e-12
-        # bounds of |df/dv1|, |df/dv2| over each row of patches along v2, for
-        # the rasteriser: the patches sampled at 12 x 12 points each, with a
-        # margin of 25 % (a derivative is at most cubic along an axis of a
-        # patch; between samples 1/12 apart a cubic exceeds their largest by
-        # at most 96 / (8 * 144) = 8 %, by Markov's inequality)
-        n = 12
-        v2, v1 = np.meshgrid(np.linspace(v2_lo, v2_hi, n * self.grid.n2 + 1),
-                             np.linspace(0, 2 * np.pi, n * self.grid.n1 + 1), indexing="ij")
-        slopes = np.empty((self.grid.n2, 2))
-        for column, d in enumerate(((1, 0), (0, 1))):
-            row_max = np.abs(self.evaluate(v1, v2, *d)).max(axis=1)  # per sample row along v2
-            slopes[:, column] = [row_max[n * i2 : n * i2 + n + 1].max() for i2 in range(self.grid.n2)]
-        slopes = 1.25 * slopes + 1e-9
         with PARALLEL_LOCK:
             codes, ties = cavity_mask(grid.shape, start, stop, affine, offset, name, param, self.coefficients,
-                                      (v2_lo, v2_hi), planar, slopes)
+                                      (v2_lo, v2_hi), planar)
         if len(ties):
             codes[tuple(ties.T)] = self.contains(grid.index_to_world(ties[:, ::-1]))
         return codes.view(bool)  # 0 and 1 only
