@@ -58,6 +58,10 @@ def test_no_data_value_marks_missing_samples():
         (np.full((4, 4, 4), np.nan), {}, "NaN"),
         (np.full((4, 4, 4), 1e39), {}, "infinite"),  # beyond float32
         (np.full((4, 4, 4), -np.inf, np.float32), {}, "infinite"),
+        # one bad voxel among finite ones, at either extreme
+        (np.where(np.arange(64).reshape(4, 4, 4) == 37, np.nan, 1.0), {}, "NaN"),
+        (np.where(np.arange(64).reshape(4, 4, 4) == 37, np.inf, -1.0), {}, "infinite"),
+        (np.where(np.arange(64).reshape(4, 4, 4) == 37, -np.inf, 1.0), {}, "infinite"),
         (np.zeros((4, 4, 4)), {"spacing": (1, 0, 1)}, "spacing"),
         (np.zeros((4, 4, 4)), {"direction": np.zeros((3, 3))}, "direction"),
         (np.zeros((1, 4, 4)), {}, "at least 2"),

@@ -89,10 +89,12 @@ class Volume:
             raise ValueError(f"a volume needs at least 2 voxels along each axis, got shape {array.shape}")
         if not np.issubdtype(array.dtype, np.number) or np.iscomplexobj(array):
             raise ValueError(f"volume values must be real numbers, got dtype {array.dtype}")
-        self.array = np.ascontiguousarray(array, dtype=np.float32)
+        with np.errstate(over="ignore"):  # beyond float32: an infinity, reported below
+            self.array = np.ascontiguousarray(array, dtype=np.float32)
         # integers convert to finite float32: only floating-point input is
-        # checked (a pass over every voxel, as long as the conversion)
-        if array.dtype.kind == "f" and not np.isfinite(self.array).all():
+        # checked, by its extremes (a NaN or an infinity is one of them; two
+        # reductions cost half of np.isfinite's boolean image)
+        if array.dtype.kind == "f" and not (np.isfinite(self.array.min()) and np.isfinite(self.array.max())):
             raise ValueError("volume contains NaN or infinite voxels")
         spacing = np.asarray(spacing, dtype=float)
         if spacing.shape != (3,) or not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
