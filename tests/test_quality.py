@@ -127,3 +127,21 @@ def test_wall_bulge():
     # the initial surface's distances computed once for a sequence's frames
     np.testing.assert_allclose(axis_distances(initial, initial), distance[1], rtol=1e-12)
     assert wall_bulge(pushed, initial, reference=axis_distances(initial, initial)) == wall_bulge(pushed, initial)
+
+
+@pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])
+def test_axis_distances_in_the_model_frame_equal_the_world_frame(system):
+    """A surface in its initial surface's frame (one pose: a tracker's
+    frames) is measured in that frame; the same pose as another object takes
+    the world route (any pose); both are the distances from the axis."""
+    from spheroseg import Surface
+    from spheroseg.coords import Pose
+    from spheroseg.quality import axis_distances
+
+    initial = Surface.from_apex_base([10.0, -20.0, 75.0], [3.0, 4.0, -2.0], system=system, patches=(4, 4))
+    rng = np.random.default_rng(3)
+    moved = initial.with_coefficients(initial.coefficients * (1 + 0.1 * rng.standard_normal(initial.coefficients.shape)))
+    elsewhere = Surface(moved.system, Pose(moved.pose.origin.copy(), moved.pose.rotation.copy()), moved.grid,
+                        moved.coefficients)
+    assert moved.pose is initial.pose and elsewhere.pose is not initial.pose
+    np.testing.assert_allclose(axis_distances(moved, initial), axis_distances(elsewhere, initial), rtol=1e-12)

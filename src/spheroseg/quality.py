@@ -76,6 +76,9 @@ def axis_distances(surface, initial) -> np.ndarray:
     lo, hi = initial.grid.v2_range
     v1 = np.linspace(0, 2 * np.pi, 48, endpoint=False)
     v2 = np.linspace(lo + 0.15 * (hi - lo), hi - 0.05 * (hi - lo), 16)
+    if surface.pose is initial.pose:  # one frame (a tracker's frames): the axis is its first coordinate
+        p = surface.grid_points(v1, v2, local=True).reshape(-1, 3)
+        return np.hypot(p[:, 1], p[:, 2])
     origin, axis = initial.pose.origin, initial.pose.rotation[:, 0]
     p = surface.grid_points(v1, v2).reshape(-1, 3) - origin
     return np.linalg.norm(p - np.outer(p @ axis, axis), axis=1)

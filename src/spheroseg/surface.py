@@ -228,14 +228,16 @@ class Surface:
         """World points (mm) of the surface at ``(v1, v2)``, shape ``(..., 3)``."""
         return self.pose.to_world(self.system.to_cartesian(self.radius(v1, v2), v1, v2))
 
-    def grid_points(self, v1, v2) -> np.ndarray:
+    def grid_points(self, v1, v2, *, local: bool = False) -> np.ndarray:
         """World points (mm) on the tensor grid of the ``v2`` values (rows)
         by the ``v1`` values (columns), shape ``(len(v2), len(v1), 3)``: as
         :meth:`points` there, ``f`` by :meth:`HermiteGrid.evaluate_grid`
-        (equal to rounding, in a third of the time)."""
+        (equal to rounding, in a third of the time).  With ``local``, in
+        the model's frame instead (:meth:`Pose.to_local` of them)."""
         v1, v2 = np.ravel(v1), np.ravel(v2)
         f = np.maximum(self.grid.evaluate_grid(self.coefficients, v1, v2), 0.0)  # as radius()
-        return self.pose.to_world(self.system.to_cartesian(f, v1, v2[:, None]))
+        points = self.system.to_cartesian(f, v1, v2[:, None])
+        return points if local else self.pose.to_world(points)
 
     def tip(self) -> np.ndarray:
         """World point (mm) of the surface's end at the start of the ``v2``
