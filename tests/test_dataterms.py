@@ -7,6 +7,7 @@ from spheroseg.backends import NumpyBackend, select_backend
 from spheroseg.dataterms import (DATA_TERMS, FixedInterface, GlobalMeans, IntensityInterface, LocalMeans, band_offsets,
                                   nanmedian, otsu_threshold, shell_offsets, speckle_nepers)
 from spheroseg.energy import SampledSurface
+from spheroseg.segment import segment
 from spheroseg.surface import Surface
 from spheroseg.volume import Volume
 
@@ -38,6 +39,22 @@ def test_global_means_are_the_region_values(two_regions, backend):
     assert c_in == pytest.approx(C_IN, abs=0.5)
     assert c_out == pytest.approx(C_OUT, abs=0.5)
     assert scale == pytest.approx((c_out - c_in) ** 2)
+    # inside brighter than outside: no force, the least scale; the means as measured
+    flipped = Volume(C_IN + C_OUT - volume.array)
+    _, c_in, c_out, scale, _ = term.force(b, flipped, b.observe(p, flipped))
+    assert c_out == c_in == pytest.approx(C_OUT, abs=0.5) and scale == term.min_scale
+    assert term.grey_means[1] == pytest.approx(C_IN, abs=0.5)
+
+
+def test_global_means_of_the_wrong_polarity_leave_the_surface(two_regions):
+    """Bright blood in dark tissue: Chan-Vese's global force would move the
+    wall to enclose the bright region; the blood-dark model does not move."""
+    volume, _, _, _, _ = two_regions
+    flipped = Volume(C_IN + C_OUT - volume.array)
+    apex, base = np.array([50.0, 50.0, 15.0]), np.array([50.0, 50.0, 85.0])
+    r = segment(flipped, apex, base, radius_ratio=0.4 * 0.8, mode="chan-vese")
+    assert r.quality["volume_ratio"] == pytest.approx(1.0, abs=1e-3)  # to the initial shape's
+    assert r.c_in > r.c_out and r.quality["poor"]  # reported: no contrast
 
 
 def test_local_means_are_the_band_values_and_respect_polarity(two_regions):

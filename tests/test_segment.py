@@ -218,6 +218,28 @@ def test_cetus_patient7_ed_larger_than_es():
     assert volumes["ED"] > 1.15 * volumes["ES"], volumes
 
 
+def test_cetus_patient7_on_another_grid():
+    """The same echo on a finer, anisotropic grid (nearest-voxel resampling
+    to 256^3, as a scanner's export might be) gives the same cavity.  Its
+    initial shape's two global means are nearly equal (88.92 and 88.91):
+    before the global means kept the blood-dark polarity this collapsed to
+    87 mL against 196 on the original grid."""
+    from scipy import ndimage
+
+    points = json.loads(cetus_file("Patient7_points.json").read_text())
+    spacing = points["assumed_spacing_mm"]
+    array = np.load(cetus_file(points["ED"]["file"]))
+    apex = np.array(points["ED"]["apex_index"][::-1], float) * spacing
+    base = np.array(points["ED"]["base_index"][::-1], float) * spacing
+    native = segment(Volume(array, spacing=(spacing,) * 3, no_data_value=0), apex, base)
+    shape = np.array([256, 256, 256])
+    fine = Volume(ndimage.zoom(array, shape / array.shape, order=0), no_data_value=0,
+                  spacing=spacing * (np.array(array.shape) / shape)[::-1])
+    r = segment(fine, apex, base)
+    assert not r.quality["poor"], r.quality["warnings"]
+    assert r.volume_ml == pytest.approx(native.volume_ml, rel=0.03)
+
+
 def test_compiled_path_matches_numpy_reference(phantoms):
     """The compiled backend and the numpy reference give the same surface,
     iteration by iteration (local means, the apex landmark)."""

@@ -195,11 +195,21 @@ class FixedInterface(DataTerm):
 
 
 class GlobalMeans(DataTerm):
-    """Global Chan-Vese means, re-estimated every iteration."""
+    """Global Chan-Vese means, re-estimated every iteration.
+
+    The cavity must be the darker region (blood): means of the wrong
+    polarity (``c_in > c_out``) give no force, as :class:`LocalMeans` does
+    locally.  Chan-Vese's force would otherwise pull bright tissue in and
+    push the blood out, and a start whose two means are nearly equal (a
+    ventricle that fills only part of the initial shape: CETUS Patient 7
+    resampled to 256^3 started at 88.92 against 88.91) would collapse on
+    its own feedback instead of leaving the wall to the next level.
+    """
 
     def force(self, backend, volume, obs) -> Force:
         c_in, c_out = self.global_means(backend, volume, obs)
-        self.grey_means = (c_in, c_out)
+        self.grey_means = (c_in, c_out)  # as measured (a result reports them)
+        c_out = max(c_out, c_in)
         return Force(obs.u, c_in, c_out, max((c_out - c_in) ** 2, self.min_scale))
 
 
