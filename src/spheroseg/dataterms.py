@@ -240,8 +240,9 @@ class LocalMeans(DataTerm):
         if not ok.all():
             fields = np.where(ok, fields, np.nanmean(fields, axis=1)[:, None])
         rhs = backend.scatter(d.band_weights * fields, band=True)
-        # one mat-vec a field: BLAS multiplies a 259 x 2 block slower than that
-        smooth = np.stack([d.mass_inverse @ column for column in rhs.T], axis=1)
+        # both fields in one product: one pass over the 259 x 259 inverse
+        # (13 us warm, 29 from memory, against 31 and 66 for a mat-vec each)
+        smooth = d.mass_inverse @ rhs
         c_in, c_out = backend.gather(smooth)
         return c_in, c_out
 
