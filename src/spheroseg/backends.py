@@ -265,8 +265,8 @@ class CompiledBackend(NumpyBackend):
         m, d = self.model, self.discretisation
         if p.ndim == 1:
             coefficients = self.product(d.constraints, p).reshape((1,) + m.grid.shape)
-        else:
-            coefficients = np.ascontiguousarray((d.constraints @ p).T).reshape((-1,) + m.grid.shape)
+        else:  # a product a field (the band means' two): scipy's dispatch of a sparse product costs more
+            coefficients = np.stack([self.product(d.constraints, field) for field in p.T]).reshape((-1,) + m.grid.shape)
         out = np.empty((len(coefficients), m.n_samples))
         with self.kernels.PARALLEL_LOCK:
             self.kernels.gather(coefficients, d.order, *d.tables, out)
@@ -280,7 +280,7 @@ class CompiledBackend(NumpyBackend):
         self.kernels.scatter(fields, tables[0].shape[1], *tables, coefficients)
         if values.ndim == 1:
             return self.product(d.constraints_t, coefficients.reshape(-1))
-        return d.constraints_t @ coefficients.reshape(len(fields), -1).T
+        return np.stack([self.product(d.constraints_t, c.reshape(-1)) for c in coefficients], axis=1)
 
     def displacement(self, obs: Observation, c_in, c_out, scale: float, *, step: float, h0_floor: float,
                      clip: float = 1.0, u=None, area_speed=None) -> np.ndarray:
