@@ -178,13 +178,15 @@ def report_section(data: dict) -> str:
     labels = [k for k in ("before", "after") if k in data]
     lines = ["## The whole command, stage by stage (issue 15)", "",
              "Command: `PYTHONPATH=<code>/src python benchmarks/userspeed.py --label before|after --repeats 3`, "
-             "then `--report`.  `before` is main when issue 15 was filed, `after` the end of its third round "
+             "then `--report`.  `before` is main when issue 15 was filed, `after` its latest round "
              "(the compiled mask by blocks, the report drawn in a second process while a core is "
              "free, the command ending without the interpreter's teardown, kernels on numba's threads; then the "
-             "padding search on the float32 voxels in place and the mask's slopes bounded patch by patch); "
+             "padding search on the float32 voxels in place and the mask's slopes bounded patch by patch only; and "
+             "the global means' blood-dark polarity, without which the 256^3 case collapsed: see its volume); "
              + ", ".join(f"{k}: {data[k]['commit']} on {data[k]['date']}"
                          + (f" ({data[k]['machine']})" if data[k].get("machine") else "") for k in labels) + ".  "
-             "Medians over 3 runs on a 2-core machine, the labels on the same machine (its load average with each); "
+             "Medians over 3 runs on a 2-core machine; the labels ran in different sessions, on virtual machines "
+             "of one type whose import times vary by a third from run to run (the load average with each); "
              "each stage runs in a fresh interpreter, as in a command (the report stage draws in that process). "
              "Volumes: CETUS Patient 7 ED (201 x 140 x 140, 0.9 mm assumed) and the same resampled to 256^3, "
              "as MetaImage files.  Milliseconds.", ""]
