@@ -118,10 +118,11 @@ def test_bad_files(tmp_path):
 @pytest.mark.parametrize("suffix", [".mhd", ".nii.gz", ".nrrd", ".npy"])
 def test_save_mask_round_trip(tmp_path, suffix, rng):
     like = Volume(np.zeros((5, 6, 7)), spacing=(0.5, 0.6, 0.7), origin=(1.0, 2.0, 3.0))
-    mask = rng.random((5, 6, 7)) > 0.5
+    mask = (rng.random((7, 6, 5)) > 0.5).transpose(2, 1, 0)  # not C-contiguous
     save_mask(tmp_path / f"mask{suffix}", mask, like)
     back = np.load(tmp_path / "mask.npy") if suffix == ".npy" else sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / f"mask{suffix}")))
-    np.testing.assert_array_equal(back.astype(bool), mask)
+    assert back.dtype == np.uint8
+    np.testing.assert_array_equal(back, mask.astype(np.uint8))  # 0 and 1
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".spheroseg-")], "no temporary left behind"
 
 
