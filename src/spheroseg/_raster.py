@@ -28,9 +28,8 @@ Cavity mask (:func:`cavity_mask`)
     A ball never reaches the axis or a focus, where the bound fails.  The
     boundary of the ``v2`` range is the base plane ``x1 = 0`` (prolate,
     spherical with ``v2_range = (0, pi/2)``) or the planes ``z = 0``,
-    ``z = height`` (cylindrical): its
-    distance is exact, and a segment that leaves that convex range does not
-    come back.  The prolate coordinates come from the distances to the
+    ``z = height`` (cylindrical): its distance is exact, and a segment that
+    leaves that convex range does not come back.  The prolate coordinates come from the distances to the
     foci, without the complex logarithm of the reference; a point within
     ``FAST`` of a decision (far above their error) or near the focal
     segment is redone with the reference's arithmetic, and voxels within

@@ -200,10 +200,10 @@ class GlobalMeans(DataTerm):
     The cavity must be the darker region (blood): means of the wrong
     polarity (``c_in > c_out``) give no force, as :class:`LocalMeans` does
     locally.  Chan-Vese's force would otherwise pull bright tissue in and
-    push the blood out, and a start whose two means are nearly equal (a
-    ventricle that fills only part of the initial shape: CETUS Patient 7
-    resampled to 256^3 started at 88.92 against 88.91) would collapse on
-    its own feedback instead of leaving the wall to the next level.
+    push the blood out, and a start whose two means are nearly equal (CETUS
+    Patient 7 resampled to 256^3: 88.92 inside against 88.91 outside) would
+    collapse on its own feedback instead of leaving the wall to the next
+    level.
     """
 
     def force(self, backend, volume, obs) -> Force:
