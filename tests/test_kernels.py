@@ -85,17 +85,19 @@ def scattered_points(model, p, seed):
     return world, g.normal.T.copy()
 
 
-def test_samples_match_volume_sample_including_no_data(case):
+@pytest.mark.parametrize("offsets", [[-4.0, 0.0, 3.0], [2.5]], ids=["band", "one offset"])
+def test_samples_match_volume_sample_including_no_data(case, offsets):
+    """Several offsets a row, and one (the surface's samples: a loop of its own)."""
     ph, model, p, level = case
     vol = ph.volume
     world, normal = scattered_points(model, p, 2)
-    offsets = np.array([-4.0, 0.0, 3.0])
+    offsets = np.array(offsets)
     rows = np.arange(model.n_samples)
     mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
     _kernels.sample_along(*vol.sampling_view(), world, normal, rows, offsets, 0.0, mean, count)
     samples = vol.sample(world.T[:, None, :] + offsets[None, :, None] * normal.T[:, None, :])
     ok = np.isfinite(samples)
-    assert 0 < (count == 0).sum() and (count == 3).sum() > 0  # the test reaches both cases
+    assert 0 < (count == 0).sum() and (count == len(offsets)).sum() > 0  # the test reaches both cases
     np.testing.assert_array_equal(count, ok.sum(axis=1))
     with np.errstate(invalid="ignore"):
         expected = np.nansum(samples, axis=1) / ok.sum(axis=1)
