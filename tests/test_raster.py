@@ -6,7 +6,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import spheroseg
-from spheroseg._raster import SLOPE_MARGIN, SLOPE_SAMPLES, gradient_bound, patch_slopes, status
+from spheroseg._raster import (FRESH_ZEROS_BYTES, SLOPE_MARGIN, SLOPE_SAMPLES, fresh_zeros, gradient_bound,
+                               patch_slopes, status)
 from spheroseg.phantom import make_phantom
 from spheroseg.surface import ImageGrid, Surface
 from spheroseg.volume import outside_sector
@@ -166,6 +167,18 @@ def test_mask_nonplanar_v2_range_equals_reference(rng):
     s = Surface.from_function(s.system, s.pose, grid, 0.6)
     g = GRIDS["oblique"]
     np.testing.assert_array_equal(s.mask(g), reference_mask(s, g))
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, bool, np.int64])
+@pytest.mark.parametrize("voxels", [1000, FRESH_ZEROS_BYTES + 3])
+def test_fresh_zeros_are_writable_zeros_of_the_shape(dtype, voxels):
+    # the mask and padding tests on phantoms (over a MiB) write into the mapped ones
+    shape = (voxels, 1, 1)
+    a = fresh_zeros(shape, dtype)
+    assert a.shape == shape and a.dtype == np.dtype(dtype) and a.flags.c_contiguous and a.flags.writeable
+    np.testing.assert_array_equal(a, np.zeros(shape, dtype))
+    a[-1] = 1
+    assert a[-1] == 1 and a.sum() == 1
 
 
 @pytest.mark.parametrize("seed", [0, 1])
