@@ -89,9 +89,12 @@ def fresh_zeros(shape, dtype) -> np.ndarray:
     huge pages, each zeroed whole (and on a virtual machine backed by the
     host) on its first write.  An anonymous map's pages are zeros mapped 4 KiB
     at a time as they are written.  In a new process on the benchmarks'
-    2-core virtual machine, at 256^3: the cavity mask 49-69 ms with
-    ``np.zeros``, 21-32 ms with these; the sector padding 28-40 and 15 ms.
-    (Arrays the kernels read, such as the voxels, keep numpy's pages.)
+    2-core virtual machine, at 256^3: the cavity mask 31-69 ms with
+    ``np.zeros``, 20-32 ms with these; the sector padding 21-40 and 12-15
+    ms.  A page never written costs a fault when first read: saving that
+    mask took 5 ms more.  (Arrays the kernels read, such as the voxels,
+    keep numpy's pages: copying the voxels to float32 was slower in 4 KiB
+    pages.)
     """
     dtype = np.dtype(dtype)
     size = int(np.prod(shape)) * dtype.itemsize
