@@ -1,0 +1,42 @@
+"""load_kernels on a first run (an empty numba cache) and on later runs."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("numba")
+
+RUN = """
+import json
+from spheroseg._raster import compilations
+from spheroseg.phantom import make_phantom
+from spheroseg.surface import Surface
+from spheroseg.volume import outside_sector
+from spheroseg.warmup import load_kernels
+loaded = load_kernels()
+# a mask and a padding search as a command makes them, after the loading
+ph = make_phantom(seed=0, spacing=3.0)
+Surface.from_apex_base(ph.apex, ph.base).mask(ph.volume.grid)
+outside_sector(ph.volume.array)
+print(json.dumps({**loaded, "raster_compiled": compilations()}))
+"""
+
+
+def test_a_first_run_compiles_the_rasteriser_in_a_second_process(tmp_path):
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "PYTHONWARNINGS": "ignore"}
+    runs = []
+    for _ in range(2):
+        proc = subprocess.run([sys.executable, "-c", RUN], capture_output=True, text=True, env=env, timeout=600)
+        assert proc.returncode == 0, proc.stderr
+        runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    first, later = runs
+    assert first["compiled"]
+    if (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()) >= 2:
+        # the second process compiled the mask's and the padding's kernels
+        # into the cache, with the signatures of a command's calls, while
+        # this one compiled the segmentation's
+        assert first["helper"] and first["raster_compiled"] == 0
+    assert not later["compiled"] and not later["helper"] and later["raster_compiled"] == 0
