@@ -10,6 +10,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -341,6 +342,20 @@ def test_a_beam_space_study_is_shown_scan_converted_and_segmented_in_its_beams(t
         assert final["volume_ml"] == pytest.approx(expected.volume_ml, rel=1e-12)
     finally:
         server.close()
+
+
+def test_a_viewer_that_cannot_listen_stops_its_worker_first(phantom, tmp_path):
+    # the command then exits with no thread inside numba (an exit during its
+    # loading could abort in LLVM's teardown: 4 to 7 exits in 50 did)
+    path = tmp_path / "study.mha"
+    save_volume(path, phantom.volume)
+    before = set(threading.enumerate())
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        with pytest.raises(OSError):
+            open_viewer(path, port=taken.getsockname()[1])
+    assert not [t for t in set(threading.enumerate()) - before if t.name == "spheroseg-viewer-worker"]
 
 
 def test_command_refuses_a_port_in_use(phantom, tmp_path):

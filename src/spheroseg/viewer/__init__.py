@@ -51,4 +51,8 @@ def open_viewer(path, *, port: int = 0, points=None, save_root=None, spacing=Non
                        annulus=np.reshape(marks["annulus"], (-1, 3)))
     session = Session(frames, source=path, save_root=Path.cwd() if save_root is None else save_root, points=start,
                       **options)
-    return ViewerServer(session, port=port, token=token)
+    try:
+        return ViewerServer(session, port=port, token=token)
+    except BaseException:  # the port taken, say: the session's worker stops first
+        session.close()
+        raise

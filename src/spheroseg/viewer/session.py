@@ -334,11 +334,15 @@ class Session:
                 "volume_ml": written.get("volume_ml"), "ef_percent": written.get("ef_percent")}
 
     def close(self) -> None:
-        """Stop the running job and the worker; end the event streams."""
+        """Stop the running job and the worker; end the event streams; wait
+        for the worker to return (a process that exits while it is in numba's
+        compiler or loader can abort in LLVM's teardown)."""
         with self._lock:
             self._generation += 1
         self._jobs.put(None)
         self.events.close()
+        if threading.current_thread() is not self._worker:
+            self._worker.join()
 
     # inside -------------------------------------------------------------------
 
