@@ -55,6 +55,22 @@ def test_sequence_volume_curve():
     assert 45 < seq.truth_ef < 65
 
 
+@pytest.mark.parametrize("formation", [None, "psf_wide"])
+def test_sequence_frames_do_not_depend_on_the_workers(formation):
+    from spheroseg.phantom import FORMATIONS
+
+    kwargs = dict(seed=4, n_frames=3, spacing=3.0, base_descent=6.0,
+                  formation=None if formation is None else FORMATIONS[formation])
+    one, three = make_sequence(workers=1, **kwargs), make_sequence(workers=3, **kwargs)
+    for a, b in zip(one.frames, three.frames):
+        np.testing.assert_array_equal(a.volume.array, b.volume.array)
+        np.testing.assert_array_equal(a.truth_mask, b.truth_mask)
+        assert a.truth_volume_ml == b.truth_volume_ml and np.array_equal(a.base, b.base)
+    assert not np.array_equal(one.frames[0].volume.array, one.frames[1].volume.array)  # speckle changes
+    with pytest.raises(ValueError, match="workers"):
+        make_sequence(n_frames=2, spacing=3.0, workers=0)
+
+
 def test_families_exist():
     assert {"clean", "speckle", "dropout", "clutter", "low_contrast", "tilted"} <= set(FAMILIES)
 

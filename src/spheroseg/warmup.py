@@ -17,7 +17,6 @@ loading takes about 10.5 s instead of 18 on 2 cores.
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import time
@@ -92,11 +91,9 @@ def load_raster_kernels(image=None, volume=None, surface=None) -> None:
 def _start_raster_helper():
     """A second process that compiles the rasteriser's kernels into numba's
     cache, when this process may run on two cores or more (else None)."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not on Linux
-        cores = os.cpu_count() or 1
-    if cores < 2:
+    from .backends import usable_cores
+
+    if usable_cores() < 2:
         return None
     try:  # the same interpreter and environment (NUMBA_CACHE_DIR): the same cache
         return subprocess.Popen([sys.executable, "-c", "from spheroseg.warmup import load_raster_kernels; "
