@@ -134,6 +134,31 @@ def command(case: dict, env: dict, report: bool, extra=()) -> float:
     return wall
 
 
+def demo(env: dict) -> dict:
+    """``spheroseg demo`` in a new folder: its wall time and its own timings
+    (``seconds`` of its results.json: the synthetic sequence, the kernels,
+    the segmentation of its frames)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        t = time.perf_counter()
+        run = subprocess.run([sys.executable, "-m", "spheroseg", "demo", "--quiet"], capture_output=True, text=True,
+                             env=env, cwd=tmp)
+        wall = time.perf_counter() - t
+        if run.returncode:
+            raise RuntimeError(run.stderr)
+        seconds = json.loads(next(Path(tmp).glob("spheroseg-demo*/results.json")).read_text())["seconds"]
+    return {"wall": wall, **seconds}
+
+
+def measure_demo(repeats: int) -> dict:
+    """The README's first command after its install: a first run (empty
+    numba cache), then later runs (medians)."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        first = demo(env)
+        later = [demo(env) for _ in range(repeats)]
+    return {"first_run": first, "later": {k: float(np.median([r[k] for r in later])) for k in later[0]}}
+
+
 def measure(repeats: int) -> dict:
     results = {}
     with tempfile.TemporaryDirectory() as warm:
@@ -186,7 +211,8 @@ def report_section(data: dict) -> str:
              "the surface's samples on SIMD lanes, one more parallel loop for the first run to compile, some "
              "1.5 s; and the mask's and the padding's outputs zeroed in an anonymous memory map instead of "
              "numpy's huge pages: the 256^3 mask 50 to 23-25 ms; and on a first run a second process compiling the "
-             "mask's and the padding's kernels while the command compiles the segmentation's: 20 to 11 s); "
+             "mask's and the padding's kernels while the command compiles the segmentation's: 20 to 11 s; and the "
+             "demo's synthetic sequence made frame by frame in threads, 7 to 4 s); "
              + ", ".join(f"{k}: {data[k]['commit']} on {data[k]['date']}"
                          + (f" ({data[k]['machine']})" if data[k].get("machine") else "") for k in labels) + ".  "
              "Medians over 3 runs on a 2-core machine; the labels ran in different sessions, on virtual machines "
@@ -219,6 +245,20 @@ def report_section(data: dict) -> str:
                        ("`spheroseg segment`, later runs, with report", "later_report")):
         cells = [f"{1000 * data[lab]['results'][n][key]:.0f}" for n in names for lab in labels]
         lines.append(f"| {title} | " + " | ".join(cells) + " |")
+    demos = {lab: data[lab]["demo"] for lab in labels if "demo" in data[lab]}
+    if demos:
+        lines += ["", "`spheroseg demo` (the README's first command after its install; `--quiet`, in a new folder), "
+                  "seconds: a first run with an empty numba cache, then the median of later runs.  Its own "
+                  "`seconds` in results.json: making the synthetic 10-frame sequence, loading (or compiling) the "
+                  "kernels, segmenting its frames; the rest of the wall time is starting Python and importing, "
+                  "the Dice and distance checks against the truth, the report and the files.", "",
+                  "| run | label | wall | synthetic sequence | kernels | segmentation of the 10 frames |",
+                  "| --- | --- | ---: | ---: | ---: | ---: |"]
+        for lab, d in demos.items():
+            for run in ("first_run", "later"):
+                r = d[run]
+                lines.append(f"| {run.replace('_', ' ')} | {lab} ({data[lab]['commit']}) | {r['wall']:.1f} | "
+                             f"{r['make_phantom']:.1f} | {r['kernels']:.1f} | {r['segment_all_frames']:.2f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -235,6 +275,7 @@ def main() -> None:
         results = measure(args.repeats)
         data[args.label] = {"commit": git_commit(), "date": time.strftime("%Y-%m-%d %H:%M"),
                             "python": platform.python_version(), "results": results,
+                            "demo": measure_demo(args.repeats),
                             "machine": f"{cpu_name()}, load average {load:.1f} at the start, "
                                        f"{os.getloadavg()[0]:.1f} at the end"}
         path.write_text(json.dumps(data, indent=1) + "\n")
