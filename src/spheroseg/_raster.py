@@ -86,10 +86,10 @@ def fresh_zeros(shape, dtype) -> np.ndarray:
     """Zeros for a kernel's output, from an anonymous memory map when large.
 
     numpy advises Linux to back arrays of 4 MiB or more with transparent
-    huge pages, each zeroed whole (and on a virtual machine backed by the
-    host) on its first write.  An anonymous map's pages are zeros mapped 4 KiB
-    at a time as they are written.  In a new process on the benchmarks'
-    2-core virtual machine, at 256^3: the cavity mask 31-69 ms with
+    huge pages, and a huge page is zeroed whole when first written: 2 MiB
+    for one voxel of the cavity.  An anonymous map's pages are zeros mapped
+    4 KiB at a time as they are written.  In a new process on the
+    benchmarks' 2-core virtual machine, at 256^3: the cavity mask 31-69 ms with
     ``np.zeros``, 20-32 ms with these; the sector padding 21-40 and 12-15
     ms.  A page never written costs a fault when first read: saving that
     mask took 5 ms more.  (Arrays the kernels read, such as the voxels,
@@ -570,11 +570,16 @@ def _cache_probe():
     return 0
 
 
+def _probe_misses() -> int:
+    misses = getattr(getattr(_cache_probe, "stats", None), "cache_misses", None)  # none without the JIT
+    return sum(misses.values()) if misses else 0
+
+
 def cached() -> bool:
     """Whether numba's cache holds this module's kernels for its current
     source: a kernel of its own loaded rather than compiled (1.5 ms)."""
     _cache_probe()
-    return not _cache_probe.stats.cache_misses
+    return _probe_misses() == 0
 
 
 def compilations() -> int:
@@ -582,4 +587,4 @@ def compilations() -> int:
     cache), its cache probe aside."""
     from .warmup import compilations as count
 
-    return count(sys.modules[__name__]) - sum(_cache_probe.stats.cache_misses.values())
+    return count(sys.modules[__name__]) - _probe_misses()
