@@ -210,7 +210,7 @@ def report_section(data: dict) -> str:
              "the global means' blood-dark polarity, without which the 256^3 case collapsed: see its volume; and "
              "the surface's samples on SIMD lanes, one more parallel loop for the first run to compile, some "
              "1.5 s; and the mask's and the padding's outputs zeroed in an anonymous memory map instead of "
-             "numpy's huge pages: the 256^3 mask 50 to 23-25 ms; and on a first run a second process compiling the "
+             "numpy's huge pages: the 256^3 mask 50 to 20-25 ms; and on a first run a second process compiling the "
              "mask's and the padding's kernels while the command compiles the segmentation's: 20 to 11 s; and the "
              "demo's synthetic sequence made frame by frame in threads, 7 to 4 s); "
              + ", ".join(f"{k}: {data[k]['commit']} on {data[k]['date']}"
