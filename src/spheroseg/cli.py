@@ -238,14 +238,31 @@ def _mask_suffix(args, source: Path) -> str:
 
 
 def _kernels_loaded(seconds: dict) -> None:
-    """Compile or load the kernels before any timed work; a first run says so."""
+    """Compile or load the kernels before any timed work (a first run says so)."""
+    seconds["kernels"] = _load_kernels_saying()["seconds"]
+
+
+#: a first run's one line, begun as compiling starts, ended with its time
+COMPILING = ("spheroseg: compiling the numerical kernels for this machine, once "
+             "(later runs load them from numba's cache):")
+
+
+def _load_kernels_saying():
+    """``load_kernels``; on a first run one line on stderr, its start printed
+    as compiling starts (a user sees why the command waits) and its end, the
+    seconds it took, when done."""
     from .warmup import load_kernels
 
-    loaded = load_kernels()
-    seconds["kernels"] = loaded["seconds"]
+    said = []
+
+    def start():
+        print(COMPILING, end="", file=sys.stderr, flush=True)
+        said.append(True)
+
+    loaded = load_kernels(on_compile=start)
     if loaded["compiled"]:
-        print(f"spheroseg: compiled the numerical kernels for this machine in {loaded['seconds']:.1f} s "
-              "(once: later runs load them from numba's cache)", file=sys.stderr)
+        print(("" if said else COMPILING) + f" {loaded['seconds']:.1f} s", file=sys.stderr)
+    return loaded
 
 
 def _load_timed(source, args, seconds: dict):
@@ -526,7 +543,6 @@ def cmd_demo(args) -> int:
 
 def cmd_view(args) -> int:
     from .viewer import open_viewer
-    from .warmup import load_kernels
 
     if not 0 <= args.port <= 65535:
         raise CliError(f"--port must be from 0 to 65535, got {args.port}")
@@ -541,9 +557,7 @@ def cmd_view(args) -> int:
             raise CliError(f"cannot listen on 127.0.0.1:{args.port}: {exc.strerror}") from None
         raise
     print(server.url, flush=True)
-    loaded = load_kernels()
-    if loaded["compiled"]:
-        print(f"spheroseg: compiled the numerical kernels in {loaded['seconds']:.1f} s (once)", file=sys.stderr)
+    _load_kernels_saying()
     if not args.no_browser:
         import webbrowser
 

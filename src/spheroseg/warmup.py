@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -43,10 +45,20 @@ def compilations(module) -> int:
     return count
 
 
-def load_kernels() -> KernelLoad:
+def load_kernels(*, on_compile: Callable[[], None] | None = None) -> KernelLoad:
     """Compile or load every kernel a segmentation, its mask and the sector
     padding use, and the grid-only matrices of the default resolutions, by
     running them once on a small synthetic ellipsoid (deterministic).
+
+    Once a process: a later call, or one made meanwhile from another thread
+    (the viewer's worker and the command that started it), waits for the
+    first and reports its ``compiled`` with its own wait as ``seconds``.
+
+    Parameters
+    ----------
+    on_compile : callable, optional
+        Called before compiling when the rasteriser's kernels are not in
+        numba's cache (a first run), so that a command can say so at once.
 
     Returns
     -------
@@ -56,12 +68,29 @@ def load_kernels() -> KernelLoad:
         kernels meanwhile.
     """
     t0 = time.perf_counter()
+    with _LOADING:
+        if "first" not in _LOADED:
+            _LOADED["first"] = _load(on_compile)
+            return KernelLoad(_LOADED["first"])
+        return KernelLoad(_LOADED["first"], seconds=time.perf_counter() - t0)
+
+
+_LOADING = threading.Lock()
+_LOADED: dict[str, KernelLoad] = {}
+
+
+def _load(on_compile) -> KernelLoad:
+    t0 = time.perf_counter()
     from . import _kernels
     from ._raster import cached as raster_cached
     from ._raster import compilations as raster_compilations
     from .segment import segment
 
-    helper = None if raster_cached() else _start_raster_helper()
+    helper = None
+    if not raster_cached():
+        if on_compile is not None:
+            on_compile()
+        helper = _start_raster_helper()
     image, volume, apex, base = _synthetic_case()
     result = segment(volume, apex=apex, base=base, max_iterations=2)
     if helper is not None:
