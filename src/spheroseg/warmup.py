@@ -122,7 +122,7 @@ def _start_raster_helper():
     cache, when this process may run on two cores or more (else None)."""
     from .backends import usable_cores
 
-    if usable_cores() < 2:
+    if usable_cores() < 2 or not sys.executable or getattr(sys, "frozen", False):  # (a frozen app is no Python)
         return None
     try:  # the same interpreter and environment (NUMBA_CACHE_DIR): the same cache
         return subprocess.Popen([sys.executable, "-c", "from spheroseg.warmup import load_raster_kernels; "
