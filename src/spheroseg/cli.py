@@ -259,7 +259,12 @@ def _load_kernels_saying():
         print(COMPILING, end="", file=sys.stderr, flush=True)
         said.append(True)
 
-    loaded = load_kernels(on_compile=start)
+    try:
+        loaded = load_kernels(on_compile=start)
+    except BaseException:
+        if said:  # an error (or Ctrl-C) gets a line of its own
+            print(file=sys.stderr)
+        raise
     if loaded["compiled"]:
         print(("" if said else COMPILING) + f" {loaded['seconds']:.1f} s", file=sys.stderr)
     return loaded
