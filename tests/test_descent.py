@@ -1,9 +1,11 @@
-"""The descent's step solves the least-squares problem of its docstring."""
+"""The descent's step solves the least-squares problem of its docstring, and a
+level run in one compiled loop equals its iterations."""
 
 import numpy as np
 import pytest
 
-from spheroseg.dataterms import LocalMeans
+from spheroseg import Tracker, Volume
+from spheroseg.dataterms import FixedInterface, GlobalMeans, IntensityInterface, LocalMeans
 from spheroseg.descent import Descent
 from spheroseg.discretisation import ROUGHNESS_SCALE
 from spheroseg.phantom import make_phantom
@@ -64,3 +66,88 @@ def test_step_solves_the_least_squares_system(phantom, backend):
     # the motion it returns: the RMS of h0 B dp over the domain
     moved = obs.h0 * (b @ (expected - p))
     assert motion == pytest.approx(np.sqrt(w @ moved**2 / w.sum()), rel=1e-9)
+
+
+
+def _stepped(descent, volume, term, *, tol, max_iterations):
+    """The reference of :meth:`Descent.run`: observe, force, iterate."""
+    for iteration in range(1, max_iterations + 1):
+        obs = descent.observe(volume, term)
+        force = term.force(descent.backend, volume, obs)
+        motion = descent.iterate(obs, force)
+        if motion < tol:
+            break
+    return iteration, motion, motion < tol, obs, force
+
+
+@pytest.mark.parametrize("term_class, patches, adaptive_step",
+                         [(GlobalMeans, (2, 2), True), (GlobalMeans, (4, 4), False), (LocalMeans, (8, 8), True),
+                          (IntensityInterface, (8, 8), True), (FixedInterface, (4, 4), True)])
+def test_a_level_in_one_compiled_loop_equals_its_iterations(phantom, term_class, patches, adaptive_step):
+    """:meth:`Descent.run` (one compiled loop) against observe, force and
+    iterate repeated, from the same start with two landmarks: the same
+    iterations, and to rounding (the loop's sum of the shell's weights is
+    not numpy's pairwise one) the same motion, parameters, step (halved on
+    the way), scale-factor floor, observation, force and region means; to a
+    cap and to a tolerance."""
+    ph = phantom
+    start = Surface.from_apex_base(ph.apex, ph.base, patches=patches)
+    axis = (ph.base - ph.apex) / np.linalg.norm(ph.base - ph.apex)
+    side = np.cross(axis, [1.0, 0.0, 0.0])
+    landmarks = np.array([ph.apex, ph.apex + 0.6 * (ph.base - ph.apex) + 12.0 * side / np.linalg.norm(side)])
+    samples = ph.volume.sample(start.points(*np.meshgrid(np.linspace(0, 6, 20), np.linspace(0.3, 1.5, 10))))
+    samples = samples[np.isfinite(samples)]
+    step = 3.0 if adaptive_step else 1.0
+    for tol, cap in ((0.0, 4), (0.05, 60)):
+        runs = []
+        for _ in range(2):
+            # a step of 3 mm overshoots the walls: the adaptive step halves it (to its floor, 3/8, with the local means)
+            d = Descent(start, start, order=8, step=step, smoothness=1.0, landmarks=landmarks,
+                        landmark_weights=np.array([10.0, 1.0]), adaptive_step=adaptive_step)
+            term = term_class(samples)
+            if term_class is IntensityInterface:  # frozen on a first observation, as its stage does
+                obs = d.observe(ph.volume, term)
+                d.iterate(obs, term.force(d.backend, ph.volume, obs))
+            runs.append((d, term))
+        (d, term), (d_ref, term_ref) = runs
+        run = d.run(ph.volume, term, tol=tol, max_iterations=cap)
+        iterations, motion, converged, obs, force = _stepped(d_ref, ph.volume, term_ref, tol=tol, max_iterations=cap)
+        assert (run.iterations, run.converged) == (iterations, converged) and iterations > 1
+        assert converged == (tol > 0)
+        close = dict(rtol=1e-11, atol=1e-12)
+        np.testing.assert_allclose(run.motion, motion, **close)
+        np.testing.assert_allclose(d.p, d_ref.p, **close)
+        assert (d.step, d.h0_floor) == pytest.approx((d_ref.step, d_ref.h0_floor), rel=1e-12)
+        assert (d.step < step) == adaptive_step
+        for name in ("f", "h0", "u", "world", "normal"):
+            np.testing.assert_allclose(getattr(run.observation, name), getattr(obs, name), **close, err_msg=name)
+        for a, b in zip(run.force, force):
+            np.testing.assert_allclose(a, b, **close)
+        for a, b in zip(term.grey_means, term_ref.grey_means):
+            np.testing.assert_allclose(a, b, **close)
+
+def test_a_compiled_loop_without_image_data_says_so(phantom):
+    """The local means off the image: the loop's error is the reference's."""
+    ph = phantom
+    trackers = [Tracker(ph.volume, ph.apex, ph.base) for _ in range(2)]
+    blank = Volume(np.zeros(ph.volume.shape[::-1], np.float32), spacing=ph.volume.spacing, origin=ph.volume.origin,
+                   no_data_mask=np.ones(ph.volume.shape[::-1], bool))
+    for tracker in trackers:
+        while tracker.levels[tracker.level].data_term is not LocalMeans:
+            tracker.iterate()
+        tracker.volume = blank
+    with pytest.raises(ValueError, match="no image data around the surface") as looped:
+        trackers[0].run_level()
+    with pytest.raises(ValueError, match="no image data around the surface") as stepped:
+        trackers[1].iterate()
+    assert str(looped.value) == str(stepped.value)
+
+
+@pytest.mark.parametrize("options", [{"backend": "numpy"}, {"nu": 0.1}])
+def test_a_level_runs_in_one_loop_only_where_it_computes_the_same(phantom, options):
+    """The numpy reference and the area term step iteration by iteration:
+    ``run_level`` runs nothing there."""
+    tracker = Tracker(phantom.volume, phantom.apex, phantom.base, **options)
+    start = tracker.surface.coefficients.copy()
+    assert not tracker.run_level()
+    assert tracker.iteration == 0 and np.array_equal(tracker.surface.coefficients, start)

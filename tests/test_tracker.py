@@ -86,9 +86,10 @@ def test_iterating_by_hand_equals_segment(phantom):
     # and they stopped before the finest one's
     assert all(motion < tol for motion, tol in ends) and ends[0][1] == 0.1 and ends[-1][1] == 0.05
     assert max(motion for motion, _ in ends[:2]) >= 0.05
-    whole = segment(phantom.volume, phantom.apex, phantom.base)
+    whole = segment(phantom.volume, phantom.apex, phantom.base)  # each level in one compiled loop
     assert by_hand.iterations == whole.iterations == len(motions)
-    np.testing.assert_array_equal(by_hand.surface.coefficients, whole.surface.coefficients)
+    # equal to rounding: the loop's sum of the shell's weights is not numpy's pairwise one
+    np.testing.assert_allclose(by_hand.surface.coefficients, whole.surface.coefficients, rtol=0, atol=1e-12)
     assert motions[-1] < 0.05 and tracker.patches == (8, 8)
     with pytest.raises(RuntimeError, match="stopped"):
         tracker.iterate()

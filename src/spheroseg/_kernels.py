@@ -24,7 +24,9 @@ per level:
   basis ``B`` at the sample points, from two small tables (the points are a
   tensor product of ``order`` positions per patch);
 - :func:`normal_displacement`: the region force of eq. 22 as a ``v0``
-  displacement.
+  displacement;
+- :func:`descend`: a whole level of the descent, the kernels above called
+  in the order of an iteration, repeated until the surface stops moving.
 
 The kernels over the sample points (not :func:`scatter`, which sums patches
 into shared nodes, nor :func:`samples_at`, run once a segmentation) are
@@ -54,7 +56,7 @@ except ImportError:  # pragma: no cover
 from .volume import INDEX_TOLERANCE as _EDGE
 
 __all__ = ["AVAILABLE", "PARALLEL_LOCK", "prolate_surface", "sample_along", "samples_at", "cavity_sums", "gather",
-           "scatter", "normal_displacement", "csr_product"]
+           "scatter", "normal_displacement", "csr_product", "descend"]
 
 AVAILABLE = njit is not None
 #: held by a caller of a parallel kernel (here and the mask rasteriser's):
@@ -361,6 +363,258 @@ def normal_displacement(u, c_in, c_out, scale, clip, h0, cos, h0_floor, min_cos,
         out[q] = weights[q] * step * speed / normal_to_v0
 
 
+#: the data terms whose force :func:`descend` computes itself
+FIXED_MEANS, GLOBAL_MEANS, LOCAL_MEANS = 0, 1, 2
+#: how :func:`descend` ended: at its iteration cap, below the tolerance, or
+#: with no image data around the surface (the local means)
+AT_CAP, CONVERGED, NO_BAND_DATA = 0, 1, 2
+
+# The loop's own arithmetic is written as plain loops: numba's np.dot, @,
+# nanmedian, array expressions and slice assignments (their shape checks'
+# messages) took 12 s to compile here, plain loops 4.  Its sums are not
+# BLAS's nor numpy's pairwise ones: a level in the loop equals its
+# iterations to rounding.
+
+
+def _product(matrix, x, out):
+    """``out = A x`` for ``matrix`` ``(indptr, indices, data)``."""
+    csr_product(matrix[0], matrix[1], matrix[2], x, out)
+
+
+def _symmetric_product(matrix, x, out):
+    """``out = A x`` for a symmetric ``A``, as ``A^T x``: a row of ``A``
+    times ``x[j]`` added to ``out`` for each ``j`` (contiguous, on SIMD
+    lanes; a row-by-row dot product is a chain of dependent additions)."""
+    out[:] = 0.0
+    for j in range(x.shape[0]):
+        xj = x[j]
+        for i in range(out.shape[0]):
+            out[i] += matrix[j, i] * xj
+
+
+def _dot(a, b):
+    total = 0.0
+    for i in range(a.shape[0]):
+        total += a[i] * b[i]
+    return total
+
+
+def _median(values, scratch):
+    """The median of ``values`` (finite), as numpy's: the middle value or
+    the mean of the two middle ones (a selection in ``scratch``)."""
+    n = values.shape[0]
+    for i in range(n):
+        scratch[i] = values[i]
+    high = _select(scratch[:n], n // 2)
+    if n % 2:
+        return high
+    low = scratch[0]  # the largest of the lower half, which the selection left below
+    for i in range(1, n // 2):
+        low = max(low, scratch[i])
+    return (low + high) / 2
+
+
+def _select(a, k):
+    """The ``k``-th smallest of ``a`` (reordered in place: the ``k``
+    smaller ones before it), by Hoare's selection."""
+    lo, hi = 0, a.shape[0] - 1
+    while lo < hi:
+        pivot = a[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return a[k]
+
+
+def _global_means(image, f, area_element, world, normal, trig, focal_length, rotation, origin, weights, band_rows,
+                  fractions, shell_offsets, scratch):
+    """:meth:`spheroseg.dataterms.DataTerm.global_means`: the cavity's
+    volume-weighted mean and the shell's area-weighted mean (NaN without
+    weight); ``scratch`` ``(4, band rows)``."""
+    nb = band_rows.shape[0]
+    cavity, element, shell = scratch[0], scratch[1], scratch[2]
+    count = np.empty(nb, np.int64)
+    cavity_sums(*image, f, *trig, focal_length, rotation, origin, band_rows, fractions, cavity, element)
+    sample_along(*image, world, normal, band_rows, shell_offsets, 0.0, shell, count)
+    in_sum = in_weight = out_sum = out_weight = 0.0
+    for r in range(nb):
+        q = band_rows[r]
+        w_in = weights[q] * f[q]
+        in_sum += w_in * cavity[r]
+        in_weight += w_in * element[r]
+        w_out = weights[q] * area_element[q] * count[r]
+        if count[r]:  # no sample, no weight
+            out_sum += w_out * shell[r]
+        out_weight += w_out
+    return (in_sum / in_weight if in_weight > 0 else np.nan), (out_sum / out_weight if out_weight > 0 else np.nan)
+
+
+def _band_means(inside, outside, surface, out_c_in, out_c_out):
+    """:meth:`spheroseg.dataterms.LocalMeans.band_means`: the band means
+    (a missing one replaced by its band's mean) projected on the Hermite
+    space, at every sample point; False when a band has no finite mean."""
+    (constraints, constraints_t, grid_shape, order, tables_1, tables_2, band_order, band_tables_1, band_tables_2,
+     _, _, _, _, _, _, _, _, band_rows, band_weights, mass_inverse) = surface
+    nb, n_parameters = inside.shape[0], mass_inverse.shape[0]
+    fields = np.empty((2, nb))
+    for k in range(2):
+        band = inside if k == 0 else outside
+        total, finite = 0.0, 0
+        for r in range(nb):
+            if math.isfinite(band[r]):
+                total += band[r]
+                finite += 1
+        if finite == 0:
+            return False
+        for r in range(nb):
+            fields[k, r] = band_weights[r] * (band[r] if math.isfinite(band[r]) else total / finite)
+    coefficients = np.empty((2,) + grid_shape)
+    scatter(fields, band_order, band_tables_1, band_tables_2, coefficients)
+    rhs, smooth = np.empty(n_parameters), np.empty(n_parameters)
+    for k in range(2):  # M^-1 B_b^T W_b m, then its coefficients
+        _product(constraints_t, coefficients[k].ravel(), rhs)
+        _symmetric_product(mass_inverse, rhs, smooth)
+        _product(constraints, smooth, coefficients[k].ravel())
+    means = np.empty((2, out_c_in.shape[0]))
+    gather(coefficients, order, tables_1, tables_2, means)
+    for q in range(means.shape[1]):
+        out_c_in[q], out_c_out[q] = means[0, q], means[1, q]
+    return True
+
+
+def descend(p, reference, max_iterations, tol, settings, prior, surface, image, term, obs, means, previous):
+    """A whole level of the descent in one call: the data term's force and
+    :meth:`spheroseg.descent.Descent.iterate`, repeated until the RMS motion
+    falls below ``tol`` (mm) or ``max_iterations`` have run.
+
+    From Python an iteration is a dozen kernel calls and their numpy glue,
+    some hundred microseconds, where its arithmetic is a few (2 x 2
+    patches) to a hundred (8 x 8).  The reference is that method with the
+    data terms of :mod:`spheroseg.dataterms`, whose steps this takes in
+    their order; the tests require equal iterations and parameters equal
+    to rounding.
+
+    ``p`` (updated in place): the parameters; ``reference``: the prior's
+    shape.  ``settings`` (read and updated: the descent's state)
+    ``[step, initial step, scale-factor floor (< 0: not set), adaptive step
+    (0 or 1), the previous motion's weighted sum of squares (< 0: none),
+    the RMS motion (mm), iterations run, the global means c_in, c_out, the
+    force's scale]``; ``previous``: the previous motion at the sample
+    points.  ``prior``: ``(a T as CSR, the system's inverse (symmetric),
+    L, the landmarks' v0, h0, L^T Omega)``.  ``surface``: ``(A, A^T as CSR,
+    grid shape, order, tables, band order, band tables, trig, focal length,
+    rotation, origin, weights, domain area, least cosine, all rows, band
+    rows, band weights, M^-1)``.  ``image``:
+    :meth:`spheroseg.Volume.sampling_view`.  ``term``: ``(kind, fixed c_in,
+    fixed c_out, fixed scale, least scale, cavity fractions, shell offsets,
+    band offsets)``.  ``obs``: the observation's arrays ``(f, h0, cos,
+    area, world, normal, u, inside, outside)``; ``means`` ``(3, n)``: the
+    force's ``c_in``, the band means' ``c_out``, the force's ``c_out``:
+    all left as the last iteration saw them.
+
+    Returns :data:`CONVERGED`, :data:`AT_CAP` or :data:`NO_BAND_DATA`.
+    """
+    smoothing, inverse, lm_basis, lm_v0, lm_h0, lm_pull = prior
+    (constraints, constraints_t, grid_shape, order, tables_1, tables_2, _, _, _, trig, focal_length, rotation,
+     origin, weights, area, min_cos, all_rows, band_rows, _, _) = surface
+    kind, fixed_in, fixed_out, fixed_scale, min_scale, fractions, shell_offsets, band_offsets = term
+    f, h0, cos, area_element, world, normal, u, inside, outside = obs
+    c_in, band_out, c_out = means[0], means[1], means[2]
+    n, n_parameters, n_landmarks = f.shape[0], p.shape[0], lm_v0.shape[0]
+    coefficients = np.empty((1,) + grid_shape)  # the surface's, then the step's
+    counts, band_counts = np.empty(n, np.int64), np.empty(band_rows.shape[0], np.int64)
+    surface_offset, inner_offsets = np.zeros(1), np.empty(band_offsets.shape[0])
+    for k in range(band_offsets.shape[0]):
+        inner_offsets[k] = -band_offsets[k]
+    displacement, motion, scratch = np.empty((1, n)), np.empty((1, n)), np.empty((4, n))
+    rhs, projected, dp = np.empty(n_parameters), np.empty(n_parameters), np.empty(n_parameters)
+    for _ in range(max_iterations):
+        # the observation (CompiledBackend.observe)
+        _product(constraints, p, coefficients[0].ravel())
+        prolate_surface(coefficients[0], order, tables_1, tables_2, *trig, focal_length, rotation, origin, f, h0,
+                        cos, area_element, world, normal)
+        sample_along(*image, world, normal, all_rows, surface_offset, 0.0, u, counts)
+        # the force's means (the data term's force)
+        if kind == GLOBAL_MEANS:
+            measured_in, measured_out = _global_means(image, f, area_element, world, normal, trig, focal_length,
+                                                      rotation, origin, weights, band_rows, fractions, shell_offsets,
+                                                      scratch)
+            settings[7], settings[8] = measured_in, measured_out
+            measured_out = max(measured_out, measured_in)  # blood dark: no force on the wrong polarity
+            for q in range(n):
+                c_in[q], c_out[q] = measured_in, measured_out
+            scale = max((measured_out - measured_in) ** 2, min_scale)
+        elif kind == LOCAL_MEANS:
+            sample_along(*image, world, normal, band_rows, inner_offsets, 0.0, inside, band_counts)
+            sample_along(*image, world, normal, band_rows, band_offsets, 0.0, outside, band_counts)
+            if not _band_means(inside, outside, surface, c_in, band_out):
+                return NO_BAND_DATA
+            contrast = scratch[0]
+            for q in range(n):
+                contrast[q] = max(band_out[q] - c_in[q], 0.0)
+                c_out[q] = c_in[q] + contrast[q]
+            scale = max(_median(contrast, scratch[1]) ** 2, min_scale)
+        else:
+            for q in range(n):
+                c_in[q], c_out[q] = fixed_in[q], fixed_out[q]
+            scale = fixed_scale
+        settings[9] = scale
+        # the step (Descent.iterate)
+        if settings[2] < 0:  # fixed per level, on its first observation
+            settings[2] = 0.3 * _median(h0, scratch[1])
+        step = settings[0]
+        normal_displacement(u, c_in, c_out, scale, 1.0, h0, cos, settings[2], min_cos, step, weights,
+                            displacement[0])
+        scatter(displacement, order, tables_1, tables_2, coefficients)
+        _product(constraints_t, coefficients[0].ravel(), rhs)
+        for i in range(n_parameters):
+            dp[i] = reference[i] - p[i]
+        _product(smoothing, dp, projected)
+        for i in range(n_parameters):
+            rhs[i] += projected[i]
+        for k in range(n_landmarks):  # towards each landmark by at most a step
+            residual = (lm_v0[k] - _dot(lm_basis[k], p)) * lm_h0[k]
+            residual = min(max(residual, -step), step) / lm_h0[k]
+            for i in range(n_parameters):
+                rhs[i] += lm_pull[i, k] * residual
+        _symmetric_product(inverse, rhs, dp)
+        for i in range(n_parameters):
+            p[i] += dp[i]
+        _product(constraints, dp, coefficients[0].ravel())
+        gather(coefficients, order, tables_1, tables_2, motion)
+        moved = motion[0]
+        squared = dot = 0.0
+        for q in range(n):
+            moved[q] *= h0[q]
+            squared += weights[q] * moved[q] * moved[q]
+            dot += weights[q] * moved[q] * previous[q]
+        if settings[3]:  # Descent._adapt_step
+            if settings[4] >= 0:
+                norms = math.sqrt(squared * settings[4])
+                if norms > 0 and dot < -0.5 * norms:
+                    settings[0] = max(0.5 * step, settings[1] / 8)
+            for q in range(n):
+                previous[q] = moved[q]
+            settings[4] = squared
+        settings[5] = math.sqrt(squared / area)
+        settings[6] += 1
+        if settings[5] < tol:
+            return CONVERGED
+    return AT_CAP
+
 if AVAILABLE:
     _compile = njit(cache=True, error_model="numpy")
     _parallel = njit(cache=True, error_model="numpy", parallel=True)
@@ -379,3 +633,11 @@ if AVAILABLE:
     cavity_sums = _parallel(cavity_sums)
     normal_displacement = _compile(normal_displacement)
     csr_product = _compile(csr_product)
+    _product = _inline(_product)
+    _symmetric_product = _inline(_symmetric_product)
+    _dot = _inline(_dot)
+    _select = _compile(_select)
+    _median = _compile(_median)
+    _global_means = _compile(_global_means)
+    _band_means = _compile(_band_means)
+    descend = _compile(descend)

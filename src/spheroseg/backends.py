@@ -149,6 +149,11 @@ class NumpyBackend:
 
     # the force ----------------------------------------------------------------
 
+    def descends(self, volume) -> bool:
+        """Whether :meth:`descend` runs a whole level on ``volume`` (the
+        compiled backend on a Cartesian volume)."""
+        return False
+
     def displacement(self, obs: Observation, c_in, c_out, scale: float, *, step: float, h0_floor: float,
                      clip: float = 1.0, u=None,
                      area_speed: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
@@ -194,6 +199,7 @@ class CompiledBackend(NumpyBackend):
         self._counts = np.empty(n, np.int64)
         self._displacement = np.empty(n)
         self._sampled = self._sampling_arrays = None
+        self._surface = None
 
     def observe(self, p, volume, *, band_offsets=None, geometry: bool = False, exponent: float = 0.0) -> Observation:
         if geometry:
@@ -292,6 +298,32 @@ class CompiledBackend(NumpyBackend):
         self.kernels.normal_displacement(obs.u if u is None else u, c_in, c_out, scale, clip, obs.h0, obs.cos,
                                          h0_floor, MIN_COS, step, self.model.weights, self._displacement)
         return self._displacement
+
+
+    def descends(self, volume) -> bool:
+        return not isinstance(volume, BeamVolume)  # (descend samples with the Cartesian kernels)
+
+    def descend(self, p, reference, volume, *, prior: tuple, term: tuple, settings: np.ndarray,
+                previous: np.ndarray, tol: float, max_iterations: int) -> tuple[int, Observation, np.ndarray]:
+        """Run a level of the descent in one compiled call
+        (:func:`spheroseg._kernels.descend`, whose arguments these are),
+        updating ``p``, ``settings`` and ``previous`` in place.
+
+        Returns its status, the last observation and the force's means
+        ``(3, n)`` (``c_in``, the band means' ``c_out``, the force's ``c_out``)."""
+        m, d, b = self.model, self.discretisation, self._buffers
+        if self._surface is None:  # what depends on the grid and pose only
+            csr = tuple((a.indptr, a.indices, a.data) for a in (d.constraints, d.constraints_t))
+            self._surface = (*csr, m.grid.shape, d.order, *d.tables, d.band_tables[0].shape[1], *d.band_tables,
+                             d.trig, m.system.focal_length, m.pose.rotation, m.pose.origin, m.weights, d.area,
+                             MIN_COS, self._all_rows, d.band_rows, d.band_weights, d.mass_inverse)
+        image = tuple(self._sampling(volume)[1])  # (numba unpacks a tuple, not a named one)
+        obs = tuple(b[k] for k in ("f", "h0", "cos", "area", "world", "normal", "u", "inside", "outside"))
+        means = np.empty((3, m.n_samples))
+        with self.kernels.PARALLEL_LOCK:
+            status = self.kernels.descend(p, reference, max_iterations, tol, settings, prior, self._surface, image,
+                                          term, obs, means, previous)
+        return status, Observation(**b), means
 
 
 def compiled_available() -> bool:

@@ -47,8 +47,8 @@ import numpy as np
 __all__ = ["DataTerm", "Force", "FixedInterface", "GlobalMeans", "LocalMeans", "IntensityInterface", "DATA_TERMS",
            "band_offsets", "shell_offsets", "otsu_threshold", "speckle_nepers", "patch_of_rows", "nanmedian"]
 
-# fractions of f at which the cavity is sampled along each ray
-_CAVITY_FRACTIONS = np.array([0.15, 0.35, 0.55, 0.75, 0.95])
+#: fractions of f at which the cavity is sampled along each ray (the global means)
+CAVITY_FRACTIONS = np.array([0.15, 0.35, 0.55, 0.75, 0.95])
 # the force's scale is at least this fraction of the grey-level spread
 # around the initial surface, squared (a flat region must not blow it up)
 _MIN_CONTRAST = 0.05
@@ -140,11 +140,17 @@ class DataTerm:
         ``v`` (0: the grey levels; None: not known yet).
     step_factor : float
         The step of this term's stage, in multiples of the ``step`` option.
+    loop_kind : {"fixed", "global", "local"} or None
+        How a level run in one compiled loop computes this force
+        (:meth:`spheroseg.descent.Descent.run`): from :meth:`fixed_means`,
+        as :meth:`global_means`, as :meth:`LocalMeans.band_means`; None: it
+        cannot (the level then runs iteration by iteration).
     """
 
     needs_bands = False
     exponent: float | None = 0.0
     step_factor = 1.0
+    loop_kind: str | None = None
 
     def __init__(self, samples: np.ndarray, *, band: float = 8.0, band_out: float = 15.0,
                  interface: float | None = None):
@@ -162,12 +168,22 @@ class DataTerm:
     def reset(self) -> None:
         """Forget what was measured on earlier frames (a new frame starts)."""
 
+    def fixed_means(self) -> tuple:
+        """``(c_in, c_out, scale)`` of a force that does not change in a level
+        (``loop_kind`` "fixed")."""
+        raise NotImplementedError
+
+    def set_means(self, c_in, c_out) -> None:
+        """Keep the region means measured last by a compiled loop, as
+        :meth:`force` keeps those it measures (:attr:`grey_means`)."""
+        self.grey_means = (c_in, c_out)
+
     def global_means(self, backend, volume, obs) -> tuple[float, float]:
         """Volume-weighted cavity mean and area-weighted shell mean, from the
         rays of the band rows."""
         d = backend.discretisation
         rows = d.band_rows
-        cavity, volume_sum = backend.cavity_sums(volume, obs, _CAVITY_FRACTIONS, rows)
+        cavity, volume_sum = backend.cavity_sums(volume, obs, CAVITY_FRACTIONS, rows)
         shell, count = backend.mean_along(volume, obs, self.shell_offsets, rows)
         # per ray: cavity = sum of V u, volume = sum of V over the finite samples
         weights = d.weights[rows]
@@ -188,10 +204,15 @@ class FixedInterface(DataTerm):
         lo, hi = samples[samples <= mid], samples[samples > mid]
         half = (hi.mean() - lo.mean()) / 2 if lo.size and hi.size else self.spread
         self.c_in, self.c_out = mid - half, mid + half
+        self.grey_means = (self.c_in, self.c_out)
+
+    loop_kind = "fixed"
 
     def force(self, backend, volume, obs) -> Force:
-        self.grey_means = (self.c_in, self.c_out)
-        return Force(obs.u, self.c_in, self.c_out, (self.c_out - self.c_in) ** 2)
+        return Force(obs.u, *self.fixed_means())
+
+    def fixed_means(self) -> tuple:
+        return self.c_in, self.c_out, (self.c_out - self.c_in) ** 2
 
 
 class GlobalMeans(DataTerm):
@@ -206,9 +227,11 @@ class GlobalMeans(DataTerm):
     level.
     """
 
+    loop_kind = "global"
+
     def force(self, backend, volume, obs) -> Force:
         c_in, c_out = self.global_means(backend, volume, obs)
-        self.grey_means = (c_in, c_out)  # as measured (a result reports them)
+        self.set_means(c_in, c_out)  # as measured (a result reports them)
         c_out = max(c_out, c_in)
         return Force(obs.u, c_in, c_out, max((c_out - c_in) ** 2, self.min_scale))
 
@@ -217,13 +240,17 @@ class LocalMeans(DataTerm):
     """Band means along each normal, smoothed over the surface."""
 
     needs_bands = True
+    loop_kind = "local"
 
     def force(self, backend, volume, obs) -> Force:
         c_in, c_out = self.band_means(backend, obs)
-        self.band_fields = (c_in, c_out)  # what the intensity interface starts from
+        self.set_means(c_in, c_out)
         contrast = np.maximum(c_out - c_in, 0.0)
-        self.grey_means = (c_in, c_out)  # their medians only when a result is made (60 us)
         return Force(obs.u, c_in, c_in + contrast, max(nanmedian(contrast) ** 2, self.min_scale))
+
+    def set_means(self, c_in, c_out) -> None:
+        self.band_fields = (c_in, c_out)  # what the intensity interface starts from
+        self.grey_means = (c_in, c_out)  # their medians only when a result is made (60 us)
 
     def reset(self) -> None:
         self.band_fields = None
@@ -329,10 +356,19 @@ class IntensityInterface(LocalMeans):
         that would be read by nothing (two thirds of an iteration's samples)."""
         return self._frozen is None
 
+    @property
+    def loop_kind(self) -> str | None:
+        """Fixed once frozen; before, the first observation measures them
+        (and the log compression) iteration by iteration."""
+        return None if self._frozen is None else "fixed"
+
     def force(self, backend, volume, obs) -> Force:
         if self._frozen is None:
             self.freeze(backend, volume, obs, *self.band_means(backend, obs))
         return Force(obs.u, *self._frozen)
+
+    def fixed_means(self) -> tuple:
+        return self._frozen
 
     def freeze(self, backend, volume, obs, c_in, c_out) -> None:
         """Set the frozen levels from the band means ``c_in``, ``c_out``

@@ -25,20 +25,34 @@ with ``S`` the system's inverse: one dense product a step (``T`` is sparse).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg import blas
 
 from .backends import Observation, select_backend
-from .dataterms import Force, nanmedian
+from .dataterms import CAVITY_FRACTIONS, Force, nanmedian
 from .energy import Landmarks, SampledSurface, area_gradient
 from .surface import Surface
 
-__all__ = ["Descent"]
+__all__ = ["Descent", "LevelRun"]
 
 # a landmark of weight 1 outweighs the data over this fraction of the
 # (v1, v2) domain: about one patch at 4 x 4
 _LANDMARK_AREA = 0.05
+
+
+class LevelRun(NamedTuple):
+    """What :meth:`Descent.run` did: the iterations it ran, the RMS motion
+    of the last (mm), whether that fell below the tolerance, and the last
+    observation and force (as :meth:`Descent.observe` and the data term's
+    ``force`` give them)."""
+
+    iterations: int
+    motion: float
+    converged: bool
+    observation: Observation
+    force: Force
 
 
 def add_rows(inverse: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -148,6 +162,57 @@ class Descent:
         if self.adaptive_step:
             self._adapt_step(motion, squared)
         return math.sqrt(squared / self._area)
+
+    def run(self, volume, data_term, *, tol: float, max_iterations: int) -> LevelRun | None:
+        """:meth:`observe` and :meth:`iterate` with ``data_term``'s force
+        until the RMS motion falls below ``tol`` (mm) or ``max_iterations``
+        have run, in one compiled loop (:func:`spheroseg._kernels.descend`).
+
+        Returns a :class:`LevelRun`, or None where that loop does not apply
+        and nothing ran: the numpy backend, a beam-space volume, the area
+        term, a data term it does not compute (``data_term.loop_kind``)."""
+        kind = data_term.loop_kind
+        if kind is None or self.nu > 0 or not self.backend.descends(volume):
+            return None
+        from . import _kernels
+
+        n, empty = self.model.n_samples, np.empty(0)
+        fixed = data_term.fixed_means() if kind == "fixed" else (0.0, 0.0, 0.0)
+        term = ({"fixed": _kernels.FIXED_MEANS, "global": _kernels.GLOBAL_MEANS, "local": _kernels.LOCAL_MEANS}[kind],
+                *(np.broadcast_to(np.asarray(c, float), n).copy() for c in fixed[:2]), float(fixed[2]),
+                data_term.min_scale, CAVITY_FRACTIONS, data_term.shell_offsets,
+                data_term.band_offsets if kind == "local" else empty)
+        lm = self.landmarks
+        prior = ((self._smoothing.indptr, self._smoothing.indices, self._smoothing.data), self.system_inverse,
+                 *((lm.basis, lm.v0, lm.h0, np.ascontiguousarray(self._landmark_pull)) if lm is not None else
+                   (np.empty((0, len(self.p))), empty, empty, np.empty((len(self.p), 0)))))
+        previous = np.zeros(n) if self._previous_motion is None else self._previous_motion[0].copy()
+        settings = np.array([self.step, self._initial_step, -1.0 if self.h0_floor is None else self.h0_floor,
+                             float(self.adaptive_step), -1.0 if self._previous_motion is None else
+                             self._previous_motion[1], np.nan, 0.0, np.nan, np.nan, np.nan])
+        p = self.p.copy()
+        status, obs, means = self.backend.descend(p, self.reference, volume, prior=prior, term=term,
+                                                  settings=settings, previous=previous, tol=tol,
+                                                  max_iterations=max_iterations)
+        self.p, self.step = p, float(settings[0])
+        self.h0_floor = float(settings[2]) if settings[2] >= 0 else self.h0_floor
+        if self.adaptive_step and settings[4] >= 0:
+            self._previous_motion = previous, float(settings[4])
+        if status == _kernels.NO_BAND_DATA:
+            raise ValueError("no image data around the surface (is it inside the image's sector?)")
+        if kind != "local":
+            obs.inside = obs.outside = None
+        scale = float(settings[9])
+        if kind == "global":
+            c_in, c_out = float(settings[7]), float(settings[8])
+            data_term.set_means(c_in, c_out)
+            force = Force(obs.u, c_in, max(c_out, c_in), scale)
+        elif kind == "local":
+            data_term.set_means(means[0], means[1])
+            force = Force(obs.u, means[0], means[2], scale)
+        else:
+            force = Force(obs.u, fixed[0], fixed[1], scale)
+        return LevelRun(int(settings[6]), float(settings[5]), status == _kernels.CONVERGED, obs, force)
 
     def restart(self, step: float) -> None:
         """Begin a new level on this grid from the current surface, as a new

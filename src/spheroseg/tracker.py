@@ -292,18 +292,44 @@ class Tracker:
         with kernel_threads(self._threads):
             obs = self._descent.observe(self.volume, term)
             force = term.force(self._descent.backend, self.volume, obs)
-            self.c_in, self.c_out = term.grey_means
-            self._last = (obs.u, force, term.spread)  # for the quality report, read when a result is made
-            self._observation = obs  # valid until the next observation (a stage's hand-over reads it)
-            self.motion = self._descent.iterate(obs, force)
-        self.iteration += 1
-        self._level_iterations += 1
+            motion = self._descent.iterate(obs, force)
+        self._advance(term, obs, force, motion, 1)
+        self._seconds += time.perf_counter() - started
+        return self.motion
+
+    def run_level(self) -> bool:
+        """Run the current level to its end (as :meth:`iterate` until the
+        level changes) in one compiled loop (:meth:`Descent.run`): the
+        same iterations without their Python-level cost.  False, having run
+        nothing, where that loop does not apply (see :meth:`Descent.run`)."""
+        if self.status is not None:
+            raise RuntimeError(f"the tracker has stopped ({self.message}); step(volume) starts a new frame")
+        started = time.perf_counter()
+        level = self.levels[self.level]
+        term = self._terms[level.data_term]
+        with kernel_threads(self._threads):
+            run = self._descent.run(self.volume, term, tol=level.tol,
+                                    max_iterations=level.max_iterations - self._level_iterations)
+        if run is None:
+            return False
+        self._advance(term, run.observation, run.force, run.motion, run.iterations)
+        self._seconds += time.perf_counter() - started
+        return True
+
+    def _advance(self, term, obs, force, motion: float, iterations: int) -> None:
+        """Keep what ``iterations`` (the last of which observed ``obs``
+        and moved by ``motion``) leave for a result, and end the level when
+        its last one converged or the level reached its cap."""
+        self.c_in, self.c_out = term.grey_means
+        self._last = (obs.u, force, term.spread)  # for the quality report, read when a result is made
+        self._observation = obs  # valid until the next observation (a stage's hand-over reads it)
+        self.motion = motion
+        self.iteration += iterations
+        self._level_iterations += iterations
         if self.motion < self.levels[self.level].tol:
             self._end_level(converged=True)
         elif self._level_iterations >= self.levels[self.level].max_iterations:
             self._end_level(converged=False)
-        self._seconds += time.perf_counter() - started
-        return self.motion
 
     def _end_level(self, *, converged: bool) -> None:
         self._converged = converged
@@ -353,6 +379,8 @@ class Tracker:
         """Iterate until the current frame stops; ``iter_callback(intermediate)``
         is called after every iteration and may raise ``StopIteration``."""
         while self.status is None:
+            if iter_callback is None and self.run_level():
+                continue
             self.iterate()
             if iter_callback is not None:
                 try:
