@@ -238,7 +238,8 @@ class CompiledBackend(NumpyBackend):
         to three times, and the read-only views cost 3 us each time)."""
         if volume is not self._sampled:
             kernels = self.beam_kernels if isinstance(volume, BeamVolume) else self.kernels
-            self._sampled, self._sampling_arrays = volume, (kernels, volume.sampling_view())
+            # (a plain tuple: numba unpacks it in descend, not a named one)
+            self._sampled, self._sampling_arrays = volume, (kernels, tuple(volume.sampling_view()))
         return self._sampling_arrays
 
     def samples_along(self, volume, obs: Observation, offsets, rows=slice(None), *, exponent: float = 0.0,
@@ -312,17 +313,17 @@ class CompiledBackend(NumpyBackend):
         Returns its status, the last observation and the force's means
         ``(3, n)`` (``c_in``, the band means' ``c_out``, the force's ``c_out``)."""
         m, d, b = self.model, self.discretisation, self._buffers
-        if self._surface is None:  # what depends on the grid and pose only
+        if self._surface is None:  # what depends on the grid and pose only, and the buffers
             csr = tuple((a.indptr, a.indices, a.data) for a in (d.constraints, d.constraints_t))
             self._surface = (*csr, m.grid.shape, d.order, *d.tables, d.band_tables[0].shape[1], *d.band_tables,
                              d.trig, m.system.focal_length, m.pose.rotation, m.pose.origin, m.weights, d.area,
                              MIN_COS, self._all_rows, d.band_rows, d.band_weights, d.mass_inverse)
-        image = tuple(self._sampling(volume)[1])  # (numba unpacks a tuple, not a named one)
-        obs = tuple(b[k] for k in ("f", "h0", "cos", "area", "world", "normal", "u", "inside", "outside"))
+            self._observed = tuple(b[k] for k in ("f", "h0", "cos", "area", "world", "normal", "u", "inside",
+                                                  "outside"))
         means = np.empty((3, m.n_samples))
         with self.kernels.PARALLEL_LOCK:
-            status = self.kernels.descend(p, reference, max_iterations, tol, settings, prior, self._surface, image,
-                                          term, obs, means, previous)
+            status = self.kernels.descend(p, reference, max_iterations, tol, settings, prior, self._surface,
+                                          self._sampling(volume)[1], term, self._observed, means, previous)
         return status, Observation(**b), means
 
 

@@ -40,6 +40,7 @@ __all__ = ["Descent", "LevelRun"]
 # a landmark of weight 1 outweighs the data over this fraction of the
 # (v1, v2) domain: about one patch at 4 x 4
 _LANDMARK_AREA = 0.05
+_NO_OFFSETS = np.empty(0)  # the compiled loop's band offsets where it takes no bands
 
 
 class LevelRun(NamedTuple):
@@ -99,6 +100,7 @@ class Descent:
         self.set_reference(reference)
         self.set_landmarks(landmarks, landmark_weights)
         self.h0_floor = None  # fixed per level on the first iteration
+        self._no_means = np.zeros(self.model.n_samples)  # the compiled loop's means of a term without fixed ones
         self._radius = None
 
     @property
@@ -124,6 +126,12 @@ class Descent:
             self.omega = np.asarray(weights, float) * _LANDMARK_AREA * d.area
             self._landmark_pull = self.landmarks.basis.T * self.omega  # L^T Omega
             self.system_inverse = add_rows(self.system_inverse, self.landmarks.basis, self.omega)
+        # the same for the compiled loop (Descent.run)
+        lm, empty, n = self.landmarks, np.empty(0), len(self.p)
+        self._loop_prior = ((self._smoothing.indptr, self._smoothing.indices, self._smoothing.data),
+                            self.system_inverse,
+                            *((lm.basis, lm.v0, lm.h0, np.ascontiguousarray(self._landmark_pull)) if lm is not None
+                              else (np.empty((0, n)), empty, empty, np.empty((n, 0)))))
 
     def observe(self, volume, data_term) -> Observation:
         """The surface and the image at the sample points, with what the
@@ -176,22 +184,21 @@ class Descent:
             return None
         from . import _kernels
 
-        n, empty = self.model.n_samples, np.empty(0)
-        fixed = data_term.fixed_means() if kind == "fixed" else (0.0, 0.0, 0.0)
+        n = self.model.n_samples
+        if kind == "fixed":
+            fixed = data_term.fixed_means()
+            means = tuple(np.broadcast_to(np.asarray(c, float), n).copy() for c in fixed[:2])
+        else:
+            fixed, means = (0.0, 0.0, 0.0), (self._no_means, self._no_means)
         term = ({"fixed": _kernels.FIXED_MEANS, "global": _kernels.GLOBAL_MEANS, "local": _kernels.LOCAL_MEANS}[kind],
-                *(np.broadcast_to(np.asarray(c, float), n).copy() for c in fixed[:2]), float(fixed[2]),
-                data_term.min_scale, CAVITY_FRACTIONS, data_term.shell_offsets,
-                data_term.band_offsets if kind == "local" else empty)
-        lm = self.landmarks
-        prior = ((self._smoothing.indptr, self._smoothing.indices, self._smoothing.data), self.system_inverse,
-                 *((lm.basis, lm.v0, lm.h0, np.ascontiguousarray(self._landmark_pull)) if lm is not None else
-                   (np.empty((0, len(self.p))), empty, empty, np.empty((len(self.p), 0)))))
+                *means, float(fixed[2]), data_term.min_scale, CAVITY_FRACTIONS, data_term.shell_offsets,
+                data_term.band_offsets if kind == "local" else _NO_OFFSETS)
         previous = np.zeros(n) if self._previous_motion is None else self._previous_motion[0].copy()
         settings = np.array([self.step, self._initial_step, -1.0 if self.h0_floor is None else self.h0_floor,
                              float(self.adaptive_step), -1.0 if self._previous_motion is None else
                              self._previous_motion[1], np.nan, 0.0, np.nan, np.nan, np.nan])
         p = self.p.copy()
-        status, obs, means = self.backend.descend(p, self.reference, volume, prior=prior, term=term,
+        status, obs, means = self.backend.descend(p, self.reference, volume, prior=self._loop_prior, term=term,
                                                   settings=settings, previous=previous, tol=tol,
                                                   max_iterations=max_iterations)
         self.p, self.step = p, float(settings[0])
