@@ -52,3 +52,36 @@ def test_a_first_run_compiles_the_rasteriser_in_a_second_process(tmp_path):
         assert first["helper"] and first["raster_compiled"] == 0
     assert not later["compiled"] and not later["helper"] and later["raster_compiled"] == 0
     assert later["said"] == 0 and later["both_compiled"] == [False, False]
+
+
+STEP = """
+import json
+import sys
+from spheroseg import _kernels
+from spheroseg.phantom import make_phantom
+from spheroseg.segment import segment
+from spheroseg.warmup import load_step_kernels
+if sys.argv[1] == "step":
+    load_step_kernels()
+else:
+    ph = make_phantom(seed=0, spacing=3.0)
+    segment(ph.volume, ph.apex, ph.base, max_iterations=2)
+print(json.dumps({name: sum(getattr(_kernels, name).stats.cache_misses.values())
+                  for name in ("gather", "scatter", "normal_displacement", "samples_at")}))
+"""
+
+
+def test_the_helpers_step_kernels_are_those_a_segmentation_calls(tmp_path):
+    """What the second process of a first run compiles first: with an
+    empty cache it compiles each of these kernels, and a segmentation after
+    it compiles none of them (the signatures are a segmentation's)."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "PYTHONWARNINGS": "ignore"}
+    compiled = []
+    for role in ("step", "segmentation"):
+        proc = subprocess.run([sys.executable, "-c", STEP, role], capture_output=True, text=True, env=env,
+                              timeout=600)
+        assert proc.returncode == 0, proc.stderr
+        compiled.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    step, segmentation = compiled
+    assert all(count >= 1 for count in step.values()), step
+    assert not any(segmentation.values()), segmentation
