@@ -190,7 +190,7 @@ def _speed(sp) -> list[str]:
         out += ["", "The default mode on the accuracy sweep's image formations ('default' and the wider point-spread "
                 "function 'psf_wide', 1 mm phantoms, seeds 0-2): the whole segmentation (median of 10, iterations "
                 "in brackets) and one iteration of its last stage (the intensity interface on 8 x 8 patches, its "
-                "region means frozen: observe, force, update)"
+                "region means frozen: observe, force, update; after: inside the compiled level loop)"
                 + (", before and after issue 15's changes, measured on the same machine in turn "
                    f"(`--default-mode before --min`, last on {modes['before'].get('date', '?')}, the least of "
                    f"{modes['before'].get('runs', 1)} runs; after: the least of {modes['after'].get('runs', 1)}, "
@@ -345,7 +345,7 @@ def _threads(th) -> list[str]:
            "`threads` option; the coefficients are equal to the last bit whatever the count, checked here on "
            "every case). The counts alternate in 5 turns on each case, so that load weighs on all alike. The "
            "default mode on the unseen-style cases: the whole segmentation (median of 10) and one iteration of its "
-           "last stage (median of 300), as above.", "",
+           "last stage in the compiled loop (a tenth of the median of 100 runs of ten), as above.", "",
            "| formation | seed | " + " | ".join(f"segmentation ms, {names[n]}" for n in counts) + " | "
            + " | ".join(f"last-stage iteration us, {names[n]}" for n in counts) + " |",
            "| --- | --- |" + " --- |" * (2 * len(counts))]

@@ -225,21 +225,21 @@ def thread_counts(seeds=(0, 1, 2)) -> dict:
             obs = d.backend.observe(p0, vol)
             at_surface = np.array([0.0])
 
-            def iteration():
+            def iteration():  # ten, in the compiled loop as the tracker runs them (a tenth of this below)
                 d.p = p0.copy()
-                o = d.observe(vol, term)
-                d.iterate(o, term.force(d.backend, vol, o))
+                d.reset_step(1.0)
+                d.run(vol, term, tol=0.0, max_iterations=10)
 
             # the count set, not the default's idle cores (a busy moment would lower it)
             seg = thread_medians(lambda: segment(vol, apex, base, threads=numba.get_num_threads()), counts, 10)
-            it = thread_medians(iteration, counts, 300)
+            it = thread_medians(iteration, counts, 100)
             observe = thread_medians(lambda: d.backend.observe(p0, vol), counts, 500)
             samples = thread_medians(lambda: d.backend.mean_along(vol, obs, at_surface, rows_all), counts, 500)
             d.p = p0
             row = {"formation": name, "seed": seed, "shape": "x".join(map(str, vol.shape)),
                    "iterations": results[0].iterations}
             for n in counts:
-                row[str(n)] = {"segment_ms": 1000 * seg[n], "intensity_iteration_us": 1e6 * it[n],
+                row[str(n)] = {"segment_ms": 1000 * seg[n], "intensity_iteration_us": 1e5 * it[n],
                                "surface_and_samples_us": 1e6 * observe[n], "samples_us": 1e6 * samples[n]}
             rows.append(row)
             print(row, flush=True)
