@@ -198,6 +198,8 @@ class FixedInterface(DataTerm):
     around the initial surface (``interface``: Otsu's threshold by default;
     the two levels are the class means about it, centred on it)."""
 
+    loop_kind = "fixed"
+
     def __init__(self, samples, *, band=8.0, band_out=15.0, interface=None):
         super().__init__(samples, band=band, band_out=band_out)
         mid = otsu_threshold(samples) if interface is None else float(interface)
@@ -205,8 +207,6 @@ class FixedInterface(DataTerm):
         half = (hi.mean() - lo.mean()) / 2 if lo.size and hi.size else self.spread
         self.c_in, self.c_out = mid - half, mid + half
         self.grey_means = (self.c_in, self.c_out)
-
-    loop_kind = "fixed"
 
     def force(self, backend, volume, obs) -> Force:
         return Force(obs.u, *self.fixed_means())
