@@ -300,7 +300,6 @@ class CompiledBackend(NumpyBackend):
                                          h0_floor, MIN_COS, step, self.model.weights, self._displacement)
         return self._displacement
 
-
     def descends(self, volume) -> bool:
         return not isinstance(volume, BeamVolume)  # (descend samples with the Cartesian kernels)
 
