@@ -86,8 +86,8 @@ def _stepped(descent, volume, term, *, tol, max_iterations):
 def test_a_level_in_one_compiled_loop_equals_its_iterations(phantom, term_class, patches, adaptive_step):
     """:meth:`Descent.run` (one compiled loop) against observe, force and
     iterate repeated, from the same start with two landmarks: the same
-    iterations, and to rounding (the loop's sum of the shell's weights is
-    not numpy's pairwise one) the same motion, parameters, step (halved on
+    iterations, and to rounding (the loop's sums are plain loops, not
+    numpy's pairwise ones nor BLAS's) the same motion, parameters, step (halved on
     the way), scale-factor floor, observation, force and region means; to a
     cap and to a tolerance."""
     ph = phantom

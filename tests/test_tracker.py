@@ -88,7 +88,7 @@ def test_iterating_by_hand_equals_segment(phantom):
     assert max(motion for motion, _ in ends[:2]) >= 0.05
     whole = segment(phantom.volume, phantom.apex, phantom.base)  # each level in one compiled loop
     assert by_hand.iterations == whole.iterations == len(motions)
-    # equal to rounding: the loop's sum of the shell's weights is not numpy's pairwise one
+    # equal to rounding: the loop's sums are plain loops, not numpy's pairwise ones nor BLAS's
     np.testing.assert_allclose(by_hand.surface.coefficients, whole.surface.coefficients, rtol=0, atol=1e-12)
     assert motions[-1] < 0.05 and tracker.patches == (8, 8)
     with pytest.raises(RuntimeError, match="stopped"):

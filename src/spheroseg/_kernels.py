@@ -369,11 +369,11 @@ FIXED_MEANS, GLOBAL_MEANS, LOCAL_MEANS = 0, 1, 2
 #: with no image data around the surface (the local means)
 AT_CAP, CONVERGED, NO_BAND_DATA = 0, 1, 2
 
-# The loop's own arithmetic is written as plain loops: numba's np.dot, @,
-# nanmedian, array expressions and slice assignments (their shape checks'
-# messages) took 12 s to compile here, plain loops 4.  Its sums are not
-# BLAS's nor numpy's pairwise ones: a level in the loop equals its
-# iterations to rounding.
+# The loop's own arithmetic is written as plain loops: with numba's np.dot,
+# @, nanmedian, array expressions and slice assignments (their shape
+# checks' messages) the loop and the kernels it calls took 12.7 s to
+# compile, with plain loops 7.1.  Its sums are not BLAS's nor numpy's
+# pairwise ones: a level in the loop equals its iterations to rounding.
 
 
 def _product(matrix, x, out):
@@ -443,7 +443,7 @@ def _global_means(image, f, area_element, world, normal, trig, focal_length, rot
                   fractions, shell_offsets, scratch):
     """:meth:`spheroseg.dataterms.DataTerm.global_means`: the cavity's
     volume-weighted mean and the shell's area-weighted mean (NaN without
-    weight); ``scratch`` ``(4, band rows)``."""
+    weight); ``scratch``: three rows at least as long as the band rows."""
     nb = band_rows.shape[0]
     cavity, element, shell = scratch[0], scratch[1], scratch[2]
     count = np.empty(nb, np.int64)
@@ -539,7 +539,7 @@ def descend(p, reference, max_iterations, tol, settings, prior, surface, image, 
     surface_offset, inner_offsets = np.zeros(1), np.empty(band_offsets.shape[0])
     for k in range(band_offsets.shape[0]):
         inner_offsets[k] = -band_offsets[k]
-    displacement, motion, scratch = np.empty((1, n)), np.empty((1, n)), np.empty((4, n))
+    displacement, motion, scratch = np.empty((1, n)), np.empty((1, n)), np.empty((3, n))
     rhs, projected, dp = np.empty(n_parameters), np.empty(n_parameters), np.empty(n_parameters)
     for _ in range(max_iterations):
         # the observation (CompiledBackend.observe)
@@ -614,6 +614,7 @@ def descend(p, reference, max_iterations, tol, settings, prior, surface, image, 
         if settings[5] < tol:
             return CONVERGED
     return AT_CAP
+
 
 if AVAILABLE:
     _compile = njit(cache=True, error_model="numpy")
