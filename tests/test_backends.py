@@ -112,18 +112,26 @@ def test_idle_cores_leaves_out_a_busy_process():
     assert np.median(counts) <= max(cores - 1, 1), counts
 
 
+def test_idle_cores_reuses_a_sample_no_older_than_asked(monkeypatch):
+    first = idle_cores()  # a fresh sample
+    monkeypatch.setattr(backends, "usable_cores", lambda: pytest.fail("the load was read"))
+    assert idle_cores(max_age=60.0) == first
+    with pytest.raises(pytest.fail.Exception, match="the load was read"):
+        idle_cores()  # max_age 0: always a new one
+
+
 def test_kernel_thread_count_defaults_to_the_idle_cores(monkeypatch):
     numba = pytest.importorskip("numba")
     assert kernel_thread_count(3) == 3  # given: as given
     before = numba.get_num_threads()
     try:
         numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
-        monkeypatch.setattr(backends, "idle_cores", lambda: 1)
+        monkeypatch.setattr(backends, "idle_cores", lambda **_: 1)
         assert kernel_thread_count(None) == 1
-        monkeypatch.setattr(backends, "idle_cores", lambda: 64)
+        monkeypatch.setattr(backends, "idle_cores", lambda **_: 64)
         assert kernel_thread_count(None) == numba.get_num_threads()  # never above numba's count
         numba.set_num_threads(1)  # a batch worker's setting: kept without looking at the load
-        monkeypatch.setattr(backends, "idle_cores", lambda: pytest.fail("the load was read"))
+        monkeypatch.setattr(backends, "idle_cores", lambda **_: pytest.fail("the load was read"))
         assert kernel_thread_count(None) == 1
     finally:
         numba.set_num_threads(before)
