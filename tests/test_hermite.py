@@ -201,3 +201,9 @@ def test_evaluate_grid_is_evaluate_on_the_grid(rng, grid):
     v1, v2 = rng.uniform(-1, 7, 40), np.r_[lo - 0.05, rng.uniform(lo, hi, 10), hi, hi + 0.05]
     full_v1, full_v2 = np.meshgrid(v1, v2)
     np.testing.assert_allclose(grid.evaluate_grid(c, v1, v2), grid.evaluate(c, full_v1, full_v2), rtol=1e-13, atol=1e-13)
+    # its basis is kept by the parameters' values: other values of the same
+    # sizes (and the first again, as a list) are not given the kept one
+    other = v2[::-1].copy()
+    np.testing.assert_allclose(grid.evaluate_grid(c, v1, other), grid.evaluate(c, *np.meshgrid(v1, other)),
+                               rtol=1e-13, atol=1e-13)
+    np.testing.assert_array_equal(grid.evaluate_grid(c, list(v1), v2), grid.evaluate_grid(c, v1, v2))

@@ -253,8 +253,19 @@ class HermiteGrid:
         values (columns): two matrix products ``B2 C B1^T``, ``C`` the
         coefficients as a matrix of (v2 node, v2 dof) by (v1 node, v1 dof)
         and ``B1``, ``B2`` the basis along each direction.  A fraction of
-        the time of :meth:`evaluate` at every point (equal to rounding)."""
-        v1, v2 = np.ravel(v1), np.ravel(v2)
+        the time of :meth:`evaluate` at every point (equal to rounding).
+        ``B1`` and ``B2`` are kept for the last few parameters (the quality
+        report's, each segmentation): then the products are the whole cost."""
+        v1, v2 = np.ravel(np.asarray(v1, dtype=float)), np.ravel(np.asarray(v2, dtype=float))
+        m2, m1 = self._grid_basis(v1.tobytes(), v2.tobytes())
+        # c[row, column, e1 + 2 e2] -> C[(row, e2), (column, e1)]
+        c = np.asarray(coefficients, dtype=float).reshape(self.n2 + 1, self.n1, 2, 2).transpose(0, 2, 1, 3)
+        return m2 @ c.reshape(2 * (self.n2 + 1), 2 * self.n1) @ m1.T
+
+    @lru_cache(maxsize=16)
+    def _grid_basis(self, v1_bytes: bytes, v2_bytes: bytes) -> tuple[np.ndarray, np.ndarray]:
+        # keyed by the parameters' bytes: arrays are not hashable
+        v1, v2 = np.frombuffer(v1_bytes), np.frombuffer(v2_bytes)
         i1, t1, i2, t2 = self._locate(v1, v2)
         b1 = self._factors(t1, 0, 2 * np.pi / self.n1)  # [2 a1 + e1, point]
         b2 = self._factors(t2, 0, (self.v2_range[1] - self.v2_range[0]) / self.n2)
@@ -262,9 +273,7 @@ class HermiteGrid:
         for a in (0, 1):
             m1[np.arange(v1.size), (i1 + a) % self.n1] = b1[2 * a : 2 * a + 2].T
             m2[np.arange(v2.size), i2 + a] = b2[2 * a : 2 * a + 2].T
-        # c[row, column, e1 + 2 e2] -> C[(row, e2), (column, e1)]
-        c = np.asarray(coefficients, dtype=float).reshape(self.n2 + 1, self.n1, 2, 2).transpose(0, 2, 1, 3)
-        return m2.reshape(v2.size, -1) @ c.reshape(2 * (self.n2 + 1), 2 * self.n1) @ m1.reshape(v1.size, -1).T
+        return _read_only(m2.reshape(v2.size, -1), m1.reshape(v1.size, -1))
 
     # -- quadrature -------------------------------------------------------
 
