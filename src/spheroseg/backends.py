@@ -410,11 +410,11 @@ def kernel_thread_count(threads: int | None) -> int | None:
     """The compiled kernels' thread count for a segmentation or a frame.
 
     ``threads`` when given; otherwise numba's count, reduced to the
-    :func:`idle_cores` (a reading at most ``LOAD_MAX_AGE`` s old): a parallel region waits for its slowest thread, and
-    a thread that shares its core with another process's work made whole
-    segmentations 2 to 90 times slower than on one thread (measured beside
-    one busy process on 2 cores).  None without
-    numba."""
+    :func:`idle_cores` (a reading at most ``LOAD_MAX_AGE`` s old): a
+    parallel region waits for its slowest thread, and a thread that shares
+    its core with another process's work made whole segmentations 2 to 90
+    times slower than on one thread (measured beside one busy process on 2
+    cores).  None without numba."""
     if threads is not None:
         return threads
     try:

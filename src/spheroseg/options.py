@@ -103,8 +103,9 @@ class SegmentOptions:
         reduced at the start of each segmentation and frame to the cores no
         other process is using (:func:`spheroseg.backends.idle_cores`, read
         at most ten times a second): a thread that shares a core with other
-        work slows every parallel step to its pace.  A count above ``NUMBA_NUM_THREADS`` is capped at
-        it.  The result is the same to the last bit whatever the count.
+        work slows every parallel step to its pace.  A count above
+        ``NUMBA_NUM_THREADS`` is capped at it.  The result is the same to
+        the last bit whatever the count.
     """
 
     system: str = "prolate"
