@@ -413,9 +413,10 @@ def speckle_nepers(samples: np.ndarray, patch: np.ndarray, *, min_rays: int = 6)
     ``samples`` ``(rays, offsets)`` are grey levels along rays whose patch is
     ``patch`` (non-negative integer labels); at each offset, the rays of one
     patch sample independent speckle of one tissue, whose ``ln I`` has the
-    standard deviation ``pi / sqrt(6)``.  The grey-level variance across the rays of a patch,
-    averaged over patches and offsets, gives ``k^2 pi^2 / 6``.  Variances
-    over three times their median (a patch across two tissues) are left out.
+    standard deviation ``pi / sqrt(6)``.  The grey-level variance across
+    the rays of a patch, averaged over patches and offsets, gives
+    ``k^2 pi^2 / 6``.  Variances over three times their median (a patch
+    across two tissues) are left out.
     """
     # per (patch, offset): count, sum and sum of squares of the finite values,
     # each one bincount over the bins (patch, offset), rays in order; a
