@@ -17,7 +17,7 @@ const COLORS = { contour: '#ffd23c', apex: '#ff4d4d', base: '#4dff88', landmark:
 const NEAR_MM = 2.0;      // a point this close to a slice is drawn full, farther ones faded
 const GRAB_PX = 9;        // how close a press must be to a point to drag it
 const DRAG_SEND_MS = 120; // the least time between two segmentations sent while a point is dragged
-const IDLE_3D_MS = 250;   // the 3D view is drawn once the slices have been still this long
+const IDLE_3D_MS = 600;   // the 3D view is drawn once the slices have been still this long
 // display = LPS * SIGN (a map that is its own inverse)
 const SIGN = { echo: [-1, 1, -1], anatomical: [-1, -1, 1] };
 const HINTS = {
@@ -32,7 +32,7 @@ const state = {
   history: [], future: [], mode: 'apex', selected: -1,
   // status: 'loading' | 'ready' | 'running' | 'done' | 'error' (document.body.dataset.state)
   status: 'loading', job: 0, faces: null, vertices: new Map(), shown: null, shownLPS: null, pending: null,
-  tracking: null, trackingRun: null, playing: null, drag: null, dragSent: 0, later3D: null,
+  tracking: null, trackingRun: null, playing: null, drag: null, dragSent: 0, later3D: null, slicesQueued: false,
   timings: [],          // per job: click, first and final surface drawn on the slices, 3D drawn (ms)
 };
 let nv = null;
@@ -347,7 +347,8 @@ function onMove(event) {
     state.dragSent = now;
     sendPoints(null, { intermediate: true });
   }
-  drawSlices();
+  drawOverlay();
+  requestSlices();
 }
 
 function onRelease(event) {
@@ -363,19 +364,39 @@ function onRelease(event) {
 }
 
 // -- drawing: the slices first, the 3D view when the slices are still ----------
+// A new surface changes only the overlay's contour (a 2D canvas, drawn at
+// once) and the 3D view's mesh; the slices' pictures change only when they
+// move. Without a graphics card a frame with the 3D view takes seconds on a
+// large echo, so the 3D view waits until nothing is running or dragged.
 
 function drawSlices() {
   if (!nv) return;
-  clearTimeout(state.later3D);
   if (!$('render3d').checked) { nv.drawScene(); return; }
   nv.opts.multiplanarShowRender = niivue.SHOW_RENDER.NEVER;
   try { nv.drawScene(); } finally { nv.opts.multiplanarShowRender = niivue.SHOW_RENDER.ALWAYS; }
-  state.later3D = setTimeout(draw3D, IDLE_3D_MS);
+  schedule3D();
+}
+
+function requestSlices() {  // at most one slice drawing per animation frame
+  if (state.slicesQueued) return;
+  state.slicesQueued = true;
+  requestAnimationFrame(() => { state.slicesQueued = false; drawSlices(); });
+}
+
+function schedule3D() {
+  clearTimeout(state.later3D);
+  if ($('render3d').checked) state.later3D = setTimeout(draw3D, IDLE_3D_MS);
 }
 
 function draw3D() {
   state.later3D = null;
-  if (state.drag || state.pending) { state.later3D = setTimeout(draw3D, IDLE_3D_MS); return; }
+  if (state.drag || state.pending || state.slicesQueued || state.status === 'running') { schedule3D(); return; }
+  const mesh = nv.meshes[0];
+  mesh.visible = state.shown !== null;
+  if (state.shown && mesh.pts !== state.shown) {
+    mesh.pts = state.shown;
+    mesh.updateMesh(nv.gl);
+  }
   nv.drawScene();
   const gl = nv.gl;
   gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));  // waits for the frame to be drawn
@@ -414,15 +435,12 @@ function showPending() {
 }
 
 function showSurface(lps, data) {
-  const mesh = nv.meshes[0];
   state.shownLPS = lps;
   state.shown = displayVertices(lps);
-  mesh.pts = state.shown;
-  mesh.visible = true;
-  mesh.updateMesh(nv.gl);
-  drawSlices();
+  drawOverlay();
+  schedule3D();
   const gl = nv.gl;
-  gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));  // waits for the frame to be drawn
+  gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));  // the slices under it are drawn
   const timing = timingOf(data.job);
   if (timing) {
     const now = performance.now();
@@ -451,11 +469,10 @@ function showQuality(data) {
 }
 
 function hideSurface() {
-  const mesh = nv.meshes[0];
-  mesh.visible = false;
   state.shown = null;
   state.shownLPS = null;
-  drawSlices();
+  drawOverlay();
+  schedule3D();
   $('volume').textContent = '-';
   $('detail').textContent = '';
   $('banner').hidden = true;
@@ -561,12 +578,8 @@ function setOrientation(echo) {
   nv.scene.crosshairPos = nv.mm2frac(toDisplay(keep));
   $('flip').textContent = echo ? 'Anatomical view' : 'Echo view';
   document.body.dataset.orientation = echo ? 'echo' : 'anatomical';
-  if (state.shownLPS) {
-    state.shown = displayVertices(state.shownLPS);
-    nv.meshes[0].pts = state.shown;
-    nv.meshes[0].updateMesh(nv.gl);
-  }
-  nv.drawScene();
+  if (state.shownLPS) state.shown = displayVertices(state.shownLPS);
+  drawSlices();
 }
 
 function zoom(factor) {
@@ -791,7 +804,8 @@ async function start() {
   $('save').onclick = save;
   $('render3d').onchange = () => {
     nv.opts.multiplanarShowRender = $('render3d').checked ? niivue.SHOW_RENDER.ALWAYS : niivue.SHOW_RENDER.NEVER;
-    nv.drawScene();
+    if ($('render3d').checked) draw3D();
+    else nv.drawScene();
   };
   const views = $('views');
   for (const kind of ['pointerdown', 'mousedown']) views.addEventListener(kind, onPress, true);
