@@ -470,3 +470,31 @@ def test_find_places_apex_and_base_from_the_locator(server, phantom, monkeypatch
     response, payload = request(server, "POST", "/api/find", body={"frame": 0})
     assert response.status == 400 and "spheroseg.locate" in json.loads(payload)["error"]
     assert alive(server)
+
+
+def test_command_prints_the_address_once_it_answers(phantom, tmp_path):
+    """The kernels load before the address is printed (a first run compiles
+    them for tens of seconds; here the loading is made 3 s slow): the page's
+    address answers as soon as it is printed."""
+    path = tmp_path / "study.mha"
+    save_volume(path, phantom.volume)
+    code = ("import sys, time, spheroseg.warmup as w; load = w.load_kernels\n"
+            "w.load_kernels = lambda **k: (time.sleep(3), load(**k))[1]\n"
+            "from spheroseg.cli import main; sys.exit(main(sys.argv[1:]))")
+    process = subprocess.Popen([sys.executable, "-c", code, "view", str(path), "--no-browser"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                               preexec_fn=interruptible)
+    try:
+        address = process.stdout.readline().strip()
+        port = int(address.split(":")[2].split("/")[0])
+        connection = socket.create_connection(("127.0.0.1", port), timeout=5)
+        connection.settimeout(1.0)  # the kernels are loaded: no more waiting than a request's
+        connection.sendall(f"GET /api/study HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
+                           f"X-Spheroseg-Token: {address.split('token=')[1]}\r\n\r\n".encode())
+        assert connection.recv(12) == b"HTTP/1.0 200"
+        connection.close()
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=30) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()

@@ -765,6 +765,7 @@ async function start() {
     dragAndDropEnabled: false, isSliceMM: true, multiplanarShowRender: niivue.SHOW_RENDER.ALWAYS,
     multiplanarLayout: niivue.MULTIPLANAR_TYPE.GRID, loadingText: 'loading the study...', logLevel: 'warn',
     isOrientationTextVisible: false,  // NiiVue's labels would name the display frame: drawDirections names LPS
+    clipPlaneColor: [0.7, 0, 0.7, 0],
   });
   await nv.attachToCanvas($('gl'));
   // the mesh exists before the volume: adding one later rebuilds the volume's textures
@@ -775,6 +776,9 @@ async function start() {
   nv.addMesh(mesh);
   await nv.loadVolumes([{ url: '/api/volume.nii', name: 'study.nii', colormap: 'gray' }]);
   state.affine = nv.volumes[0].getAffine();
+  // the 3D view cut through the middle, facing the viewer: the wall and the
+  // cavity around the surface rather than the speckle of the volume's faces
+  nv.setClipPlane([0, 270, 0]);
   setOrientation(true);
   const draw = nv.drawScene.bind(nv);
   nv.drawScene = () => { const out = draw(); drawOverlay(); return out; };
