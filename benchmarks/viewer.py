@@ -58,11 +58,16 @@ def timing(page, job):
     return page.evaluate(f"viewer.state.timings.find((t) => t.job === {job})")
 
 
-def click_on_slice(page, point) -> None:
-    """Move the slices to ``point`` (as scrolling would), then click it on the coronal one."""
+def move_slices_to(page, point) -> None:
+    """Move the slices to ``point``, as scrolling would."""
     page.evaluate("""(mm) => { const nv = viewer.nv; nv.scene.crosshairPos = nv.mm2frac(viewer.toDisplay(mm));
         nv.drawScene(); }""", np.asarray(point, dtype=float).tolist())
-    page.mouse.click(*screen_xy(page, 1, point))
+
+
+def wait_3d(page, job) -> None:
+    """Until the 3D view shows job ``job``'s surface (or is off)."""
+    page.wait_for_function(f"Number(document.body.dataset.drawn3d || 0) >= {job} || "
+                           "!document.getElementById('render3d').checked", polling=50, timeout=WAIT)
 
 
 def clicks(page, apex, base, repeats, rows, suffix, job, server):
@@ -76,8 +81,7 @@ def clicks(page, apex, base, repeats, rows, suffix, job, server):
         page.wait_for_function(f"Number(document.body.dataset.sent) > {sent + 1}", polling=50, timeout=WAIT)
         page.mouse.click(*screen_xy(page, 1, base + [0.0, 0.0, 1.0 * (k % 2)]))
         job = wait_done(page, job, timeout_ms=WAIT)
-        page.wait_for_function(f"Number(document.body.dataset.drawn3d || 0) >= {job} || "
-                               "!document.getElementById('render3d').checked", polling=50, timeout=WAIT)
+        wait_3d(page, job)
         t = timing(page, job)
         if k:
             rows["base_to_first_ms" + suffix].append(t["first"] - t["click"])
@@ -137,11 +141,8 @@ def cetus(browser, folder, repeats, rows) -> dict | None:
     page = browser.new_page(viewport={"width": 1100, "height": 700})
     page.goto(server.url)
     page.wait_for_function("document.body.dataset.state === 'ready'", polling=50, timeout=WAIT)
-    click_on_slice(page, apex)
-    page.keyboard.press("Escape")  # the click above placed nothing: navigate, then the apex mode again
-    page.keyboard.press("a")
+    move_slices_to(page, apex)
     job = clicks(page, apex, base, repeats, rows, "_cetus", 0, server)
-    page.wait_for_timeout(500)
     page.screenshot(path=str(DOCS / "viewer-5-cetus.png"))
     drags(page, server, repeats, rows, "_cetus", job, offset=3.0)
     volume_ml = server.session.results[0][1].surface.volume_ml()
@@ -190,7 +191,7 @@ def main() -> None:
         job = clicks(page, first.apex, first.base, args.repeats, rows, "_slices_only", job, server)
         page.click("#render3d")
         page.wait_for_timeout(500)
-        drags(page, server, args.repeats, rows, "", job)
+        wait_3d(page, drags(page, server, args.repeats, rows, "", job))
         page.screenshot(path=str(DOCS / "viewer-3-landmark.png"))
         page.keyboard.press("?")
         page.screenshot(path=str(DOCS / "viewer-6-help.png"))

@@ -162,23 +162,18 @@ function place(mm, shift) {
   if (!shift) setMode(nextMode(mode, state.points));
 }
 
-function undo() {
-  const previous = state.history.pop();
-  if (!previous) { say('nothing to undo', state.status === 'error' ? 'ready' : undefined); return; }
-  state.future.push(copyPoints(state.points));
-  state.points = previous;
+// undo: back one step of the history (the current points to the future); redo: the reverse
+function step(from, to, word) {
+  const points = from.pop();
+  if (!points) { say(`nothing to ${word}`, state.status === 'error' ? 'ready' : undefined); return; }
+  to.push(copyPoints(state.points));
+  state.points = points;
   state.selected = -1;
   sendPoints(null);
 }
 
-function redo() {
-  const next = state.future.pop();
-  if (!next) { say('nothing to redo', state.status === 'error' ? 'ready' : undefined); return; }
-  state.history.push(copyPoints(state.points));
-  state.points = next;
-  state.selected = -1;
-  sendPoints(null);
-}
+const undo = () => step(state.history, state.future, 'undo');
+const redo = () => step(state.future, state.history, 'redo');
 
 function deleteSelected() {
   const k = state.selected;
@@ -321,10 +316,10 @@ function onPress(event) {
     event.preventDefault();
     const mm = mmAt(tile, x, y, crosshairMM());
     if (!inImage(mm)) { say('outside the image: click inside the volume', 'error'); return; }
-    // the slices move to the point as NiiVue's cursor would
-    nv.scene.crosshairPos = nv.mm2frac(mm);
+    // the slices stay (as 3D Slicer's markups placement): the contour is then
+    // drawn over them as soon as it comes, with no slice drawing before it
     place(toLPS(mm), event.shiftKey);
-    drawSlices();
+    drawOverlay();
   }
 }
 
