@@ -143,6 +143,9 @@ def cetus(browser, folder, repeats, rows) -> dict | None:
     page.wait_for_function("document.body.dataset.state === 'ready'", polling=50, timeout=WAIT)
     move_slices_to(page, apex)
     job = clicks(page, apex, base, repeats, rows, "_cetus", 0, server)
+    move_slices_to(page, 0.5 * (apex + base))
+    wait_3d(page, job)
+    page.wait_for_timeout(1500)
     page.screenshot(path=str(DOCS / "viewer-5-cetus.png"))
     drags(page, server, repeats, rows, "_cetus", job, offset=3.0)
     volume_ml = server.session.results[0][1].surface.volume_ml()
@@ -229,6 +232,7 @@ def report(args, version, ready_s, rows, ef_percent, extra) -> None:
         "date": time.strftime("%Y-%m-%d"),
         "machine": f"{platform.machine()}, {__import__('os').cpu_count()} cores, Chromium {version} headless, "
                    "WebGL on SwiftShader (software)",
+        "load_average_1min": __import__("os").getloadavg()[0],
         "viewport": [1100, 700], "page_ready_s": ready_s, "medians_ms": medians,
         "runs_ms": {k: v for k, v in rows.items() if v}, "tracked_ef_percent": ef_percent, **extra,
     }

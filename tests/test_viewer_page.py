@@ -388,6 +388,16 @@ def test_modes_keys_orientation_and_refused_clicks(browser, phantom_file, tmp_pa
         assert session.points.same(before) and page.evaluate("viewer.state.mode") == "apex"
         assert page.evaluate("viewer.state.points.apex") == session.points.apex.tolist()
 
+        # zoom: NiiVue's tiles show 1.25 times less (the overlay is placed by them); colour maps
+        fov = page.evaluate("viewer.sliceTiles().find((t) => t.axCorSag === 1).fovMM.slice(0, 2)")
+        page.keyboard.press("+")
+        page.wait_for_function("viewer.nv.scene.pan2Dxyzmm[3] > 1.2", polling=100, timeout=TIMEOUT_MS)
+        zoomed = page.evaluate("viewer.sliceTiles().find((t) => t.axCorSag === 1).fovMM.slice(0, 2)")
+        np.testing.assert_allclose(np.array(fov) / zoomed, 1.25, rtol=1e-6)
+        page.keyboard.press("0")
+        page.select_option("#colormap", "hot")
+        assert page.evaluate("viewer.nv.volumes[0].colormap") == "hot"
+
         # a reload shows the surface and says done
         page.reload()
         page.wait_for_function("document.body.dataset.state === 'done' && viewer.state.shown !== null",

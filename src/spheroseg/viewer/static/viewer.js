@@ -402,8 +402,10 @@ function draw3D() {
 
 // -- surfaces ------------------------------------------------------------------
 
+// a surface's timing record; before the request's reply has come, the newest
+// request's (the server runs the newest job only)
 function timingOf(job) {
-  return state.timings.find((t) => t.job === job) || state.timings.find((t) => t.job === null);
+  return state.timings.find((t) => t.job === job) || state.timings.findLast((t) => t.job === null);
 }
 
 function receive(data) {
@@ -419,7 +421,8 @@ function receive(data) {
   if (data.final) state.vertices.set(data.frame, { vertices, data });
   if (data.frame !== state.frame) return;
   state.pending = { vertices, data };
-  requestAnimationFrame(showPending);
+  if (data.final) showPending();  // at once: the one that matters
+  else requestAnimationFrame(showPending);  // at most one intermediate per frame
 }
 
 function showPending() {
@@ -434,8 +437,10 @@ function showSurface(lps, data) {
   state.shown = displayVertices(lps);
   drawOverlay();
   schedule3D();
-  const gl = nv.gl;
-  gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));  // the slices under it are drawn
+  if (data.final) {  // the slices under it are drawn (a wait for the GPU: not for every intermediate)
+    const gl = nv.gl;
+    gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));
+  }
   const timing = timingOf(data.job);
   if (timing) {
     const now = performance.now();
