@@ -371,7 +371,8 @@ def test_modes_keys_orientation_and_refused_clicks(browser, phantom_file, tmp_pa
         page.keyboard.press("a")
         render = page.evaluate("""() => { const t = viewer.nv.screenSlices.find((t) => t.axCorSag > 2);
             const c = document.getElementById('gl'); const r = c.getBoundingClientRect(); const k = r.width / c.width;
-            const [l, tp, w, h] = t.leftTopWidthHeight; return [r.left + (l + w / 2) * k, r.top + (tp + h / 2) * k]; }""")
+            const [l, tp, w, h] = t.leftTopWidthHeight;
+            return [r.left + (l + w / 2) * k, r.top + (tp + h / 2) * k]; }""")
         page.mouse.click(*render)
         assert "3D view" in _status(page) and page.evaluate("document.body.dataset.state") == "error"
         page.mouse.click(5, 300)  # beside the tiles

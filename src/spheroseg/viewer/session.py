@@ -41,8 +41,10 @@ except ImportError:
 #: so the page builds its mesh once and only moves the vertices
 MESH_RESOLUTION = (48, 24)
 #: the least time between two intermediate surfaces sent while a descent runs
-#: (s): the final one is always sent
-STREAM_INTERVAL = 0.02
+#: (s): the final one is always sent; each costs a mesh, its encoding and the
+#: page's drawing, CPU the descent would otherwise have
+STREAM_INTERVAL = 0.1
+
 
 def _encode(array, dtype) -> str:
     return base64.b64encode(np.ascontiguousarray(array, dtype=dtype).tobytes()).decode("ascii")

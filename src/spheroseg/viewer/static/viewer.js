@@ -17,6 +17,9 @@ const COLORS = { contour: '#ffd23c', apex: '#ff4d4d', base: '#4dff88', landmark:
 const NEAR_MM = 2.0;      // a point this close to a slice is drawn full, farther ones faded
 const GRAB_PX = 9;        // how close a press must be to a point to drag it
 const DRAG_SEND_MS = 120; // the least time between two segmentations sent while a point is dragged
+// without a graphics card each picture the page shows costs the browser tens of ms
+// of the CPU the segmentation runs on: intermediate surfaces are shown at most this often
+const INTERMEDIATE_MS = 150;
 const IDLE_3D_MS = 600;   // the 3D view is drawn once the slices have been still this long
 // display = LPS * SIGN (a map that is its own inverse)
 const SIGN = { echo: [-1, 1, -1], anatomical: [-1, -1, 1] };
@@ -298,7 +301,9 @@ function onPress(event) {
   const tile = tileAt(x, y);
   const placing = state.mode !== 'navigate' || event.shiftKey;
   if (!tile) {
-    if (placing && renderTileAt(x, y)) say(`the 3D view only turns: ${HINTS[state.mode] || 'click'} on a slice`, 'error');
+    if (placing && renderTileAt(x, y)) {
+      say(`the 3D view only turns: ${HINTS[state.mode] || 'click'} on a slice`, 'error');
+    }
     else if (placing) say('outside the image: click on a slice', 'error');
     return;
   }
@@ -422,7 +427,10 @@ function receive(data) {
   if (data.frame !== state.frame) return;
   state.pending = { vertices, data };
   if (data.final) showPending();  // at once: the one that matters
-  else requestAnimationFrame(showPending);  // at most one intermediate per frame
+  else if (!state.pendingQueued) {  // intermediates: at most one per INTERMEDIATE_MS
+    state.pendingQueued = true;
+    setTimeout(() => { state.pendingQueued = false; requestAnimationFrame(showPending); }, INTERMEDIATE_MS);
+  }
 }
 
 function showPending() {
@@ -450,10 +458,13 @@ function showSurface(lps, data) {
   $('volume').textContent = `${data.volume_ml.toFixed(1)} mL`;
   if (data.final) {
     $('detail').textContent = data.iterations !== undefined
-      ? `frame ${data.frame}: ${data.iterations} iterations, ${(1000 * data.seconds).toFixed(0)} ms (${data.message})` : '';
+      ? `frame ${data.frame}: ${data.iterations} iterations, ${(1000 * data.seconds).toFixed(0)} ms ` +
+        `(${data.message})` : '';
     showQuality(data);
     document.body.dataset.job = String(data.job);
-    if (data.job === state.job && !state.trackingRun && !state.drag) say(data.poor ? 'done: poor result' : 'done', 'done');
+    if (data.job === state.job && !state.trackingRun && !state.drag) {
+      say(data.poor ? 'done: poor result' : 'done', 'done');
+    }
   } else {
     $('detail').textContent = `iteration ${data.iteration}, level ${data.level}`;
   }
