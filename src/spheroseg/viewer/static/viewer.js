@@ -198,6 +198,9 @@ async function find() {
     state.history.push(copyPoints(state.points));
     state.future = [];
     state.points = { apex: found.apex, base: found.base, landmarks: [], annulus: [] };
+    state.vertices.clear();  // other frames' surfaces and the tracking were for the old points
+    state.tracking = null;
+    showTracking();
     timing.job = found.job;
     state.job = Math.max(state.job, found.job);
     document.body.dataset.sent = String(found.job);
