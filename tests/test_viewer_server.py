@@ -23,7 +23,7 @@ from spheroseg.io import save_volume, write_markups
 from spheroseg.phantom import make_phantom, make_sequence
 from spheroseg.viewer import open_viewer
 from spheroseg.viewer.server import MAX_BODY
-from spheroseg.viewer.session import Points, lps_to_ras, ras_to_lps
+from spheroseg.viewer.session import Points
 
 
 @pytest.fixture(scope="module")
@@ -181,7 +181,7 @@ def test_huge_and_garbage_requests_leave_the_server_up(server):
 
 
 def test_save_only_inside_the_save_root(server, phantom, tmp_path):
-    apex, base = lps_to_ras(phantom.apex).tolist(), lps_to_ras(phantom.base).tolist()
+    apex, base = phantom.apex.tolist(), phantom.base.tolist()
     response, _ = request(server, "POST", "/api/points", body={"frame": 0, "apex": apex, "base": base})
     assert response.status == 200
     wait_for(server)
@@ -205,7 +205,7 @@ def test_events_stream_surfaces(server, phantom):
     stream = conn.getresponse()
     assert stream.status == 200 and stream.getheader("Content-Type") == "text/event-stream"
     assert stream.fp.readline() == b"retry: 1000\n"
-    apex, base = lps_to_ras(phantom.apex).tolist(), lps_to_ras(phantom.base).tolist()
+    apex, base = phantom.apex.tolist(), phantom.base.tolist()
     response, payload = request(server, "POST", "/api/points", body={"frame": 0, "apex": apex, "base": base})
     job = json.loads(payload)["job"]
     events = []
@@ -218,15 +218,15 @@ def test_events_stream_surfaces(server, phantom):
     final = events[-1]
     result = spheroseg.segment(server.session.frames[0], phantom.apex, phantom.base)
     vertices = np.frombuffer(base64.b64decode(final["vertices"]), "<f4").reshape(-1, 3)
-    np.testing.assert_allclose(ras_to_lps(vertices), result.surface.mesh(48, 24)[0], atol=1e-3)
+    np.testing.assert_allclose(vertices, result.surface.mesh(48, 24)[0], atol=1e-3)
     assert final["volume_ml"] == pytest.approx(result.volume_ml, rel=1e-12)
     faces = np.frombuffer(base64.b64decode(json.loads(request(server, "GET", "/api/study")[1])["faces"]), "<u4")
     np.testing.assert_array_equal(faces.reshape(-1, 3), result.surface.mesh(48, 24)[1])
 
 
 def test_display_image_round_trip(phantom, tmp_path):
-    """The NIfTI the page shows is the study on its grid: RAS in the file, LPS
-    back through SimpleITK, grey levels scaled to 0-255."""
+    """The NIfTI the page shows is the study on its grid (its origin and
+    spacing back through SimpleITK), grey levels scaled to 0-255."""
     seq = make_sequence(seed=1, n_frames=3, spacing=2.5)
     path = tmp_path / "cine.nrrd"
     save_volume(path, list(seq.volumes))
@@ -244,9 +244,6 @@ def test_display_image_round_trip(phantom, tmp_path):
         arrays = np.array([v.array for v in seq.volumes])
         lo, hi = arrays.min(), arrays.max()
         np.testing.assert_allclose(shown.astype(float), np.rint((arrays - lo) * 255 / (hi - lo)), atol=1)
-        # the page's RAS millimetres are the image's LPS ones with x and y negated
-        assert np.array_equal(ras_to_lps(lps_to_ras([1.0, 2.0, 3.0])), [1.0, 2.0, 3.0])
-        assert ras_to_lps([1.0, 2.0, 3.0]).tolist() == [-1.0, -2.0, 3.0]
     finally:
         server.close()
 
@@ -273,7 +270,7 @@ def test_session_tracks_like_the_api(tmp_path):
         backward = spheroseg.track(session.frames[1::-1], first.apex, first.base)
         expected = [backward.volumes_ml[1], *forward.volumes_ml]
         np.testing.assert_allclose(tracking["volumes_ml"], expected, rtol=1e-12)
-        assert Points.from_ras(session.points.as_ras()).same(session.points)
+        assert Points.from_json(session.points.as_json()).same(session.points)
     finally:
         server.close()
 
@@ -335,7 +332,7 @@ def test_a_beam_space_study_is_shown_scan_converted_and_segmented_in_its_beams(t
         grid = scan_convert(server.session.frames[0]).grid
         assert shown.GetSize() == grid.shape[::-1]
         np.testing.assert_allclose(shown.GetOrigin(), grid.origin, atol=1e-4)
-        body = {"frame": 0, "apex": lps_to_ras(ph.apex).tolist(), "base": lps_to_ras(ph.base).tolist()}
+        body = {"frame": 0, "apex": ph.apex.tolist(), "base": ph.base.tolist()}
         assert request(server, "POST", "/api/points", body=body)[0].status == 200
         final = wait_for(server)
         expected = spheroseg.segment(server.session.frames[0], ph.apex, ph.base)
@@ -383,3 +380,121 @@ def test_a_slow_page_loses_intermediate_surfaces_only():
     assert [(kind, data["n"]) for kind, data in got] == [("surface", 0), ("surface", 5), ("surface", 6), ("tracked", 7)]
     with pytest.raises(queue.Empty):
         stream.get(timeout=0.01)
+
+
+def test_a_burst_of_connections_is_answered(server):
+    """200 connections at once (a page's reload, a script): all answered
+    within 5 s (a listen backlog of 5 dropped some for many seconds of TCP
+    retries)."""
+    get = (f"GET /api/study HTTP/1.1\r\nHost: 127.0.0.1:{server.port}\r\n"
+               f"X-Spheroseg-Token: {server.token}\r\nConnection: close\r\n\r\n").encode()
+    sockets = []
+    for _ in range(200):  # every connection opened before any is served
+        s = socket.socket()
+        s.setblocking(False)
+        s.connect_ex(("127.0.0.1", server.port))
+        sockets.append(s)
+    answered = 0
+    end = time.monotonic() + 5.0
+    try:
+        for s in sockets:
+            s.settimeout(max(0.01, end - time.monotonic()))
+            try:
+                s.sendall(get)
+                answered += s.recv(12).startswith(b"HTTP/1.0 200")
+            except OSError:
+                pass
+    finally:
+        for s in sockets:
+            s.close()
+    assert answered == 200
+    # still locked down
+    assert request(server, "GET", "/api/study", token=False)[0].status == 401
+    assert request(server, "GET", "/api/study", host="evil.example:80")[0].status == 403
+
+
+def test_points_outside_the_data_are_refused(server, phantom):
+    """Outside the image, and in the padding around the echo sector: a
+    one-line 400 naming the point in LPS mm, and the points unchanged."""
+    session = server.session
+    lo, hi = session.display[0].bounds
+    corner = lo + 0.02 * (hi - lo)  # the phantom's sector leaves its corners empty
+    assert session.display[0].no_data_mask is not None
+    for apex, words in ((hi + 10.0, "outside the image"), (corner, "outside the echo's data")):
+        response, payload = request(server, "POST", "/api/points", body={"frame": 0, "apex": apex.tolist()})
+        assert response.status == 400
+        message = json.loads(payload)["error"]
+        assert words in message and f"{apex[0]:.1f}, {apex[1]:.1f}, {apex[2]:.1f} LPS mm" in message, message
+        assert session.points.apex is None
+    response, _ = request(server, "POST", "/api/points", body={"frame": 0, "apex": phantom.apex.tolist()})
+    assert response.status == 200 and np.array_equal(session.points.apex, phantom.apex)
+
+
+class _NoVentricle(ValueError):
+    pass
+
+
+def test_find_places_apex_and_base_from_the_locator(server, phantom, monkeypatch):
+    """``/api/find`` calls ``spheroseg.locate.locate`` (stubbed here: the
+    locator has its own tests) and segments from what it returns."""
+    from types import SimpleNamespace
+
+    import spheroseg.viewer.session as session_module
+
+    calls = []
+
+    def found(volume):
+        calls.append(volume)
+        return SimpleNamespace(apex=phantom.apex, base=phantom.base, normal=np.array([0.0, 0.0, 1.0]),
+                               confidence=0.75, reason="stub")
+
+    monkeypatch.setattr(session_module, "locate", found)
+    response, payload = request(server, "POST", "/api/find", body={"frame": 0})
+    assert response.status == 200, payload
+    data = json.loads(payload)
+    assert calls == [server.session.display[0]]
+    assert data["apex"] == phantom.apex.tolist() and data["base"] == phantom.base.tolist()
+    assert data["confidence"] == 0.75 and data["reason"] == "stub"
+    assert wait_for(server)["job"] == data["job"]
+    api = spheroseg.segment(server.session.frames[0], phantom.apex, phantom.base)
+    np.testing.assert_allclose(server.session.results[0][1].surface.coefficients, api.surface.coefficients,
+                               atol=1e-9)
+
+    def nothing(volume):
+        raise _NoVentricle("no ventricle found: no dark cavity")
+
+    monkeypatch.setattr(session_module, "locate", nothing)
+    response, payload = request(server, "POST", "/api/find", body={"frame": 0})
+    assert response.status == 400 and json.loads(payload)["error"] == "no ventricle found: no dark cavity"
+    monkeypatch.setattr(session_module, "locate", None)
+    response, payload = request(server, "POST", "/api/find", body={"frame": 0})
+    assert response.status == 400 and "spheroseg.locate" in json.loads(payload)["error"]
+    assert alive(server)
+
+
+def test_command_prints_the_address_once_it_answers(phantom, tmp_path):
+    """The kernels load before the address is printed (a first run compiles
+    them for tens of seconds; here the loading is made 3 s slow): the page's
+    address answers as soon as it is printed."""
+    path = tmp_path / "study.mha"
+    save_volume(path, phantom.volume)
+    code = ("import sys, time, spheroseg.warmup as w; load = w.load_kernels\n"
+            "w.load_kernels = lambda **k: (time.sleep(3), load(**k))[1]\n"
+            "from spheroseg.cli import main; sys.exit(main(sys.argv[1:]))")
+    process = subprocess.Popen([sys.executable, "-c", code, "view", str(path), "--no-browser"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                               preexec_fn=interruptible)
+    try:
+        address = process.stdout.readline().strip()
+        port = int(address.split(":")[2].split("/")[0])
+        connection = socket.create_connection(("127.0.0.1", port), timeout=5)
+        connection.settimeout(1.0)  # the kernels are loaded: no more waiting than a request's
+        connection.sendall(f"GET /api/study HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
+                           f"X-Spheroseg-Token: {address.split('token=')[1]}\r\n\r\n".encode())
+        assert connection.recv(12) == b"HTTP/1.0 200"
+        connection.close()
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=30) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()

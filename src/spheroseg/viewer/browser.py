@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import shutil
 
-from .session import lps_to_ras
+import numpy as np
 
 #: flags for Chromium as root with no network and no GPU (WebGL on SwiftShader)
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-dev-shm-usage", "--disable-quic", "--disable-background-networking",
@@ -26,16 +26,18 @@ def launch(playwright, *, executable: str | None = None):
 
 def screen_xy(page, tile: int, point) -> tuple[float, float]:
     """Page coordinates (CSS pixels) of the world point ``point`` (LPS mm) on
-    a slice tile (0 axial, 1 coronal, 2 sagittal), from NiiVue's layout of it."""
+    a slice tile (0 axial, 1 coronal, 2 sagittal), from NiiVue's layout of it
+    (in the page's current orientation)."""
     return tuple(page.evaluate(
-        """([kind, mm]) => {
+        """([kind, lps]) => {
+            const mm = viewer.toDisplay(lps);
             const tile = viewer.sliceTiles().find((t) => t.axCorSag === kind);
             const plane = [[0, 1], [0, 2], [1, 2]][kind];
             const canvas = document.getElementById('gl');
             const r = canvas.getBoundingClientRect();
             const s = viewer.toScreen(tile, mm[plane[0]], mm[plane[1]]);
             return [r.left + s[0] * r.width / canvas.width, r.top + s[1] * r.height / canvas.height];
-        }""", [tile, lps_to_ras(point).tolist()]))
+        }""", [tile, np.asarray(point, dtype=float).tolist()]))
 
 
 def wait_done(page, after: int = 0, *, timeout_ms: float = 120_000) -> int:

@@ -67,6 +67,9 @@ class ViewerServer(ThreadingHTTPServer):
 
     daemon_threads = True
     allow_reuse_address = True
+    #: the listen backlog: a page opens a burst of connections at once (and
+    #: a full backlog drops connections for seconds of TCP retries)
+    request_queue_size = 256
 
     def __init__(self, session: Session, *, port: int = 0, token: str | None = None):
         self.session = session
@@ -249,8 +252,11 @@ class ViewerHandler(BaseHTTPRequestHandler):
 
     def points(self, query, body) -> None:
         body = _object(body)
-        job = self.server.session.set_points(Points.from_ras(body), frame=body.get("frame", 0))
+        job = self.server.session.set_points(Points.from_json(body), frame=body.get("frame", 0))
         self._json({"job": job})
+
+    def find(self, query, body) -> None:
+        self._json(self.server.session.find(frame=_object(body).get("frame", 0)))
 
     def track(self, query, body) -> None:
         job = self.server.session.track(frame=_object(body).get("frame", 0))
@@ -306,6 +312,7 @@ ROUTES = {
     ("GET", "/api/surface"): ViewerHandler.surface,
     ("GET", "/api/events"): ViewerHandler.events,
     ("POST", "/api/points"): ViewerHandler.points,
+    ("POST", "/api/find"): ViewerHandler.find,
     ("POST", "/api/track"): ViewerHandler.track,
     ("POST", "/api/save"): ViewerHandler.save,
 }

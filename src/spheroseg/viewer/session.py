@@ -4,10 +4,9 @@ run on them, and the events the page is sent while they run.
 Nothing here knows HTTP: :mod:`spheroseg.viewer.server` turns requests into
 calls of :class:`Session` and its events into Server-Sent Events.
 
-Coordinates: the page (NiiVue) speaks NIfTI's RAS millimetres, spheroseg
-ITK's LPS; the two differ by the sign of x and y, and the conversion happens
-here, at the boundary (:func:`ras_to_lps`), so every point the session
-stores, segments with and saves is LPS, as the rest of the package.
+Coordinates: every point the session receives, stores, segments with,
+sends and saves is LPS millimetres (ITK's, the files', the rest of the
+package's); the page alone converts to the frame NiiVue draws in.
 """
 
 from __future__ import annotations
@@ -33,22 +32,18 @@ from ..surface import Surface
 from ..tracker import Tracker
 from ..volume import Volume
 
+try:
+    from ..locate import NoVentricleError, locate  # noqa: F401 - NoVentricleError is a ValueError
+except ImportError:
+    locate = None
+
 #: the display mesh's resolution (around the axis, from apex to base): fixed,
 #: so the page builds its mesh once and only moves the vertices
 MESH_RESOLUTION = (48, 24)
 #: the least time between two intermediate surfaces sent while a descent runs
-#: (s): the final one is always sent
-STREAM_INTERVAL = 0.02
-_LPS_RAS = np.array([-1.0, -1.0, 1.0])
-
-
-def ras_to_lps(points) -> np.ndarray:
-    """RAS (NIfTI, NiiVue) to LPS (ITK, spheroseg) millimetres, and back:
-    the map is its own inverse."""
-    return np.asarray(points, dtype=float) * _LPS_RAS
-
-
-lps_to_ras = ras_to_lps
+#: (s): the final one is always sent; each costs a mesh, its encoding and the
+#: page's drawing, CPU the descent would otherwise have
+STREAM_INTERVAL = 0.1
 
 
 def _encode(array, dtype) -> str:
@@ -66,8 +61,8 @@ class Points:
     annulus: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @classmethod
-    def from_ras(cls, data: dict) -> "Points":
-        """Points as the page sends them (RAS mm), checked: one-line
+    def from_json(cls, data: dict) -> "Points":
+        """Points as the page sends them (LPS mm), checked: one-line
         ``ValueError`` on anything else."""
         if not isinstance(data, dict):
             raise ValueError("points must be a JSON object with apex, base and landmarks")
@@ -80,7 +75,7 @@ class Points:
             p = np.asarray(value, dtype=float) if numbers else None
             if p is None or p.shape != (3,) or not np.all(np.isfinite(p)):
                 raise ValueError(f"{name} must be 3 finite numbers (mm), got {value!r}"[:200])
-            return ras_to_lps(p)
+            return p
 
         def points(value, name):
             value = [] if value is None else value
@@ -91,12 +86,23 @@ class Points:
         return cls(point(data.get("apex"), "apex"), point(data.get("base"), "base"),
                    points(data.get("landmarks"), "landmarks"), points(data.get("annulus"), "annulus"))
 
-    def as_ras(self) -> dict:
-        def ras(p):
-            return None if p is None else lps_to_ras(p).tolist()
+    def as_json(self) -> dict:
+        def listed(p):
+            return None if p is None else np.asarray(p, dtype=float).tolist()
 
-        return {"apex": ras(self.apex), "base": ras(self.base), "landmarks": [ras(p) for p in self.landmarks],
-                "annulus": [ras(p) for p in self.annulus]}
+        return {"apex": listed(self.apex), "base": listed(self.base),
+                "landmarks": [listed(p) for p in self.landmarks], "annulus": [listed(p) for p in self.annulus]}
+
+    def named(self):
+        """``(name, point)`` for every point placed, named as in messages."""
+        if self.apex is not None:
+            yield "the apex", self.apex
+        if self.base is not None:
+            yield "the base", self.base
+        for k, p in enumerate(self.landmarks):
+            yield f"landmark {k}", p
+        for k, p in enumerate(self.annulus):
+            yield f"annulus point {k}", p
 
     @property
     def complete(self) -> bool:
@@ -251,7 +257,8 @@ class Session:
         return {
             "source": self.source.name, "frames": len(self.frames), "shape": list(grid.shape[::-1]),
             "spacing": grid.spacing.tolist(), "faces": _encode(self.faces(), "<u4"),
-            "options": self.options.as_parameters(), "points": self.points.as_ras(),
+            "options": self.options.as_parameters(), "points": self.points.as_json(),
+            "job": self._generation, "locate": locate is not None,
             "tracking": self._tracking_summary(),
             "save_root": str(self.save_root),
         }
@@ -260,7 +267,7 @@ class Session:
         result = self._frame_result(frame)
         if result is None:
             return None
-        return self._surface_data(frame, result.surface, final=True, result=result)
+        return self._surface_data(frame, result.surface, final=True, result=result, job=self._generation)
 
     # what the page asks for ---------------------------------------------------
 
@@ -268,6 +275,7 @@ class Session:
         """Segment ``frame`` from ``points`` (in the background); the
         running job stops.  Returns the job's number (its events carry it)."""
         frame = self.check_frame(frame)
+        self._check_inside(points, frame)
         if points.complete:
             Tracker(self.frames[frame], **points.keywords(), **self.options.as_parameters())  # checks, one line each
         with self._lock:
@@ -279,6 +287,20 @@ class Session:
         else:
             self.events.publish("cleared", {"job": job, "frame": frame})
         return job
+
+    def find(self, *, frame: int) -> dict:
+        """Place apex and base where :func:`spheroseg.locate.locate` finds
+        the ventricle on ``frame``, and segment from them (landmarks and
+        annulus points are dropped).  Returns the job's number, the points
+        (LPS mm), the locator's ``confidence`` (0-1) and its ``reason``; a
+        one-line ``ValueError`` when no ventricle is found."""
+        frame = self.check_frame(frame)
+        if locate is None:
+            raise ValueError("finding the ventricle needs spheroseg.locate, which this installation lacks")
+        found = locate(self.display[frame])
+        points = Points(apex=np.asarray(found.apex, dtype=float), base=np.asarray(found.base, dtype=float))
+        job = self.set_points(points, frame=frame)
+        return {"job": job, **points.as_json(), "confidence": float(found.confidence), "reason": str(found.reason)}
 
     def track(self, *, frame: int) -> int:
         """Track every frame from ``frame`` (forwards to the last, then
@@ -352,6 +374,22 @@ class Session:
             raise ValueError(f"frame must be an integer from 0 to {len(self.frames) - 1}, got {frame!r}"[:200])
         return frame
 
+    def _check_inside(self, points: Points, frame: int) -> None:
+        """A one-line ``ValueError`` for a point outside the displayed image
+        or in its no-data region (the padding around an echo sector): a
+        surface pulled there can only fit noise."""
+        shown = self.display[frame]
+        for name, p in points.named():
+            where = ", ".join(f"{v:.1f}" for v in p)
+            if not shown.contains(p):
+                raise ValueError(f"{name} ({where} LPS mm) is outside the image: place it on the heart")
+            if shown.no_data_mask is not None:
+                index = tuple(np.clip(np.rint(shown.world_to_index(p)).astype(int), 0,
+                                      np.array(shown.shape[::-1]) - 1)[::-1])
+                if shown.no_data_mask[index]:
+                    raise ValueError(f"{name} ({where} LPS mm) is outside the echo's data (the padding around "
+                                     "the sector): place it inside the sector")
+
     def _save_target(self, name) -> Path:
         if not isinstance(name, str) or not name.strip():
             raise ValueError("name the folder to save into")
@@ -385,13 +423,14 @@ class Session:
                 "ef_percent": tracking.ef}
 
     def _surface_data(self, frame, surface, *, final, result=None, job=None, iteration=0, level=0) -> dict:
-        points = lps_to_ras(surface.mesh(*MESH_RESOLUTION)[0])
+        points = surface.mesh(*MESH_RESOLUTION)[0]
         data = {"job": job, "frame": frame, "final": final, "iteration": iteration, "level": level,
                 "vertices": _encode(points, "<f4"), "volume_ml": surface.volume_ml()}
         if result is not None:
             quality = result.quality or {}
             data.update(status=result.status, message=result.message, iterations=result.iterations,
-                        seconds=result.seconds, warnings=list(quality.get("warnings", [])))
+                        seconds=result.seconds, warnings=list(quality.get("warnings", [])),
+                        poor=bool(quality.get("poor", False)))
         return data
 
     def _current(self, job: int) -> bool:

@@ -1,23 +1,42 @@
 // spheroseg's viewer page: NiiVue shows the study (three slices and a 3D
 // view); this script places points, sends them to the server, receives the
 // surfaces it streams (Server-Sent Events) and draws the wall's contour on the
-// slices. World points here are NIfTI RAS millimetres (NiiVue's); the server
-// converts to ITK's LPS.
+// slices.
+//
+// Coordinates: the page, the server, the files and every message use LPS
+// millimetres (ITK's, 3D Slicer's files'). NiiVue draws in its own world
+// frame ("display" here): NIfTI's RAS, turned 180 degrees about the
+// left-right axis in the echo orientation so that the probe (the image's
+// first z slices) is at the top of the long-axis slices, as echo machines
+// show them. Both frames differ from LPS by signs only (toDisplay).
 'use strict';
 
 const $ = (id) => document.getElementById(id);
 const COLORS = { contour: '#ffd23c', apex: '#ff4d4d', base: '#4dff88', landmark: '#4de1ff', annulus: '#ff9f40',
                  selected: '#ffffff' };
-const NEAR_MM = 2.0;   // a point this close to a slice is drawn full, farther ones faded
-const GRAB_PX = 9;     // how close a press must be to a point to drag it
+const NEAR_MM = 2.0;      // a point this close to a slice is drawn full, farther ones faded
+const GRAB_PX = 9;        // how close a press must be to a point to drag it
+const DRAG_SEND_MS = 120; // the least time between two segmentations sent while a point is dragged
+// without a graphics card each picture the page shows costs the browser tens of ms
+// of the CPU the segmentation runs on: intermediate surfaces are shown at most this often
+const INTERMEDIATE_MS = 150;
+const IDLE_3D_MS = 600;   // the 3D view is drawn once the slices have been still this long
+// display = LPS * SIGN (a map that is its own inverse)
+const SIGN = { echo: [-1, 1, -1], anatomical: [-1, -1, 1] };
+const HINTS = {
+  apex: 'click the apex', base: 'click the base (centre of the mitral plane)',
+  annulus: 'click points of the mitral annulus (3 or more)', landmark: 'click a point the wall must pass through',
+  navigate: '',
+};
 
 const state = {
-  study: null, frame: 0, frames: 1,
+  study: null, frame: 0, frames: 1, echo: false, affine: null,  // echo: set at start
   points: { apex: null, base: null, landmarks: [], annulus: [] },
-  history: [], mode: 'apex', selected: -1,
-  job: 0, faces: null, vertices: new Map(), shown: null, pending: null,
-  tracking: null, playing: null, drag: null,
-  timings: [],          // per job: click, first and final surface drawn (ms, performance.now)
+  history: [], future: [], mode: 'apex', selected: -1,
+  // status: 'loading' | 'ready' | 'running' | 'done' | 'error' (document.body.dataset.state)
+  status: 'loading', job: 0, faces: null, vertices: new Map(), shown: null, shownLPS: null, pending: null,
+  tracking: null, trackingRun: null, playing: null, drag: null, dragSent: 0, later3D: null, slicesQueued: false,
+  timings: [],          // per job: click, first and final surface drawn on the slices, 3D drawn (ms)
 };
 let nv = null;
 
@@ -40,9 +59,44 @@ function decode(base64, Type) {
   return new Type(bytes.buffer);
 }
 
-function say(text, kind) {
+// -- status and modes: every transition goes through say() and setMode() -----
+
+function say(text, status) {
   $('status').textContent = text;
-  if (kind) document.body.dataset.state = kind;
+  if (status) {
+    state.status = status;
+    document.body.dataset.state = status;
+  }
+}
+
+function showHint() { $('hint').textContent = HINTS[state.mode]; }
+
+function setMode(mode) {
+  state.mode = mode;
+  for (const b of document.querySelectorAll('#modes button')) b.classList.toggle('active', b.dataset.mode === mode);
+  showHint();
+}
+
+// the mode after a point is placed in ``mode``
+function nextMode(mode, p) {
+  if (mode === 'apex') return p.base === null && p.annulus.length < 3 ? 'base' : 'navigate';
+  if (mode === 'base') return p.apex === null ? 'apex' : 'navigate';
+  return mode;  // annulus points and landmarks: more may follow
+}
+
+// -- coordinates ----------------------------------------------------------------
+
+function toDisplay(mm) {
+  const s = SIGN[state.echo ? 'echo' : 'anatomical'];
+  return [mm[0] * s[0], mm[1] * s[1], mm[2] * s[2]];
+}
+const toLPS = toDisplay;
+
+function displayVertices(lps) {
+  const s = SIGN[state.echo ? 'echo' : 'anatomical'];
+  const out = new Float32Array(lps.length);
+  for (let i = 0; i < lps.length; i++) out[i] = lps[i] * s[i % 3];
+  return out;
 }
 
 // -- points -------------------------------------------------------------------
@@ -57,18 +111,24 @@ function complete(p) { return p.apex !== null && (p.base !== null || p.annulus.l
 async function changePoints(change, { record = true } = {}) {
   const before = copyPoints(state.points);
   change(state.points);
-  if (record) state.history.push(before);
-  await sendPoints(before);
+  if (record) { state.history.push(before); state.future = []; }
+  return sendPoints(before);
 }
 
-async function sendPoints(fallback) {
+function expectJob(clickTime) {
+  // the job's number comes with the reply, which may arrive after its surfaces
+  const timing = { job: null, click: clickTime, first: null, final: null, final3d: null };
+  state.timings.push(timing);
+  return timing;
+}
+
+async function sendPoints(fallback, { intermediate = false } = {}) {
   state.vertices.clear();
   state.tracking = null;
   showTracking();
-  // the job's number comes with the reply, which may arrive after its surfaces
-  const timing = { job: null, click: performance.now(), first: null, final: null };
-  state.timings.push(timing);
+  const timing = expectJob(performance.now());
   if (complete(state.points)) say('segmenting...', 'running');
+  else if (!intermediate) say('', 'ready');
   try {
     const { job } = await api('/api/points', { frame: state.frame, ...state.points });
     timing.job = job;
@@ -76,7 +136,10 @@ async function sendPoints(fallback) {
     document.body.dataset.sent = String(job);
     if (!complete(state.points)) hideSurface();
   } catch (error) {
-    if (fallback) state.points = fallback;
+    if (fallback) {
+      state.points = fallback;
+      state.history.pop();
+    }
     say(error.message, 'error');
   }
   listPoints();
@@ -85,31 +148,35 @@ async function sendPoints(fallback) {
 
 function place(mm, shift) {
   const mode = shift ? 'landmark' : state.mode;
-  if (mode === 'apex') {
-    changePoints((p) => { p.apex = mm; });
-    setMode(state.points.base === null ? 'base' : 'navigate');
-  } else if (mode === 'base') {
-    changePoints((p) => { p.base = mm; });
-    setMode('navigate');
-  } else if (mode === 'annulus') {
-    changePoints((p) => { p.annulus.push(mm); });
-    if (state.points.annulus.length < 3 && state.points.base === null) {
-      say(`${state.points.annulus.length} annulus point(s): 3 or more close the cavity at their plane`);
+  if (mode === 'landmark' && !complete(state.points)) { say('place the apex and the base first', 'error'); return; }
+  const key = { apex: 'apex', base: 'base' }[mode];
+  changePoints((p) => {
+    if (key) p[key] = mm;
+    else if (mode === 'annulus') p.annulus.push(mm);
+    else if (mode === 'landmark') p.landmarks.push(mm);
+  }).then(() => {
+    if (state.status === 'error') setMode(mode);  // refused: the same point is asked for again
+    const p = state.points;
+    if (mode === 'annulus' && p.annulus.length < 3 && p.base === null && state.status !== 'error') {
+      say(`${p.annulus.length} annulus point(s): 3 or more close the cavity at their plane`);
     }
-  } else if (mode === 'landmark') {
-    if (!complete(state.points)) { say('place the apex and the base first', 'error'); return; }
-    changePoints((p) => { p.landmarks.push(mm); });
-    state.selected = state.points.landmarks.length - 1;
-  }
+  });
+  if (mode === 'landmark') state.selected = state.points.landmarks.length - 1;
+  if (!shift) setMode(nextMode(mode, state.points));
 }
 
-function undo() {
-  const previous = state.history.pop();
-  if (!previous) { say('nothing to undo'); return; }
-  state.points = previous;
+// undo: back one step of the history (the current points to the future); redo: the reverse
+function step(from, to, word) {
+  const points = from.pop();
+  if (!points) { say(`nothing to ${word}`, state.status === 'error' ? 'ready' : undefined); return; }
+  to.push(copyPoints(state.points));
+  state.points = points;
   state.selected = -1;
   sendPoints(null);
 }
+
+const undo = () => step(state.history, state.future, 'undo');
+const redo = () => step(state.future, state.history, 'redo');
 
 function deleteSelected() {
   const k = state.selected;
@@ -118,19 +185,43 @@ function deleteSelected() {
   changePoints((p) => { p.landmarks.splice(k, 1); });
 }
 
-function setMode(mode) {
-  state.mode = mode;
-  for (const b of document.querySelectorAll('#modes button')) b.classList.toggle('active', b.dataset.mode === mode);
-  const hints = { apex: 'click the apex', base: 'click the base (centre of the mitral plane)',
-                  annulus: 'click points of the mitral annulus (3 or more)',
-                  landmark: 'click a point the wall must pass through', navigate: '' };
-  if (hints[mode]) say(hints[mode]);
+function clearPoints() {
+  changePoints((p) => { p.apex = null; p.base = null; p.landmarks = []; p.annulus = []; });
+  setMode('apex');
+}
+
+async function find() {
+  const timing = expectJob(performance.now());
+  say('finding the ventricle...', 'running');
+  try {
+    const found = await api('/api/find', { frame: state.frame });
+    state.history.push(copyPoints(state.points));
+    state.future = [];
+    state.points = { apex: found.apex, base: found.base, landmarks: [], annulus: [] };
+    state.vertices.clear();  // other frames' surfaces and the tracking were for the old points
+    state.tracking = null;
+    showTracking();
+    timing.job = found.job;
+    state.job = Math.max(state.job, found.job);
+    document.body.dataset.sent = String(found.job);
+    $('found').textContent = `found: confidence ${(100 * found.confidence).toFixed(0)} %` +
+      (found.reason ? ` (${found.reason})` : '') + '; drag apex or base to correct them';
+    const mid = [0, 1, 2].map((i) => 0.5 * (found.apex[i] + found.base[i]));
+    nv.scene.crosshairPos = nv.mm2frac(toDisplay(mid));
+    setMode('navigate');
+    if (state.status === 'running') say('segmenting...', 'running');
+  } catch (error) {
+    $('found').textContent = '';
+    say(`could not find the ventricle: ${error.message}`, 'error');
+  }
+  listPoints();
+  drawSlices();
 }
 
 function listPoints() {
   const f = (p) => (p ? p.map((v) => v.toFixed(1)).join(', ') : '-');
   const p = state.points;
-  $('pointlist').textContent = `apex (${f(p.apex)}) base (${f(p.base)}) landmarks ${p.landmarks.length}` +
+  $('pointlist').textContent = `LPS mm: apex (${f(p.apex)}) base (${f(p.base)}) landmarks ${p.landmarks.length}` +
     (p.annulus.length ? ` annulus ${p.annulus.length}` : '');
 }
 
@@ -150,6 +241,7 @@ function toScreen(tile, a, b) {
 }
 
 function crosshairMM() { return Array.from(nv.frac2mm(nv.scene.crosshairPos)).slice(0, 3); }
+function crosshairLPS() { return toLPS(crosshairMM()); }
 
 function canvasXY(event) {
   const canvas = $('gl');
@@ -157,11 +249,15 @@ function canvasXY(event) {
   return [(event.clientX - r.left) * (canvas.width / r.width), (event.clientY - r.top) * (canvas.height / r.height)];
 }
 
-function tileAt(x, y) {
-  return sliceTiles().find((t) => {
-    const [l, tp, w, h] = t.leftTopWidthHeight;
-    return x >= l && x <= l + w && y >= tp && y <= tp + h;
-  });
+function inside(t, x, y) {
+  const [l, tp, w, h] = t.leftTopWidthHeight;
+  return x >= l && x <= l + w && y >= tp && y <= tp + h;
+}
+
+function tileAt(x, y) { return sliceTiles().find((t) => inside(t, x, y)); }
+
+function renderTileAt(x, y) {
+  return nv.screenSlices.find((t) => t.axCorSag > 2 && t.leftTopWidthHeight && inside(t, x, y));
 }
 
 function mmAt(tile, x, y, fixed) {
@@ -173,6 +269,8 @@ function mmAt(tile, x, y, fixed) {
   return mm;
 }
 
+function inImage(mm) { return Array.from(nv.mm2frac(mm)).slice(0, 3).every((f) => f >= 0 && f <= 1); }
+
 function allPoints() {
   const p = state.points;
   const list = [];
@@ -180,7 +278,7 @@ function allPoints() {
   if (p.base) list.push({ kind: 'base', mm: p.base });
   p.landmarks.forEach((mm, k) => list.push({ kind: 'landmark', index: k, mm }));
   p.annulus.forEach((mm, k) => list.push({ kind: 'annulus', index: k, mm }));
-  return list;
+  return list.map((point) => ({ ...point, shown: toDisplay(point.mm) }));
 }
 
 function grab(tile, x, y) {
@@ -188,8 +286,8 @@ function grab(tile, x, y) {
   const level = crosshairMM()[plane.w];
   let best = null;
   for (const point of allPoints()) {
-    if (Math.abs(point.mm[plane.w] - level) > NEAR_MM) continue;
-    const [sx, sy] = toScreen(tile, point.mm[plane.u], point.mm[plane.v]);
+    if (Math.abs(point.shown[plane.w] - level) > NEAR_MM) continue;
+    const [sx, sy] = toScreen(tile, point.shown[plane.u], point.shown[plane.v]);
     const d = Math.hypot(sx - x, sy - y);
     if (d <= GRAB_PX && (!best || d < best.d)) best = { ...point, d };
   }
@@ -204,26 +302,32 @@ function onPress(event) {
   if (event.button !== 0 || !nv || !nv.volumes.length) return;
   const [x, y] = canvasXY(event);
   const tile = tileAt(x, y);
-  if (!tile) return;
+  const placing = state.mode !== 'navigate' || event.shiftKey;
+  if (!tile) {
+    if (placing && renderTileAt(x, y)) {
+      say(`the 3D view only turns: ${HINTS[state.mode] || 'click'} on a slice`, 'error');
+    }
+    else if (placing) say('outside the image: click on a slice', 'error');
+    return;
+  }
   const hit = grab(tile, x, y);
   if (hit) {  // a point: select it and drag it (no mouse events follow a prevented pointerdown)
     event.stopPropagation();
     event.preventDefault();
     state.selected = hit.kind === 'landmark' ? hit.index : -1;
-    state.drag = { ...hit, tile, fixed: hit.mm, before: copyPoints(state.points), moved: false };
+    state.drag = { ...hit, tile, fixed: hit.shown, before: copyPoints(state.points), moved: false };
     drawOverlay();
     return;
   }
-  if (state.mode !== 'navigate' || event.shiftKey) {
-    // the slices move to the point as NiiVue's cursor would, but NiiVue does
-    // not draw a frame for the click: the surface's frame shows both (without
-    // a graphics card a frame takes hundreds of ms, and the page waits for it)
+  if (placing) {
     event.stopPropagation();
     event.preventDefault();
     const mm = mmAt(tile, x, y, crosshairMM());
-    nv.scene.crosshairPos = nv.mm2frac(mm);
-    place(mm, event.shiftKey);
-    if (!complete(state.points)) nv.drawScene();
+    if (!inImage(mm)) { say('outside the image: click inside the volume', 'error'); return; }
+    // the slices stay (as 3D Slicer's markups placement): the contour is then
+    // drawn over them as soon as it comes, with no slice drawing before it
+    place(toLPS(mm), event.shiftKey);
+    drawOverlay();
   }
 }
 
@@ -232,13 +336,22 @@ function onMove(event) {
   if (!drag) return;
   event.stopPropagation();
   const [x, y] = canvasXY(event);
-  const mm = mmAt(drag.tile, x, y, drag.fixed);
+  const shown = mmAt(drag.tile, x, y, drag.fixed);
+  if (!inImage(shown)) return;
+  const mm = toLPS(shown);
   const p = state.points;
   if (drag.kind === 'apex') p.apex = mm;
   else if (drag.kind === 'base') p.base = mm;
   else p[drag.kind === 'landmark' ? 'landmarks' : 'annulus'][drag.index] = mm;
   drag.moved = true;
+  nv.scene.crosshairPos = nv.mm2frac(shown);  // the other slices follow the point
+  const now = performance.now();
+  if (complete(p) && now - state.dragSent >= DRAG_SEND_MS) {  // the surface follows, throttled
+    state.dragSent = now;
+    sendPoints(null, { intermediate: true });
+  }
   drawOverlay();
+  requestSlices();
 }
 
 function onRelease(event) {
@@ -248,16 +361,65 @@ function onRelease(event) {
   state.drag = null;
   if (drag.moved) {
     state.history.push(drag.before);
+    state.future = [];
     sendPoints(drag.before);
   }
 }
 
+// -- drawing: the slices first, the 3D view when the slices are still ----------
+// A new surface changes only the overlay's contour (a 2D canvas, drawn at
+// once) and the 3D view's mesh; the slices' pictures change only when they
+// move. Without a graphics card a frame with the 3D view takes seconds on a
+// large echo, so the 3D view waits until nothing is running or dragged.
+
+function drawSlices() {
+  if (!nv) return;
+  if (!$('render3d').checked) { nv.drawScene(); return; }
+  nv.opts.multiplanarShowRender = niivue.SHOW_RENDER.NEVER;
+  try { nv.drawScene(); } finally { nv.opts.multiplanarShowRender = niivue.SHOW_RENDER.ALWAYS; }
+  schedule3D();
+}
+
+function requestSlices() {  // at most one slice drawing per animation frame
+  if (state.slicesQueued) return;
+  state.slicesQueued = true;
+  requestAnimationFrame(() => { state.slicesQueued = false; drawSlices(); });
+}
+
+function schedule3D() {
+  clearTimeout(state.later3D);
+  if ($('render3d').checked) state.later3D = setTimeout(draw3D, IDLE_3D_MS);
+}
+
+function draw3D() {
+  state.later3D = null;
+  if (state.drag || state.pending || state.slicesQueued || state.status === 'running') { schedule3D(); return; }
+  const mesh = nv.meshes[0];
+  mesh.visible = state.shown !== null;
+  if (state.shown && mesh.pts !== state.shown) {
+    mesh.pts = state.shown;
+    mesh.updateMesh(nv.gl);
+  }
+  nv.drawScene();
+  const gl = nv.gl;
+  gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));  // waits for the frame to be drawn
+  const timing = state.timings.find((t) => t.job === state.job);
+  if (timing && timing.final !== null && timing.final3d === null) timing.final3d = performance.now();
+  document.body.dataset.drawn3d = String(state.job);
+}
+
 // -- surfaces ------------------------------------------------------------------
+
+// a surface's timing record; before the request's reply has come, the newest
+// request's (the server runs the newest job only)
+function timingOf(job) {
+  return state.timings.find((t) => t.job === job) || state.timings.findLast((t) => t.job === null);
+}
 
 function receive(data) {
   if (data.job !== null && data.job < state.job) return;  // an older request's
   if (data.job !== null) state.job = data.job;
-  const timing = state.timings.find((t) => t.job === data.job) || state.timings.find((t) => t.job === null);
+  const timing = timingOf(data.job);
   if (timing) {  // when the page had it, before drawing (which software rendering makes the slow part)
     const now = performance.now();
     if (timing.firstReceived === undefined) timing.firstReceived = now;
@@ -267,7 +429,11 @@ function receive(data) {
   if (data.final) state.vertices.set(data.frame, { vertices, data });
   if (data.frame !== state.frame) return;
   state.pending = { vertices, data };
-  requestAnimationFrame(showPending);
+  if (data.final) showPending();  // at once: the one that matters
+  else if (!state.pendingQueued) {  // intermediates: at most one per INTERMEDIATE_MS
+    state.pendingQueued = true;
+    setTimeout(() => { state.pendingQueued = false; requestAnimationFrame(showPending); }, INTERMEDIATE_MS);
+  }
 }
 
 function showPending() {
@@ -277,17 +443,16 @@ function showPending() {
   showSurface(pending.vertices, pending.data);
 }
 
-function showSurface(vertices, data) {
-  const mesh = nv.meshes[0];
-  mesh.pts = vertices;
-  mesh.visible = true;
-  mesh.updateMesh(nv.gl);
-  state.shown = vertices;
-  nv.drawScene();
+function showSurface(lps, data) {
+  state.shownLPS = lps;
+  state.shown = displayVertices(lps);
   drawOverlay();
-  const gl = nv.gl;
-  gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));  // waits for the frame to be drawn
-  const timing = state.timings.find((t) => t.job === data.job) || state.timings.find((t) => t.job === null);
+  schedule3D();
+  if (data.final) {  // the slices under it are drawn (a wait for the GPU: not for every intermediate)
+    const gl = nv.gl;
+    gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));
+  }
+  const timing = timingOf(data.job);
   if (timing) {
     const now = performance.now();
     if (timing.first === null) timing.first = now;
@@ -296,24 +461,36 @@ function showSurface(vertices, data) {
   $('volume').textContent = `${data.volume_ml.toFixed(1)} mL`;
   if (data.final) {
     $('detail').textContent = data.iterations !== undefined
-      ? `frame ${data.frame + 1}: ${data.iterations} iterations, ${(1000 * data.seconds).toFixed(0)} ms (${data.message})` : '';
-    $('warnings').textContent = (data.warnings || []).join('; ');
+      ? `frame ${data.frame}: ${data.iterations} iterations, ${(1000 * data.seconds).toFixed(0)} ms ` +
+        `(${data.message})` : '';
+    showQuality(data);
     document.body.dataset.job = String(data.job);
-    if (data.job === state.job && !state.trackingRun) say('done', 'done');
+    if (data.job === state.job && !state.trackingRun && !state.drag) {
+      say(data.poor ? 'done: poor result' : 'done', 'done');
+    }
   } else {
     $('detail').textContent = `iteration ${data.iteration}, level ${data.level}`;
   }
 }
 
+function showQuality(data) {
+  const banner = $('banner');
+  const warnings = data.warnings || [];
+  banner.hidden = !data.poor && !warnings.length;
+  banner.classList.toggle('poor', Boolean(data.poor));
+  banner.textContent = (data.poor ? 'Poor result, check before use: ' : 'Warning: ') + warnings.join('; ');
+  document.body.dataset.poor = data.poor ? '1' : '0';
+}
+
 function hideSurface() {
-  const mesh = nv.meshes[0];
-  mesh.visible = false;
   state.shown = null;
-  nv.drawScene();
+  state.shownLPS = null;
   drawOverlay();
+  schedule3D();
   $('volume').textContent = '-';
   $('detail').textContent = '';
-  $('warnings').textContent = '';
+  $('banner').hidden = true;
+  document.body.dataset.poor = '0';
 }
 
 // -- the overlay: contours and points on the slices -----------------------------
@@ -329,6 +506,7 @@ function drawOverlay() {
   ctx.clearRect(0, 0, overlay.width, overlay.height);
   if (!nv || !nv.volumes.length) return;
   const cross = crosshairMM();
+  const points = allPoints();
   for (const tile of sliceTiles()) {
     const plane = PLANE[tile.axCorSag];
     const level = cross[plane.w];
@@ -338,9 +516,23 @@ function drawOverlay() {
     ctx.rect(l, t, w, h);
     ctx.clip();
     if (state.shown) drawContour(ctx, tile, plane, level);
-    for (const point of allPoints()) drawPoint(ctx, tile, plane, level, point);
+    for (const point of points) drawPoint(ctx, tile, plane, level, point);
+    drawDirections(ctx, tile, plane);
     ctx.restore();
   }
+}
+
+// the LPS direction each screen edge points to, so a flipped view stays legible
+function drawDirections(ctx, tile, plane) {
+  const names = [['R', 'L'], ['A', 'P'], ['I', 'S']];  // LPS axis: negative, positive end
+  const s = SIGN[state.echo ? 'echo' : 'anatomical'];
+  const [l, t, w, h] = tile.leftTopWidthHeight;
+  const label = (axis, positive) => names[axis][(positive === (s[axis] > 0)) ? 1 : 0];
+  ctx.fillStyle = '#8ab';
+  ctx.font = '12px system-ui, sans-serif';
+  ctx.fillText(label(plane.v, true), l + w / 2 + 6, t + 14);
+  ctx.fillText(label(plane.u, false), l + 4, t + h / 2);
+  ctx.fillText(label(plane.u, true), l + w - 12, t + h / 2);
 }
 
 function drawContour(ctx, tile, plane, level) {
@@ -374,8 +566,8 @@ function drawContour(ctx, tile, plane, level) {
 }
 
 function drawPoint(ctx, tile, plane, level, point) {
-  const off = Math.abs(point.mm[plane.w] - level);
-  const [x, y] = toScreen(tile, point.mm[plane.u], point.mm[plane.v]);
+  const off = Math.abs(point.shown[plane.w] - level);
+  const [x, y] = toScreen(tile, point.shown[plane.u], point.shown[plane.v]);
   const selected = point.kind === 'landmark' && point.index === state.selected;
   ctx.globalAlpha = off <= NEAR_MM ? 1 : 0.35;
   ctx.fillStyle = COLORS[point.kind];
@@ -388,12 +580,40 @@ function drawPoint(ctx, tile, plane, level, point) {
   ctx.globalAlpha = 1;
 }
 
+// -- view: orientation, zoom, colour map -----------------------------------------
+
+function setOrientation(echo) {
+  const keep = crosshairLPS();
+  state.echo = echo;
+  const a = state.affine;
+  // echo: 180 degrees about the left-right axis (a rotation: the 3D view is not mirrored)
+  nv.volumes[0].setAffine(echo ? a.map((row, i) => (i === 1 || i === 2 ? row.map((x) => -x) : row)) : a);
+  nv.updateGLVolume();
+  nv.scene.crosshairPos = nv.mm2frac(toDisplay(keep));
+  $('flip').textContent = echo ? 'Anatomical view' : 'Echo view';
+  document.body.dataset.orientation = echo ? 'echo' : 'anatomical';
+  if (state.shownLPS) state.shown = displayVertices(state.shownLPS);
+  drawSlices();
+}
+
+function zoom(factor) {
+  const pan = Array.from(nv.scene.pan2Dxyzmm);
+  pan[3] = factor === null ? 1 : Math.min(8, Math.max(0.5, pan[3] * factor));
+  nv.scene.pan2Dxyzmm = pan;
+  drawSlices();
+}
+
+function setColormap(name) {
+  nv.setColormap(nv.volumes[0].id, name);
+  $('colormap').value = name;
+}
+
 // -- sequences ----------------------------------------------------------------
 
 function setFrame(frame) {
   state.frame = frame;
   $('frame').value = String(frame);
-  $('framelabel').textContent = `${frame + 1}/${state.frames}`;
+  $('framelabel').textContent = `frame ${frame} (0-${state.frames - 1})`;
   nv.setFrame4D(nv.volumes[0].id, frame);
   const cached = state.vertices.get(frame);
   if (cached) showSurface(cached.vertices, cached.data);
@@ -402,11 +622,15 @@ function setFrame(frame) {
   drawCurve();
 }
 
+function stepFrame(delta) {
+  if (state.frames > 1) setFrame((state.frame + delta + state.frames) % state.frames);
+}
+
 function showTracking() {
   const t = state.tracking;
   $('indices').textContent = t
-    ? `EDV ${t.edv_ml.toFixed(1)} mL (frame ${t.ed_frame + 1}), ESV ${t.esv_ml.toFixed(1)} mL ` +
-      `(frame ${t.es_frame + 1}), EF ${t.ef_percent.toFixed(1)} %`
+    ? `EDV ${t.edv_ml.toFixed(1)} mL (frame ${t.ed_frame}), ESV ${t.esv_ml.toFixed(1)} mL ` +
+      `(frame ${t.es_frame}), EF ${t.ef_percent.toFixed(1)} %`
     : 'EDV - ESV - EF -';
   drawCurve();
 }
@@ -420,8 +644,8 @@ function drawCurve() {
   const v = t.volumes_ml;
   const lo = Math.min(...v) * 0.95;
   const hi = Math.max(...v) * 1.05;
-  const x = (k) => 24 + (k / Math.max(1, v.length - 1)) * (canvas.width - 34);
-  const y = (ml) => canvas.height - 14 - ((ml - lo) / (hi - lo)) * (canvas.height - 24);
+  const x = (k) => 30 + (k / Math.max(1, v.length - 1)) * (canvas.width - 50);
+  const y = (ml) => canvas.height - 14 - ((ml - lo) / (hi - lo)) * (canvas.height - 28);
   ctx.strokeStyle = '#556';
   ctx.beginPath();
   ctx.moveTo(x(state.frame), 4);
@@ -437,11 +661,13 @@ function drawCurve() {
     ctx.beginPath();
     ctx.arc(x(k), y(v[k]), 4, 0, 2 * Math.PI);
     ctx.fill();
-    ctx.fillText(label, Math.min(x(k) + 7, canvas.width - 16), y(v[k]) + (k === t.ed_frame ? 10 : -4));
+    // ED (the largest volume) is labelled above its point, ES below: never on the curve
+    ctx.fillText(label, Math.min(x(k) - 6, canvas.width - 16), k === t.ed_frame ? y(v[k]) - 7 : y(v[k]) + 14);
   }
   ctx.fillStyle = '#99a';
   ctx.fillText(`${hi.toFixed(0)} mL`, 0, 10);
   ctx.fillText(`${lo.toFixed(0)}`, 0, canvas.height - 14);
+  ctx.fillText('frame', canvas.width - 30, canvas.height - 2);
 }
 
 async function track() {
@@ -464,7 +690,7 @@ function play() {
     return;
   }
   $('play').textContent = 'Pause';
-  state.playing = setInterval(() => setFrame((state.frame + 1) % state.frames), 250);
+  state.playing = setInterval(() => stepFrame(1), 250);
 }
 
 async function save() {
@@ -481,10 +707,44 @@ async function save() {
   }
 }
 
+// -- keys: the same whatever has the focus (except a text field) -----------------
+
+function onKey(e) {
+  const t = e.target;
+  if (t && t.tagName === 'INPUT' && t.type === 'text') return;
+  const ctrl = e.ctrlKey || e.metaKey;
+  const key = e.key.length === 1 ? e.key.toLowerCase() : e.key;
+  let done = true;
+  if (ctrl && key === 'z' && !e.shiftKey) undo();
+  else if (ctrl && (key === 'y' || (key === 'z' && e.shiftKey))) redo();
+  else if (ctrl) done = false;
+  else if (e.key === '?') $('help').hidden = !$('help').hidden;
+  else if (key === 'Escape') { if (!$('help').hidden) $('help').hidden = true; else setMode('navigate'); }
+  else if ({ a: 1, b: 1, m: 1, l: 1 }[key]) setMode({ a: 'apex', b: 'base', m: 'annulus', l: 'landmark' }[key]);
+  else if (key === 'n') setMode('navigate');
+  else if (key === 'Delete' || key === 'Backspace') deleteSelected();
+  else if (key === 'ArrowRight' || key === 'ArrowUp') stepFrame(1);
+  else if (key === 'ArrowLeft' || key === 'ArrowDown') stepFrame(-1);
+  else if (key === 'f') setOrientation(!state.echo);
+  else if (key === '+' || key === '=') zoom(1.25);
+  else if (key === '-') zoom(0.8);
+  else if (key === '0') zoom(null);
+  else done = false;
+  if (done) { e.preventDefault(); e.stopPropagation(); }
+}
+
 // -- start --------------------------------------------------------------------
+
+async function refresh() {
+  // the surface of the current points, if the server has it (after a reload,
+  // or when the job ended before this page's event stream opened)
+  if (!complete(state.points)) return;
+  try { receive(await api(`/api/surface?frame=${state.frame}`)); } catch (error) { /* still running */ }
+}
 
 function listen() {
   const events = new EventSource('/api/events');
+  events.onopen = refresh;
   events.addEventListener('surface', (e) => receive(JSON.parse(e.data)));
   events.addEventListener('cleared', () => hideSurface());
   events.addEventListener('progress', (e) => {
@@ -501,7 +761,7 @@ function listen() {
   });
   events.addEventListener('failure', (e) => {
     const d = JSON.parse(e.data);
-    if (d.job >= state.job) say(d.message, 'error');
+    if (d.job >= state.job) { state.trackingRun = null; say(d.message, 'error'); }
   });
 }
 
@@ -510,13 +770,16 @@ async function start() {
   state.study = study;
   state.frames = study.frames;
   state.faces = decode(study.faces, Uint32Array);
+  state.job = study.job;
   $('source').textContent = study.source;
   $('folder').value = `${study.source.replace(/(\.seq\.nrrd|\.nii\.gz|\.[^.]*)$/, '')}-spheroseg`;
+  $('find').disabled = !study.locate;
   nv = new niivue.Niivue({
     backColor: [0.06, 0.07, 0.09, 1], crosshairColor: [0.25, 0.55, 1, 0.6], meshThicknessOn2D: 0, meshXRay: 0.35,
     dragAndDropEnabled: false, isSliceMM: true, multiplanarShowRender: niivue.SHOW_RENDER.ALWAYS,
     multiplanarLayout: niivue.MULTIPLANAR_TYPE.GRID, loadingText: 'loading the study...', logLevel: 'warn',
-    isOrientationTextVisible: true,
+    isOrientationTextVisible: false,  // NiiVue's labels would name the display frame: drawDirections names LPS
+    clipPlaneColor: [0.7, 0, 0.7, 0],
   });
   await nv.attachToCanvas($('gl'));
   // the mesh exists before the volume: adding one later rebuilds the volume's textures
@@ -526,50 +789,61 @@ async function start() {
                                  new Uint8Array([255, 210, 60, 255]), 1.0, false, nv.gl);
   nv.addMesh(mesh);
   await nv.loadVolumes([{ url: '/api/volume.nii', name: 'study.nii', colormap: 'gray' }]);
+  state.affine = nv.volumes[0].getAffine();
+  // the 3D view cut through the middle, facing the viewer: the wall and the
+  // cavity around the surface rather than the speckle of the volume's faces
+  nv.setClipPlane([0, 270, 0]);
+  setOrientation(true);
   const draw = nv.drawScene.bind(nv);
   nv.drawScene = () => { const out = draw(); drawOverlay(); return out; };
   if (state.frames > 1) {
     $('sequence').hidden = false;
     $('frame').max = String(state.frames - 1);
-    $('framelabel').textContent = `1/${state.frames}`;
+    $('framelabel').textContent = `frame 0 (0-${state.frames - 1})`;
+  }
+  for (const name of ['gray', 'hot', 'copper', 'bone', 'inferno', 'viridis']) {
+    if (nv.colormaps().includes(name)) $('colormap').add(new Option(name, name));
   }
   for (const b of document.querySelectorAll('#modes button')) b.onclick = () => setMode(b.dataset.mode);
   $('undo').onclick = undo;
+  $('redo').onclick = redo;
   $('delete').onclick = deleteSelected;
-  $('clear').onclick = () => { changePoints((p) => { p.apex = null; p.base = null; p.landmarks = []; p.annulus = []; }); setMode('apex'); };
+  $('clear').onclick = clearPoints;
+  $('find').onclick = find;
+  $('flip').onclick = () => setOrientation(!state.echo);
+  $('zoomin').onclick = () => zoom(1.25);
+  $('zoomout').onclick = () => zoom(0.8);
+  $('colormap').onchange = () => setColormap($('colormap').value);
+  $('helpbutton').onclick = () => { $('help').hidden = !$('help').hidden; };
+  $('help').onclick = () => { $('help').hidden = true; };
   $('frame').oninput = () => setFrame(Number($('frame').value));
   $('play').onclick = play;
   $('track').onclick = track;
   $('save').onclick = save;
   $('render3d').onchange = () => {
     nv.opts.multiplanarShowRender = $('render3d').checked ? niivue.SHOW_RENDER.ALWAYS : niivue.SHOW_RENDER.NEVER;
-    nv.drawScene();
+    if ($('render3d').checked) draw3D();
+    else nv.drawScene();
   };
   const views = $('views');
   for (const kind of ['pointerdown', 'mousedown']) views.addEventListener(kind, onPress, true);
   window.addEventListener('pointermove', onMove, true);
   window.addEventListener('pointerup', onRelease, true);
-  document.addEventListener('keydown', (e) => {
-    if (e.target.tagName === 'INPUT') return;
-    if ((e.ctrlKey || e.metaKey) && e.key === 'z') { e.preventDefault(); undo(); return; }
-    const keys = { a: 'apex', b: 'base', m: 'annulus', l: 'landmark', Escape: 'navigate' };
-    if (keys[e.key]) setMode(keys[e.key]);
-    if (e.key === 'Delete' || e.key === 'Backspace') deleteSelected();
-  });
-  listen();
+  window.addEventListener('keydown', onKey, true);
   const p = study.points;
   state.points = { apex: p.apex, base: p.base, landmarks: p.landmarks, annulus: p.annulus };
   listPoints();
+  if (study.tracking) { state.tracking = study.tracking; showTracking(); }
   if (complete(state.points)) {
     setMode('navigate');
     say('segmenting the given points...', 'running');
-    try { const data = await api('/api/surface?frame=0'); receive(data); } catch (error) { /* still running */ }
   } else {
     setMode(state.points.apex ? 'base' : 'apex');
-    document.body.dataset.state = 'ready';
+    say('', 'ready');
   }
+  listen();
   drawOverlay();
 }
 
-window.viewer = { state, get nv() { return nv; }, crosshairMM, sliceTiles, toScreen };
+window.viewer = { state, get nv() { return nv; }, crosshairMM, crosshairLPS, sliceTiles, toScreen, toDisplay };
 start().catch((error) => say(`could not start: ${error.message}`, 'error'));
