@@ -142,6 +142,45 @@ def test_markups(tmp_path):
         read_markups(tmp_path / "bad.mrk.json")
 
 
+def _write_markups_doc(path, points, **markup):
+    path.write_text(json.dumps({"markups": [{"type": "Fiducial", **markup, "controlPoints": points}]}))
+    return path
+
+
+def test_markups_undefined_point_refused_unless_unused(tmp_path):
+    apex = {"label": "apex", "position": [1.0, 2.0, 3.0]}
+    base = {"label": "base", "position": [0.0, 0.0, 0.0], "positionStatus": "undefined"}
+    with pytest.raises(ValueError, match="'base' has positionStatus 'undefined'"):
+        read_markups(_write_markups_doc(tmp_path / "u.mrk.json", [apex, base]))
+    # a point spheroseg does not use may be unplaced
+    note = {"label": "note", "position": [0.0, 0.0, 0.0], "positionStatus": "undefined"}
+    marks = read_markups(_write_markups_doc(tmp_path / "n.mrk.json", [apex, note]))
+    np.testing.assert_array_equal(marks["apex"], [1.0, 2.0, 3.0])
+
+
+def test_markups_duplicate_apex_refused(tmp_path):
+    points = [{"label": "apex", "position": [1.0, 2.0, 3.0]}, {"label": "Apex", "position": [4.0, 5.0, 6.0]}]
+    with pytest.raises(ValueError, match="two control points labelled 'apex'"):
+        read_markups(_write_markups_doc(tmp_path / "d.mrk.json", points))
+
+
+@pytest.mark.parametrize("units, mm_per_unit", [("um", 1e-3), ("mm", 1.0), ("cm", 10.0), ("m", 1000.0),
+                                                (["cm", "cm", "cm"], 10.0)])
+def test_markups_units_converted_to_mm(tmp_path, units, mm_per_unit):
+    points = [{"label": "apex", "position": [1.0, 2.0, 3.0]}, {"label": "landmark-1", "position": [4.0, 5.0, 6.0]}]
+    marks = read_markups(_write_markups_doc(tmp_path / "p.mrk.json", points, coordinateSystem="RAS",
+                                            coordinateUnits=units))
+    np.testing.assert_allclose(marks["apex"], np.array([-1.0, -2.0, 3.0]) * mm_per_unit, rtol=1e-15)
+    np.testing.assert_allclose(marks["landmarks"], [np.array([-4.0, -5.0, 6.0]) * mm_per_unit], rtol=1e-15)
+
+
+@pytest.mark.parametrize("units", ["inch", ["mm", "cm", "mm"], 3])
+def test_markups_unknown_units_refused(tmp_path, units):
+    points = [{"label": "apex", "position": [1.0, 2.0, 3.0]}]
+    with pytest.raises(ValueError, match="coordinateUnits must be one of"):
+        read_markups(_write_markups_doc(tmp_path / "p.mrk.json", points, coordinateUnits=units))
+
+
 def test_markups_annulus_round_trip(tmp_path, rng):
     # Slicer labels as a user would type them; RAS converted to LPS
     doc = {"markups": [{"type": "Fiducial", "coordinateSystem": "RAS", "controlPoints": [

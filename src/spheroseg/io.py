@@ -458,19 +458,42 @@ def save_volume(path: str | os.PathLike, volume, *, dtype=np.float32) -> None:
     write_atomically(path, lambda tmp: sitk.WriteImage(image, str(tmp), True))
 
 
+#: millimetres per unit of a markups file's ``coordinateUnits``
+MARKUPS_UNITS = {"mm": 1.0, "um": 1e-3, "\u00b5m": 1e-3, "\u03bcm": 1e-3, "cm": 10.0, "m": 1000.0}
+
+
+def _markups_scale(markup, path) -> float:
+    """Millimetres per unit of one markup's ``coordinateUnits`` (mm when absent)."""
+    units = markup.get("coordinateUnits", "mm")
+    names = {str(u).strip().lower() for u in (units if isinstance(units, list) else [units])}
+    if len(names) != 1 or next(iter(names)) not in MARKUPS_UNITS:
+        raise ImageFileError(f"{path}: coordinateUnits must be one of {', '.join(MARKUPS_UNITS)}, got {units!r}")
+    return MARKUPS_UNITS[names.pop()]
+
+
 def read_markups(path: str | os.PathLike) -> dict:
     """Points from a 3D Slicer markups file (``.mrk.json``), in LPS mm.
 
     Control points labelled ``apex`` and ``base`` (any case) give those;
     every label starting with ``annulus`` is a point of the mitral annulus
     (three or more define the mitral plane), every label starting with
-    ``landmark`` a landmark.  RAS files are converted to LPS.
+    ``landmark`` a landmark.  RAS files are converted to LPS, and
+    ``coordinateUnits`` (``um``, ``mm``, ``cm``, ``m``; mm when absent) to
+    millimetres.
 
     Returns
     -------
     dict
         ``{"apex": array or None, "base": array or None, "annulus": array (k, 3),
         "landmarks": array (k, 3)}``
+
+    Raises
+    ------
+    ValueError
+        For a file that is not markups, unknown units, ``apex`` or ``base``
+        labelled twice, or a point spheroseg uses whose ``positionStatus``
+        is ``"undefined"`` (listed in Slicer but never placed: its position
+        is meaningless).
     """
     import json
 
@@ -482,17 +505,28 @@ def read_markups(path: str | os.PathLike) -> dict:
         out = {"apex": None, "base": None, "annulus": [], "landmarks": []}
         for markup in doc["markups"]:
             ras = str(markup.get("coordinateSystem", "LPS")).upper() == "RAS"
+            scale = _markups_scale(markup, path)
             for point in markup.get("controlPoints", []):
-                position = np.asarray(point["position"], dtype=float).reshape(3)
+                label = str(point.get("label", "")).strip().lower()
+                used = label in ("apex", "base") or label.startswith(("annulus", "landmark"))
+                if not used:
+                    continue
+                if str(point.get("positionStatus", "defined")).strip().lower() == "undefined":
+                    raise ImageFileError(f"{path}: control point {label!r} has positionStatus 'undefined' (never "
+                                         "placed); place it in Slicer or delete it")
+                position = scale * np.asarray(point["position"], dtype=float).reshape(3)
                 if ras:
                     position = position * [-1.0, -1.0, 1.0]
-                label = str(point.get("label", "")).strip().lower()
                 if label in ("apex", "base"):
+                    if out[label] is not None:
+                        raise ImageFileError(f"{path}: two control points labelled {label!r}; keep one")
                     out[label] = position
                 elif label.startswith("annulus"):
                     out["annulus"].append(position)
-                elif label.startswith("landmark"):
+                else:
                     out["landmarks"].append(position)
+    except ImageFileError:
+        raise
     except OSError as exc:
         raise ValueError(f"{path}: cannot read markups ({exc.strerror})") from None
     except (ValueError, KeyError, TypeError, AttributeError) as exc:
