@@ -147,6 +147,9 @@ def test_manifests_json_and_csv_agree(cohort, tmp_path):
     ('{"id": "a"}', "list of studies"),
     ("[]", "no studies"),
     ("[{", "not JSON"),
+    ('[{"id": "summary.json", "image": "x.mha", "apex": [0, 0, 0], "base": [0, 0, 9]}]', "cohort's summary"),
+    ('[{"id": "Summary.CSV", "image": "x.mha", "apex": [0, 0, 0], "base": [0, 0, 9]}]', "cohort's summary"),
+    ('[{"id": "summary-2-of-4.json", "image": "x.mha", "apex": [0, 0, 0], "base": [0, 0, 9]}]', "cohort's summary"),
 ])
 def test_bad_manifest_is_one_error_before_anything_runs(tmp_path, content, pattern):
     (tmp_path / "m.json").write_text(content)

@@ -59,6 +59,8 @@ HARD_TIMEOUT_GRACE = 10.0
 TEST_HOOK_VARIABLE = "SPHEROSEG_BATCH_TEST_HOOK"
 
 _SAFE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
+#: names the cohort folder keeps for itself (write_summary's files), any case
+_RESERVED_ID = re.compile(r"summary(-\d+-of-\d+)?\.(json|csv)", re.IGNORECASE)
 
 
 class ManifestError(ValueError):
@@ -180,6 +182,8 @@ def _study(entry, folder: Path) -> Study:
     ident = str(entry.get("id") or "").strip()
     if not _SAFE_ID.fullmatch(ident):
         raise ValueError(f"id must be a safe folder name (letters, digits, . _ -; not starting with . _ -), got {ident!r}")
+    if _RESERVED_ID.fullmatch(ident):
+        raise ValueError(f"id {ident!r} is the name of the cohort's summary; choose another")
     image = str(entry.get("image") or "").strip()
     if not image:
         raise ValueError("no image")
