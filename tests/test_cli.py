@@ -188,6 +188,16 @@ def test_never_overwrites_the_input(case, tmp_path):
          "threads must be a positive integer"),
         (lambda d, img: ["track", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o", "--threads", -2],
          "threads must be a positive integer"),
+        (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o", "--patches",
+                         200, 200], "--patches must be at most 32 in each direction"),
+        (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o", "--step", 1e9],
+         "--step must be at most 10 mm"),
+        (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o",
+                         "--max-iterations", 0], "--max-iterations must be from 1 to 10000"),
+        (lambda d, img: ["track", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o",
+                         "--iterations-per-frame", 0], "--iterations-per-frame must be from 1 to 10000"),
+        (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--base", 20, 20, 1e308, "--out", d / "o"],
+         "(20.00, 20.00, 1e+308) lies outside the image"),
     ],
 )
 def test_bad_input_is_one_line(case, tmp_path, make_args, pattern):

@@ -217,6 +217,22 @@ def _points(args):
     return apex, base, (np.array(landmarks) if landmarks else None), (np.array(annulus) if annulus else None)
 
 
+def _check_options(args) -> None:
+    """Bad options: one line naming the command-line option, before any input is read."""
+    from .options import LIMITS
+
+    per_frame = getattr(args, "iterations_per_frame", 1)
+    if not 1 <= per_frame <= LIMITS["max_iterations"]:
+        raise CliError(f"--iterations-per-frame must be from 1 to {LIMITS['max_iterations']}, got {per_frame}")
+    try:
+        SegmentOptions(**_segment_kwargs(args))
+    except ValueError as exc:
+        name, _, rest = str(exc).partition(" ")
+        if name in vars(args):
+            raise CliError(f"--{name.replace('_', '-')} {rest}") from None
+        raise
+
+
 def _segment_kwargs(args) -> dict:
     return dict(system=args.system, patches=tuple(args.patches), mode=args.mode, step=args.step,
                 max_iterations=args.max_iterations, smoothness=args.smoothness, threads=args.threads)
@@ -314,7 +330,7 @@ def cmd_segment(args) -> int:
 
     seconds["import"] += time.perf_counter() - t0
     source = Path(args.image)
-    SegmentOptions(**_segment_kwargs(args))  # bad options: an error before the image is read
+    _check_options(args)
     suffix = _mask_suffix(args, source)
     names = ["mask" + suffix, "mesh.vtk", "mesh.ply", "surface.json", "surface.exnode", "surface.exelem", "results.json",
              "report.png"] + (["mesh.stl"] if args.stl else [])
@@ -362,7 +378,7 @@ def cmd_track(args) -> int:
     from .segment import track
 
     source = Path(args.sequence)
-    SegmentOptions(**_segment_kwargs(args))  # bad options: an error before the sequence is read
+    _check_options(args)
     suffix = _mask_suffix(args, source)
     apex, base, landmarks, annulus = _points(args)
     names = ["masks", "meshes", "results.json", "report.png"]
@@ -439,9 +455,7 @@ def cmd_batch(args) -> int:
     from .batch import read_manifest, segment_many, select_shard, warm_up, write_summary
 
     studies = select_shard(read_manifest(args.manifest), args.shard)
-    SegmentOptions(**_segment_kwargs(args))  # bad options: an error before anything runs
-    if args.iterations_per_frame < 1:
-        raise CliError(f"--iterations-per-frame must be a positive integer, got {args.iterations_per_frame}")
+    _check_options(args)
     options = {**_segment_kwargs(args), "iterations_per_frame": args.iterations_per_frame,
                "no_data_value": args.no_data, "mask_suffix": _mask_suffix(args, Path("")) if args.mask_format else None,
                "stl": args.stl, "report": not args.no_report}
