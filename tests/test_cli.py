@@ -132,6 +132,16 @@ def test_track_4d_image_and_frames(tmp_path):
     assert results["ef_percent"] == pytest.approx(100 * (results["edv_ml"] - results["esv_ml"]) / results["edv_ml"])
     assert len(list((tmp_path / "o" / "masks").iterdir())) == 4
     assert (tmp_path / "o" / "report.png").exists()
+    # --force over that longer run replaces the whole set: no stale frames
+    sitk.WriteImage(image[:, :, :, :2], str(tmp_path / "short.mha"))
+    (tmp_path / "o" / "notes.txt").write_text("mine")
+    proc = run("track", tmp_path / "short.mha", "--apex", *first.apex, "--base", *first.base, "--out", tmp_path / "o",
+               "--quiet", "--force", "--no-report")
+    assert proc.returncode == 0, proc.stderr
+    assert len(json.loads((tmp_path / "o" / "results.json").read_text())["volumes_ml"]) == 2
+    assert sorted(p.name for p in (tmp_path / "o" / "masks").iterdir()) == ["frame_000.mha", "frame_001.mha"]
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["masks", "meshes", "notes.txt", "results.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o", "seq.mha", "short.mha"]  # nothing hidden left
 
 
 def test_demo(tmp_path):
@@ -210,6 +220,7 @@ def test_bad_input_is_one_line(case, tmp_path, make_args, pattern):
     proc = run(*make_args(tmp_path, img))
     assert_one_line_error(proc, pattern)
     assert proc.returncode == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.mrk.json", "flat.mha", "notes.txt"]  # no --out left
 
 
 @pytest.mark.skipif(os.geteuid() == 0, reason="root ignores file permissions")

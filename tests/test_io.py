@@ -6,7 +6,8 @@ import SimpleITK as sitk
 
 import spheroseg
 
-from spheroseg.io import ImageFileError, image_format, load, load_sequence, read_markups, save_mask, write_markups
+from spheroseg.io import (ImageFileError, image_format, load, load_sequence, read_markups, save_mask,
+                         write_folder_atomically, write_markups)
 from spheroseg.volume import Volume
 
 DIRECTION = (0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
@@ -257,3 +258,32 @@ def test_load_owns_its_voxels(tmp_path, dtype, rng):
     vol = load(tmp_path / "v.mha", no_data_value=None)
     assert vol.array.flags.owndata and vol.array.dtype == np.float32
     np.testing.assert_array_equal(vol.array, array.astype(np.float32))
+
+
+def test_write_folder_atomically_all_or_nothing(tmp_path):
+    def write(files, fail=False):
+        def into(folder):
+            for name, text in files.items():
+                (folder / name).parent.mkdir(exist_ok=True)
+                (folder / name).write_text(text)
+                if fail:
+                    raise OSError(28, "No space left on device")
+            return len(files)
+        return into
+
+    out = tmp_path / "new" / "out"
+    with pytest.raises(OSError, match="No space"):
+        write_folder_atomically(out, write({"a.txt": "1", "b.txt": "2"}, fail=True))
+    assert list(tmp_path.iterdir()) == []  # no out, no parent, nothing hidden
+    assert write_folder_atomically(out, write({"a.txt": "1", "f/1": "x", "f/2": "y"})) == 3
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == ["a.txt", "f", "f/1", "f/2"]
+    (out / "mine.txt").write_text("kept")
+    # a failure while writing the next set leaves the earlier one as it was
+    with pytest.raises(OSError):
+        write_folder_atomically(out, write({"a.txt": "new"}, fail=True), replaces=["a.txt", "f"])
+    assert (out / "a.txt").read_text() == "1" and (out / "f" / "2").exists()
+    # a complete set replaces the named entries (the folder f, all of it), keeps the others
+    write_folder_atomically(out, write({"a.txt": "new", "f/1": "z"}), replaces=["a.txt", "f", "gone"])
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == ["a.txt", "f", "f/1", "mine.txt"]
+    assert (out / "a.txt").read_text() == "new"
+    assert sorted(p.name for p in tmp_path.rglob(".*")) == []

@@ -185,14 +185,35 @@ def _make_folder(out: Path) -> None:
         raise CliError(f"cannot create output folder {out}: {exc.strerror}") from None
 
 
+def _output_set() -> list[str]:
+    """Every entry ``segment`` or ``track`` may leave in ``--out``: what
+    ``--force`` replaces as one set."""
+    from .io import MASK_SUFFIXES
+
+    return (["results.json", "report.png", "masks", "meshes", "surface.json", "surface.exnode", "surface.exelem",
+             "mesh.vtk", "mesh.ply", "mesh.stl", "mask.raw", "mask.zraw"] + ["mask" + s for s in MASK_SUFFIXES])
+
+
 def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -> None:
-    _make_folder(out)
-    if not os.access(out, os.W_OK):
-        raise CliError(f"output folder {out} is not writable")
-    resolved_inputs = {p.resolve() for p in inputs if p.exists()}
+    """Refuse an output folder the outputs ``names`` cannot go to (before any
+    input is read); nothing is created."""
+    from .batch import _input_files
+
+    out = Path(os.path.abspath(out))
+    if out.exists() and not out.is_dir():
+        raise CliError(f"output folder {out} is a file")
+    anchor = out
+    while not anchor.exists() and anchor != anchor.parent:
+        anchor = anchor.parent
+    if not anchor.is_dir() or not os.access(anchor, os.W_OK):
+        raise CliError(f"output folder {out} is not writable" if anchor == out else
+                       f"cannot create output folder {out}: {anchor} is not a writable folder")
+    if anchor == out and not os.access(out.parent, os.W_OK):
+        raise CliError(f"cannot write beside output folder {out}: {out.parent} is not writable")
+    resolved_inputs = {f.resolve() for p in inputs for f in _input_files(str(p)) if f.exists()}
     for name in names:
         target = (out / name).resolve()
-        if target in resolved_inputs:
+        if any(f == target or target in f.parents for f in resolved_inputs):
             raise CliError(f"output {target} would overwrite an input; choose another --out")
         if target.exists() and not force:
             raise CliError(f"{target} exists; use --force to overwrite")
@@ -325,6 +346,7 @@ def cmd_segment(args) -> int:
     # exceed the wall time it stands for)
     seconds = {"import": time.thread_time()}
     t0 = time.perf_counter()
+    from .io import write_folder_atomically
     from .outputs import write_segmentation_outputs
     from .segment import segment
 
@@ -332,20 +354,19 @@ def cmd_segment(args) -> int:
     source = Path(args.image)
     _check_options(args)
     suffix = _mask_suffix(args, source)
-    names = ["mask" + suffix, "mesh.vtk", "mesh.ply", "surface.json", "surface.exnode", "surface.exelem", "results.json",
-             "report.png"] + (["mesh.stl"] if args.stl else [])
     apex, base, landmarks, annulus = _points(args)
-    _prepare_out(Path(args.out), names, args.force, [source])
     out = Path(args.out)
+    _prepare_out(out, _output_set(), args.force, [source])
     with _report_worker(args) as worker:
         volume = _load_timed(source, args, seconds)
         t0 = time.perf_counter()
         result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, **_segment_kwargs(args))
         seconds["segment"] = time.perf_counter() - t0
         seconds["descent"] = result.seconds
-        written = write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base,
-                                             annulus=annulus, landmarks=landmarks, mask_suffix=suffix, stl=args.stl,
-                                             report=not args.no_report, seconds=seconds, report_worker=worker)
+        written = write_folder_atomically(out, lambda tmp: write_segmentation_outputs(
+            tmp, volume, result, source=source, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
+            mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds=seconds, report_worker=worker),
+            replaces=_output_set())
     if args.profile:
         print(profile_lines(written["seconds"]), file=sys.stderr)
     _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
@@ -373,7 +394,7 @@ def profile_lines(seconds: dict) -> str:
 
 
 def cmd_track(args) -> int:
-    from .io import load_sequence
+    from .io import load_sequence, write_folder_atomically
     from .outputs import write_tracking_outputs
     from .segment import track
 
@@ -381,9 +402,8 @@ def cmd_track(args) -> int:
     _check_options(args)
     suffix = _mask_suffix(args, source)
     apex, base, landmarks, annulus = _points(args)
-    names = ["masks", "meshes", "results.json", "report.png"]
-    _prepare_out(Path(args.out), names, args.force, [source])
     out = Path(args.out)
+    _prepare_out(out, _output_set(), args.force, [source])
     with _report_worker(args) as worker:
         t0 = time.perf_counter()
         volumes = load_sequence(args.sequence, spacing=args.spacing, no_data_value=args.no_data)
@@ -402,9 +422,10 @@ def cmd_track(args) -> int:
         finally:
             if bar is not None:
                 bar.close()
-        written = write_tracking_outputs(out, volumes, result, source=source, apex=apex, base=base, annulus=annulus,
-                                         landmarks=landmarks, mask_suffix=suffix, stl=args.stl,
-                                         report=not args.no_report, seconds=timings, report_worker=worker)
+        written = write_folder_atomically(out, lambda tmp: write_tracking_outputs(
+            tmp, volumes, result, source=source, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
+            mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds=timings, report_worker=worker),
+            replaces=_output_set())
     if args.profile:
         seconds = written["seconds"]
         print(profile_lines({"load": seconds["load"], "kernels": seconds["kernels"],
@@ -519,6 +540,7 @@ def cmd_demo(args) -> int:
 
     out = Path(args.out) if args.out else _fresh_demo_folder()
     _prepare_out(out, ["results.json", "report.png", "masks", "meshes"], args.force, [])
+    _make_folder(out)
     _say(args, "spheroseg demo: a synthetic apical 3D+t echo sequence (10 frames, 1.25 mm voxels, speckle), tracked "
                "from its apex and base points and compared with its exact truth")
     t0 = time.perf_counter()
