@@ -251,13 +251,21 @@ def test_save_volume_casts_to_the_dtype_asked(tmp_path):
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.int16, np.float32, np.float64])
 def test_load_owns_its_voxels(tmp_path, dtype, rng):
-    # load reads SimpleITK's buffer without a copy before the float32
-    # conversion; the voxels must not stay a view of the freed image
+    # load reads SimpleITK's buffer without a copy: float32 voxels stay a
+    # read-only view of it, which must keep the image alive (one working
+    # copy, not a dangling one); others are converted into a new array
+    import gc
+
     array = (rng.random((6, 7, 8)) * 100).astype(dtype)
     sitk.WriteImage(sitk.GetImageFromArray(array), str(tmp_path / "v.mha"))
     vol = load(tmp_path / "v.mha", no_data_value=None)
-    assert vol.array.flags.owndata and vol.array.dtype == np.float32
+    assert vol.array.dtype == np.float32
+    assert vol.array.flags.owndata == (dtype != np.float32)
+    assert vol.array.flags.owndata or not vol.array.flags.writeable
+    gc.collect()
+    overwrite = [sitk.GetImageFromArray(np.full(array.shape, -1.0, np.float32)) for _ in range(20)]
     np.testing.assert_array_equal(vol.array, array.astype(np.float32))
+    assert len(overwrite) == 20
 
 
 def test_write_folder_atomically_all_or_nothing(tmp_path):
@@ -287,3 +295,30 @@ def test_write_folder_atomically_all_or_nothing(tmp_path):
     assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == ["a.txt", "f", "f/1", "mine.txt"]
     assert (out / "a.txt").read_text() == "new"
     assert sorted(p.name for p in tmp_path.rglob(".*")) == []
+
+
+def _huge_header(path, n=2000):
+    (path.parent / "tiny.raw").write_bytes(b"\0" * 64)
+    path.write_text(f"ObjectType = Image\nNDims = 3\nDimSize = {n} {n} {n}\nElementType = MET_FLOAT\n"
+                    "ElementSpacing = 1 1 1\nElementDataFile = tiny.raw\n")
+    return path
+
+
+def test_declared_size_over_the_budget_is_refused_before_reading(tmp_path, monkeypatch):
+    monkeypatch.delenv("SPHEROSEG_MAX_IMAGE_GB", raising=False)
+    huge = _huge_header(tmp_path / "huge.mhd")  # 2000^3 floats: 32 GB declared, 64 bytes of data
+    for reader in (load, load_sequence):
+        with pytest.raises(ImageFileError, match=r"2000 x 2000 x 2000 voxels, 32 GB as float32, over the memory "
+                                                 r"budget of 4 GB \(set SPHEROSEG_MAX_IMAGE_GB"):
+            reader(huge)
+    # the budget is the user's: a small one refuses a small image, .npy included
+    small = np.zeros((10, 20, 30), np.float32)
+    np.save(tmp_path / "small.npy", small)
+    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", str(4 * small.size / 1e9 * 0.99))
+    with pytest.raises(ImageFileError, match="over the memory budget"):
+        load(tmp_path / "small.npy", spacing=(1, 1, 1))
+    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", str(4 * small.size / 1e9 * 1.01))
+    assert load(tmp_path / "small.npy", spacing=(1, 1, 1), no_data_value=None).shape == small.shape
+    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", "lots")
+    with pytest.raises(ValueError, match="SPHEROSEG_MAX_IMAGE_GB must be a positive number of GB, got 'lots'"):
+        load(tmp_path / "small.npy", spacing=(1, 1, 1))

@@ -414,7 +414,8 @@ def cmd_track(args) -> int:
         if not args.quiet:
             from tqdm import tqdm
 
-            bar = tqdm(total=len(volumes), unit="frame", desc="tracking", file=sys.stderr)
+            # leave=False: the bar clears itself, so an error after it is the only line
+            bar = tqdm(total=len(volumes), unit="frame", desc="tracking", file=sys.stderr, leave=False)
         progress = (lambda done, total: bar.update(done - bar.n)) if bar is not None else None
         try:
             result = track(volumes, apex, base, annulus=annulus, landmarks=landmarks,

@@ -17,6 +17,7 @@ image type.
 from __future__ import annotations
 
 import glob
+import math
 import os
 import shutil
 import tempfile
@@ -29,7 +30,8 @@ from .volume import ImageGrid, Volume, outside_sector
 
 __all__ = ["load", "load_sequence", "load_frames", "save_mask", "save_volume", "read_markups", "write_markups", "image_format",
            "IMAGE_SUFFIXES", "MASK_SUFFIXES", "BEAM_SUFFIXES", "BEAM_KEYS", "BEAM_OPTIONAL_KEYS", "beam_header",
-           "beam_geometry_from_header", "write_atomically", "write_folder_atomically", "ImageFileError"]
+           "beam_geometry_from_header", "write_atomically", "write_folder_atomically", "check_image_size", "ImageFileError",
+           "BUDGET_VARIABLE"]
 
 IMAGE_SUFFIXES = (".mhd", ".mha", ".nii", ".nii.gz", ".nrrd", ".nhdr", ".npy")
 #: what a mask can be written as
@@ -43,6 +45,13 @@ BEAM_KEYS = ("AzimuthAngularSeparation", "ElevationAngularSeparation", "RadiusSa
 #: no-data value
 BEAM_OPTIONAL_KEYS = ("BeamSpaceConvention", "AzimuthCenterIndex", "ElevationCenterIndex", "ProbeToWorldTransform",
                       "NoDataValue")
+
+
+#: the environment variable that sets the memory budget of one image file,
+#: GB of float32 voxels (all its frames), and its default: a 3D+t file of
+#: 60 frames of 250^3 voxels is within it, a 1000^3 volume is not
+BUDGET_VARIABLE = "SPHEROSEG_MAX_IMAGE_GB"
+DEFAULT_BUDGET_GB = 4.0
 
 
 class ImageFileError(ValueError):
@@ -69,23 +78,101 @@ def _sitk():
     return sitk
 
 
+def _budget_bytes() -> float:
+    text = os.environ.get(BUDGET_VARIABLE, "")
+    try:
+        gb = float(text) if text.strip() else DEFAULT_BUDGET_GB
+    except ValueError:
+        gb = math.nan
+    if not gb > 0 or not math.isfinite(gb):
+        raise ValueError(f"{BUDGET_VARIABLE} must be a positive number of GB, got {text!r}")
+    return gb * 1e9
+
+
+def check_image_size(path, shape, components: int = 1) -> None:
+    """Refuse an image whose declared voxels, as the float32 working copy,
+    exceed the memory budget (``SPHEROSEG_MAX_IMAGE_GB``, default 4 GB),
+    before its pixels are read.
+
+    Parameters
+    ----------
+    path : str or Path
+        Named in the message.
+    shape : sequence of int
+        The declared size (any order; every axis, frames included).
+    components : int
+        Values per voxel (frames of a ``.seq.nrrd``).
+    """
+    voxels = math.prod(int(n) for n in shape) * int(components)
+    need, budget = 4.0 * voxels, _budget_bytes()
+    if need > budget:
+        size = " x ".join(str(int(n)) for n in shape) + (f" x {components} components" if components > 1 else "")
+        raise ImageFileError(f"{path}: declares {size} voxels, {need / 1e9:.3g} GB as float32, over the memory "
+                             f"budget of {budget / 1e9:.3g} GB (set {BUDGET_VARIABLE} to raise it)")
+
+
+def _quietly(call, *, succeeded=lambda returned: True):
+    """``call()`` with the process's stderr (file descriptor 2) captured:
+    what the C++ readers (MetaIO, GDCM, ITK) print there themselves.  On
+    success their lines are passed on to ``sys.stderr``; on failure (an
+    exception, or ``succeeded(returned)`` false) they are dropped, since the
+    error raised says why in one line."""
+    import sys
+
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr to capture
+        return call()
+    with tempfile.TemporaryFile() as noise:
+        os.dup2(noise.fileno(), 2)
+        try:
+            returned = call()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        noise.seek(0)
+        text = noise.read().decode(errors="replace")
+    if text.strip() and succeeded(returned):
+        sys.stderr.write(text)
+    return returned
+
+
 def _read_image(path: Path):
     sitk = _sitk()
     if path.is_dir():
         reader = sitk.ImageSeriesReader()
-        series = reader.GetGDCMSeriesIDs(str(path))
+        series = _quietly(lambda: reader.GetGDCMSeriesIDs(str(path)), succeeded=bool)
         if not series:
             raise ImageFileError(f"{path}: a folder with no DICOM series (for a folder of 3D frames use load_sequence)")
         reader.SetFileNames(reader.GetGDCMSeriesFileNames(str(path), series[0]))
-        return reader.Execute()
+        return _quietly(reader.Execute)
     if not path.is_file():
         raise _missing(path)
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
     try:
-        return sitk.ReadImage(str(path))
+        _quietly(reader.ReadImageInformation)
+    except RuntimeError:
+        pass  # not an image: ReadImage below says why, in one line
+    else:
+        check_image_size(path, reader.GetSize(), reader.GetNumberOfComponents())
+    try:
+        return _quietly(lambda: sitk.ReadImage(str(path)))
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()
         detail = next((line for line in first if "ERROR" in line or "Unable" in line), first[-1] if first else "")
         raise ImageFileError(f"{path}: cannot read image ({detail.strip()[:200]})") from None
+
+
+def _load_npy(path: Path) -> np.ndarray:
+    """A ``.npy`` array, its declared size checked against the budget first."""
+    try:
+        check_image_size(path, np.load(path, mmap_mode="r", allow_pickle=False).shape)
+        return np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as exc:
+        if isinstance(exc, ImageFileError):
+            raise
+        raise ImageFileError(f"{path}: cannot read numpy array ({exc})") from None
 
 
 def _make_volume(array, no_data_value, **geometry) -> Volume:
@@ -103,13 +190,21 @@ def _make_volume(array, no_data_value, **geometry) -> Volume:
     return Volume(array, **geometry, no_data_value=no_data_value)
 
 
+class _ImageBuffer:
+    """SimpleITK's voxel buffer as a numpy array that keeps its image alive
+    (``np.asarray`` of this is a view whose base holds the image)."""
+
+    def __init__(self, image):
+        self.image = image
+        self.__array_interface__ = _sitk().GetArrayViewFromImage(image).__array_interface__
+
+
 def _voxels(image) -> np.ndarray:
-    """The image's voxels ``[z, y, x]`` for a :class:`Volume`, which converts
-    them to a new float32 array: a view of SimpleITK's buffer (no copy
-    before that conversion), or a copy when they are float32 already (the
-    conversion would keep the view, which must not outlive ``image``)."""
-    view = _sitk().GetArrayViewFromImage(image)
-    return view.copy() if view.dtype == np.float32 else view
+    """The image's voxels ``[z, y, x]`` for a :class:`Volume`, without a
+    copy: a read-only view of SimpleITK's buffer that keeps the image alive
+    (float32 voxels then become the volume's array as they are: one working
+    copy of the image, not two)."""
+    return np.asarray(_ImageBuffer(image))
 
 
 def _volume_from_image(image, no_data_value) -> Volume:
@@ -257,10 +352,7 @@ def load(path: str | os.PathLike, *, spacing=None,
     if image_format(path) == ".npy":
         if not path.is_file():
             raise _missing(path)
-        try:
-            array = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as exc:
-            raise ImageFileError(f"{path}: cannot read numpy array ({exc})") from None
+        array = _load_npy(path)
         if spacing is None:
             raise ValueError(f"{path}: a .npy array has no geometry; give its voxel spacing")
         return _make_volume(array, no_data_value, spacing=spacing)
@@ -338,10 +430,7 @@ def load_sequence(path: str | os.PathLike, *, spacing=None,
     if image_format(path) == ".npy":
         if not path.is_file():
             raise _missing(path)
-        try:
-            array = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as exc:
-            raise ImageFileError(f"{path}: cannot read numpy array ({exc})") from None
+        array = _load_npy(path)
         if array.ndim != 4:
             raise ValueError(f"{path}: expected a 4D array [t, z, y, x], got {array.ndim}D")
         if spacing is None:
