@@ -203,7 +203,8 @@ def test_cohort_finishes_the_good_reports_the_bad_and_resumes(cohort, reference,
     assert [t["error"] for t in table] == [r["error"] or "" for r in rows]
     assert no_partial_folders(out)
     assert "bad-missing: failed" in proc.stderr and "12/12" in proc.stderr  # the progress bar, on stderr
-    assert "8 ok, 4 failed" in proc.stdout
+    assert "8 ok (0 poor), 4 failed" in proc.stdout
+    assert [r["poor"] for r in rows] == [False] * 8 + [None] * 4
 
     # a rerun leaves the finished studies untouched and tries the failed ones again
     before = mtimes(out)
@@ -374,3 +375,22 @@ def test_annulus_instead_of_base(cohort, tmp_path):
     np.testing.assert_allclose(results["annulus"], annulus)
     with pytest.raises(ValueError, match="3 or more"):
         segment_many([{**study, "annulus": csv_row.rsplit(";", 1)[0]}], out=tmp_path)
+
+
+def test_poor_results_are_a_column_and_exit_3(cohort, tmp_path):
+    """A study that completes with a poor result (one iteration: still moving)
+    is ok, poor in the summary (JSON and CSV), and the run exits 3 unless
+    --allow-poor."""
+    folder, studies = cohort
+    (folder / "one.json").write_text(json.dumps(studies[:1]))
+    out = tmp_path / "out"
+    proc = run("batch", folder / "one.json", "--out", out, "--workers", 1, "--no-report", "--max-iterations", 1)
+    assert proc.returncode == 3, proc.stderr
+    assert "1 poor result(s)" in proc.stderr and "1 ok (1 poor), 0 failed" in proc.stdout
+    row = summary(out)[0]
+    assert row["status"] == "ok" and row["poor"] is True and row["quality"]["warnings"]
+    with open(out / "summary.csv", newline="") as handle:
+        assert next(csv.DictReader(handle))["poor"] == "True"
+    again = run("batch", folder / "one.json", "--out", out, "--workers", 1, "--no-report", "--max-iterations", 1,
+                "--allow-poor")
+    assert again.returncode == 0, again.stderr

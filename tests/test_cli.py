@@ -171,6 +171,22 @@ def test_refuses_to_overwrite_without_force(case, tmp_path):
     assert run(*args, "--force").returncode == 0
 
 
+def test_poor_result_warns_and_exits_3_with_its_outputs(case, tmp_path):
+    folder, image, ph = case
+    path = folder / "case.mha"
+    sitk.WriteImage(image, str(path))
+    shift = np.array(image.GetOrigin())
+    args = ["segment", path, *points_args(ph, shift), "--quiet", "--no-report", "--max-iterations", 1]
+    proc = run(*args, "--out", tmp_path / "o")  # one iteration: the surface is still moving
+    assert proc.returncode == 3, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("spheroseg: warning: check this segmentation"), proc.stderr
+    results = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert results["quality"]["poor"] is True
+    assert run(*args, "--out", tmp_path / "o2", "--allow-poor").returncode == 0
+    assert "3 done, outputs written, but the result is poor" in " ".join(run("segment", "--help").stdout.split())
+
+
 def test_never_overwrites_the_input(case, tmp_path):
     folder, image, ph = case
     path = tmp_path / "mask.mha"  # an input named like the output

@@ -49,7 +49,7 @@ __all__ = ["Study", "StudyOutcome", "StudyTimeout", "ManifestError", "read_manif
 
 #: columns of ``summary.json`` / ``summary.csv``
 SUMMARY_FIELDS = ("id", "status", "kind", "volume_ml", "edv_ml", "esv_ml", "ef", "iterations", "descent_status",
-                  "quality", "seconds", "error")
+                  "poor", "quality", "seconds", "error")
 #: keys a manifest entry may have
 MANIFEST_KEYS = ("id", "image", "apex", "base", "annulus", "landmarks", "points", "spacing", "track")
 #: options of a run beside :class:`spheroseg.SegmentOptions`'s (see :func:`run_study`)
@@ -458,7 +458,8 @@ def summary_row(results: dict) -> dict:
         "edv_ml": results.get("edv_ml"), "esv_ml": results.get("esv_ml"), "ef": results.get("ef_percent"),
         "iterations": int(np.sum(iterations)) if iterations is not None else None,
         # why the descent stopped (0 converged, 1 iteration cap, ...), when the result records it
-        "descent_status": results.get("status"), "quality": results.get("quality"),
+        "descent_status": results.get("status"), "poor": (results.get("quality") or {}).get("poor"),
+        "quality": results.get("quality"),
         "seconds": float(seconds.get("load", 0.0) + np.sum(seconds.get("segment", 0.0))),
         "error": None,
     }

@@ -20,6 +20,13 @@ from . import __version__
 from .options import MODES, SYSTEMS, SegmentOptions
 
 EXIT_ERROR = 2
+#: the run completed and wrote its outputs, but a result is poor (its quality
+#: report has warnings): a pipeline stops here unless --allow-poor
+EXIT_POOR = 3
+#: the exit statuses of segment and track, for their --help
+_EXIT_HELP = ("Exit status: 0 done; 2 an error, one line on stderr (nothing written); 3 done, outputs written, but the "
+              "result is poor (a warning line on stderr, quality in results.json; --allow-poor makes it 0); "
+              "130 interrupted (nothing written).")
 #: thread counts of the linear algebra libraries, set to 1 for batch workers unless given
 BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -79,6 +86,8 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stl", action="store_true", help="also write the mesh as STL")
     p.add_argument("--no-report", action="store_true", help="skip the PNG report")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stdout")
+    p.add_argument("--allow-poor", action="store_true",
+                   help="exit 0 when a result is poor (its quality report has warnings); default: exit 3")
     p.add_argument("--profile", action="store_true",
                    help="print the time of every stage (import, read, padding, segment, mask, meshes, writes, "
                         "report) on stderr; they are in results.json's seconds block either way")
@@ -114,10 +123,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"spheroseg {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    seg = sub.add_parser("segment", help="segment one 3D image")
+    seg = sub.add_parser("segment", help="segment one 3D image", description="Segment one 3D image. " + _EXIT_HELP)
     seg.add_argument("image", help="3D image (.mhd, .mha, .nii[.gz], .nrrd, .npy, DICOM folder)")
     _add_common(seg)
-    tr = sub.add_parser("track", help="segment every frame of a 3D+t sequence; EDV, ESV, EF")
+    tr = sub.add_parser("track", help="segment every frame of a 3D+t sequence; EDV, ESV, EF",
+                        description="Segment every frame of a 3D+t sequence; EDV, ESV, EF. " + _EXIT_HELP)
     tr.add_argument("sequence", help="4D image, .seq.nrrd, folder or glob of 3D frames, DICOM folder")
     _add_common(tr)
     tr.add_argument("--iterations-per-frame", type=int, default=20)
@@ -131,8 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--quiet", action="store_true")
     batch = sub.add_parser("batch", help="segment or track every study of a manifest (JSON or CSV), resumably",
                            description="Segment or track every study of a manifest; DIR/<id>/ per study, "
-                                       "DIR/summary.json and .csv. Exit status: 0 every study ok, 1 some failed, "
-                                       "2 a bad manifest or bad options (nothing run); 130 interrupted.")
+                                       "DIR/summary.json and .csv (a poor column). Exit status: 0 every study ok, 1 some "
+                                       "failed, 2 a bad manifest or bad options (nothing run), 3 none failed but some "
+                                       "result is poor (--allow-poor makes it 0); 130 interrupted.")
     batch.add_argument("manifest", help="JSON (a list of studies) or CSV; keys id, image, apex, base, landmarks, "
                                         "points, spacing, track")
     batch.add_argument("--out", required=True, metavar="DIR", help="cohort folder (created if missing)")
@@ -370,17 +381,18 @@ def cmd_segment(args) -> int:
     if args.profile:
         print(profile_lines(written["seconds"]), file=sys.stderr)
     _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
-    _warn_quality([result])
-    return 0
+    return _warn_quality([result], args)
 
 
-def _warn_quality(frames) -> None:
-    """One line on stderr when a result is poor (results.json has the report)."""
+def _warn_quality(frames, args) -> int:
+    """One line on stderr when a result is poor (results.json has the
+    report); the exit status: :data:`EXIT_POOR` then, unless ``--allow-poor``."""
     from .quality import quality_warning
 
     line = quality_warning(frames)
     if line:
         print(f"spheroseg: warning: {line}", file=sys.stderr)
+    return EXIT_POOR if line and not args.allow_poor else 0
 
 
 def profile_lines(seconds: dict) -> str:
@@ -433,8 +445,7 @@ def cmd_track(args) -> int:
                              "segment": sum(seconds["segment"])}), file=sys.stderr)
     _say(args, f"EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
                f"(frame {result.es_frame}), EF {result.ef:.1f} %; outputs in {out}")
-    _warn_quality(result.frames)
-    return 0
+    return _warn_quality(result.frames, args)
 
 
 def cmd_scan_convert(args) -> int:
@@ -519,8 +530,11 @@ def cmd_batch(args) -> int:
     name = "summary" if args.shard is None else "summary-{}-of-{}".format(*args.shard)
     write_summary(out, [rows[s.id] for s in studies], name=name)
     failed = sum(row["status"] != "ok" for row in rows.values())
-    _say(args, f"{len(rows) - failed} ok, {failed} failed; summary in {out / name}.json and .csv")
-    return 1 if failed else 0
+    poor = sum(bool(row.get("poor")) for row in rows.values())
+    _say(args, f"{len(rows) - failed} ok ({poor} poor), {failed} failed; summary in {out / name}.json and .csv")
+    if poor:
+        print(f"spheroseg: warning: {poor} poor result(s): see the poor column of {out / name}.csv", file=sys.stderr)
+    return 1 if failed else (EXIT_POOR if poor and not args.allow_poor else 0)
 
 
 def _fresh_demo_folder() -> Path:
