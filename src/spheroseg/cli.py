@@ -60,7 +60,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--points", metavar="MRK_JSON",
                    help="3D Slicer markups with points labelled apex, base, annulus..., landmark...")
     p.add_argument("--landmark", nargs=3, type=float, action="append", default=[], metavar=("X", "Y", "Z"),
-                   help="a point the surface must pass through (repeatable)")
+                   help="a point of the wall the surface is drawn to (repeatable); quality in results.json "
+                        "gives how far the surface ends from each, more than 2 mm is a warning")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs in DIR")
     p.add_argument("--spacing", nargs=3, type=float, metavar=("SX", "SY", "SZ"),

@@ -27,7 +27,7 @@ from .coords import Pose, annulus_plane
 from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, band_offsets, nanmedian
 from .descent import Descent
 from .options import SegmentOptions, format_point
-from .quality import axis_distances, quality_report, wall_bulge
+from .quality import axis_distances, landmark_residuals, quality_report, wall_bulge
 from .results import STATUS_MESSAGES, Intermediate, SegmentationResult
 from .surface import Surface
 
@@ -507,4 +507,5 @@ class Tracker:
                 low_contrast_fraction=float(np.mean(np.broadcast_to(contrast, (1,) + np.shape(contrast)) < 0.1 * spread)),
                 converged=self.status == 0, apex_shift_mm=float(np.linalg.norm(surface.tip() - self.apex)),
                 volume_ratio=surface.volume_ml() / self._initial_volume,
-                bulge=wall_bulge(surface, self._initial, reference=self._bulge_reference))
+                bulge=wall_bulge(surface, self._initial, reference=self._bulge_reference),
+                landmark_residuals_mm=landmark_residuals(surface, self.landmarks))
