@@ -274,48 +274,17 @@ def select_shard(studies: list, shard: tuple[int, int] | None) -> list:
 # -- checksums ---------------------------------------------------------------
 
 
-def _header_data_file(path: Path) -> Path | None:
-    """The data file a MetaImage (.mhd) or detached NRRD (.nhdr) header names."""
-    key = {".mhd": "elementdatafile", ".nhdr": "data file"}.get(path.suffix.lower())
-    if key is None:
-        return None
-    try:
-        with open(path, encoding="latin-1") as handle:
-            for line in handle:
-                name, sep, value = line.partition("=" if key == "elementdatafile" else ":")
-                if sep and name.strip().lower() == key:
-                    value = value.strip()
-                    return None if value.upper() in ("LOCAL", "") else path.parent / value
-    except OSError:
-        return None
-    return None
-
-
-def _input_files(image: str) -> list[Path]:
-    if any(ch in image for ch in "*?["):
-        import glob
-
-        files = [Path(f) for f in sorted(glob.glob(image))]
-    elif Path(image).is_dir():
-        files = sorted(p for p in Path(image).rglob("*") if p.is_file())
-    else:
-        files = [Path(image)]
-    for f in list(files):
-        data = _header_data_file(f)
-        if data is not None and data not in files:
-            files.append(data)
-    return files
-
-
 def study_checksum(study: Study, options: dict) -> str:
     """SHA-256 of the study's entry, the options and the bytes of every input
     file (an image's data file, a folder's files, the markups); a missing
     file counts as missing, so the study runs and fails with its reason.
     The thread count is left out: it changes no result."""
+    from .io import image_files
+
     digest = hashlib.sha256()
     options = {k: v for k, v in options.items() if k != "threads"}
     digest.update(json.dumps({"study": study.as_entry(), "options": options}, sort_keys=True).encode())
-    for path in _input_files(study.image) + ([Path(study.points)] if study.points else []):
+    for path in image_files(study.image) + ([Path(study.points)] if study.points else []):
         digest.update(f"\0{path.name}\0".encode())
         try:
             with open(path, "rb") as handle:

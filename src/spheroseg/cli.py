@@ -209,7 +209,7 @@ def _output_set() -> list[str]:
 def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -> None:
     """Refuse an output folder the outputs ``names`` cannot go to (before any
     input is read); nothing is created."""
-    from .batch import _input_files
+    from .io import image_files
 
     out = Path(os.path.abspath(out))
     if out.exists() and not out.is_dir():
@@ -222,7 +222,7 @@ def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -
                        f"cannot create output folder {out}: {anchor} is not a writable folder")
     if anchor == out and not os.access(out.parent, os.W_OK):
         raise CliError(f"cannot write beside output folder {out}: {out.parent} is not writable")
-    resolved_inputs = {f.resolve() for p in inputs for f in _input_files(str(p)) if f.exists()}
+    resolved_inputs = {f.resolve() for p in inputs for f in image_files(str(p)) if f.exists()}
     for name in names:
         target = (out / name).resolve()
         if any(f == target or target in f.parents for f in resolved_inputs):

@@ -30,8 +30,8 @@ from .volume import ImageGrid, Volume, outside_sector
 
 __all__ = ["load", "load_sequence", "load_frames", "save_mask", "save_volume", "read_markups", "write_markups", "image_format",
            "IMAGE_SUFFIXES", "MASK_SUFFIXES", "BEAM_SUFFIXES", "BEAM_KEYS", "BEAM_OPTIONAL_KEYS", "beam_header",
-           "beam_geometry_from_header", "write_atomically", "write_folder_atomically", "check_image_size", "ImageFileError",
-           "BUDGET_VARIABLE"]
+           "beam_geometry_from_header", "image_files", "write_atomically", "write_folder_atomically",
+           "check_image_size", "ImageFileError", "BUDGET_VARIABLE"]
 
 IMAGE_SUFFIXES = (".mhd", ".mha", ".nii", ".nii.gz", ".nrrd", ".nhdr", ".npy")
 #: what a mask can be written as
@@ -452,6 +452,39 @@ def load_sequence(path: str | os.PathLike, *, spacing=None,
         volumes = [Volume(v.array, spacing=spacing, origin=v.origin, direction=v.direction, no_data_mask=v.no_data_mask)
                    for v in volumes]
     return volumes
+
+
+def _header_data_file(path: Path) -> Path | None:
+    """The data file a MetaImage (.mhd) or detached NRRD (.nhdr) header names."""
+    key = {".mhd": "elementdatafile", ".nhdr": "data file"}.get(path.suffix.lower())
+    if key is None:
+        return None
+    try:
+        with open(path, encoding="latin-1") as handle:
+            for line in handle:
+                name, sep, value = line.partition("=" if key == "elementdatafile" else ":")
+                if sep and name.strip().lower() == key:
+                    value = value.strip()
+                    return None if value.upper() in ("LOCAL", "") else path.parent / value
+    except OSError:
+        return None
+    return None
+
+
+def image_files(image: str) -> list[Path]:
+    """The files an image reads: the file and the data file its header names
+    (.mhd, .nhdr), a folder's files, a glob pattern's matches."""
+    if any(ch in image for ch in "*?["):
+        files = [Path(f) for f in sorted(glob.glob(image))]
+    elif Path(image).is_dir():
+        files = sorted(p for p in Path(image).rglob("*") if p.is_file())
+    else:
+        files = [Path(image)]
+    for f in list(files):
+        data = _header_data_file(f)
+        if data is not None and data not in files:
+            files.append(data)
+    return files
 
 
 def write_atomically(target: str | os.PathLike, write) -> None:
