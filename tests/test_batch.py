@@ -16,11 +16,20 @@ import SimpleITK as sitk
 from conftest import interruptible
 
 from spheroseg import segment_many
-from spheroseg.batch import (SUMMARY_FIELDS, TEST_HOOK_VARIABLE, ManifestError, Study, read_manifest, select_shard,
+from spheroseg.batch import (SUMMARY_FIELDS, ManifestError, Study, read_manifest, select_shard,
                              study_checksum)
 from spheroseg.io import load, load_sequence
 from spheroseg.phantom import make_phantom, make_sequence
 from spheroseg.segment import segment, track
+
+# faults a worker meets (tests/faults/sitecustomize.py, imported by every process Python starts)
+FAULTS_PATH = str(Path(__file__).parent / "faults")
+
+
+def with_faults(spec: str) -> dict:
+    return {"SPHEROSEG_TEST_FAULTS": spec,
+            "PYTHONPATH": os.pathsep.join([FAULTS_PATH] + [p for p in [os.environ.get("PYTHONPATH")] if p])}
+
 
 # what the CLI runs with by default, less the report (the slowest output; covered by test_outputs)
 FAST = ["--no-report", "--quiet"]
@@ -246,7 +255,7 @@ def test_changed_input_or_options_rerun_that_study_only(cohort, tmp_path):
 def test_interrupted_run_then_rerun_completes_with_identical_summary(cohort, reference, tmp_path):
     folder, studies = cohort
     out = tmp_path / "out"
-    env = {TEST_HOOK_VARIABLE: ",".join(f"{s['id']}=sleep:1.5" for s in studies)}
+    env = with_faults(",".join(f"{s['id']}=sleep:1.5" for s in studies))
     proc = subprocess.Popen([sys.executable, "-m", "spheroseg", "batch", str(folder / "cohort.json"), "--out",
                              str(out), "--workers", "2", *FAST], env={**os.environ, **env},
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=interruptible)
@@ -271,7 +280,7 @@ def test_worker_crash_and_timeout_fail_their_study_only(cohort, reference, tmp_p
     folder, studies = cohort
     chosen = [s for s in studies if s["id"] in ("v0", "v2", "s0", "s2")]
     (tmp_path / "m.json").write_text(json.dumps([dict(s, image=str(folder / s["image"])) for s in chosen]))
-    env = {TEST_HOOK_VARIABLE: "v2=exit,s0=sleep:600"}
+    env = with_faults("v2=exit,s0=sleep:600")
     proc = run("batch", tmp_path / "m.json", "--out", tmp_path / "out", "--workers", 2, "--timeout", 8, *FAST,
                env=env)
     assert proc.returncode == 1, proc.stderr
@@ -298,9 +307,10 @@ def test_dask_local_cluster_gives_the_same_summary_and_survives_a_killed_worker(
     from distributed import Client, LocalCluster
 
     folder, _ = cohort
-    # the workers inherit the hook; a study that kills its worker is retried once by Dask, then reported.
-    # One task at a time on a worker (saturation 1.0): no innocent study queued on the worker that dies
-    monkeypatch.setenv(TEST_HOOK_VARIABLE, "v3=exit")
+    # the workers (spawned) inherit the faults; a study that kills its worker is retried once by Dask, then
+    # reported. One task at a time on a worker (saturation 1.0): no innocent study queued on the worker that dies
+    for name, value in with_faults("v3=exit").items():
+        monkeypatch.setenv(name, value)
     with dask.config.set({"distributed.scheduler.allowed-failures": 1,
                           "distributed.scheduler.worker-saturation": 1.0}), \
             LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \

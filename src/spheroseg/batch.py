@@ -15,11 +15,6 @@ stuck in compiled code past the timeout plus a grace period exits and is
 replaced), or a worker that dies (the local pool is re-created; each study
 in flight when it broke is run again alone, so the one that kills its worker
 is the one reported).
-
-Test hook (for the test suite only): the environment variable
-``SPHEROSEG_BATCH_TEST_HOOK="ID=exit,ID2=sleep:SECONDS"`` makes a worker
-die abruptly (SIGKILL, as a crash) on study ``ID``, or spend ``SECONDS`` (in Python, so
-that a timeout interrupts it) before study ``ID2``.
 """
 
 from __future__ import annotations
@@ -56,7 +51,6 @@ MANIFEST_KEYS = ("id", "image", "apex", "base", "annulus", "landmarks", "points"
 RUN_OPTIONS = ("iterations_per_frame", "no_data_value", "mask_suffix", "stl", "report")
 #: a worker stuck past its timeout exits after this many more seconds (or half the timeout, if longer)
 HARD_TIMEOUT_GRACE = 10.0
-TEST_HOOK_VARIABLE = "SPHEROSEG_BATCH_TEST_HOOK"
 
 _SAFE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 #: names the cohort folder keeps for itself (write_summary's files), any case
@@ -305,22 +299,6 @@ def _die() -> None:
     os.kill(os.getpid(), signal.SIGKILL)
 
 
-def _test_hook(study_id: str) -> None:
-    spec = os.environ.get(TEST_HOOK_VARIABLE)
-    if not spec:
-        return
-    for item in spec.split(","):
-        name, _, action = item.partition("=")
-        if name.strip() != study_id:
-            continue
-        if action == "exit":
-            _die()
-        if action.startswith("sleep:"):  # in small steps, as a long computation: a timeout interrupts it
-            end = time.monotonic() + float(action.split(":", 1)[1])
-            while time.monotonic() < end:
-                time.sleep(0.02)
-
-
 class _Deadline:
     """Raise :class:`StudyTimeout` in this thread after ``seconds``; if the
     thread is still busy ``grace`` seconds later (stuck in compiled code),
@@ -477,7 +455,6 @@ def run_study(study: Study, out: str | os.PathLike, *, options: dict | None = No
     tmp = out / f".{study.id}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:
         with _Deadline(timeout):
-            _test_hook(study.id)
             apex, base, landmarks, annulus = _points(study)
             sequence = _is_sequence(study.image) if study.track is None else study.track
             common = dict(source=study.image, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
