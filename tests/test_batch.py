@@ -255,7 +255,7 @@ def test_changed_input_or_options_rerun_that_study_only(cohort, tmp_path):
 def test_interrupted_run_then_rerun_completes_with_identical_summary(cohort, reference, tmp_path):
     folder, studies = cohort
     out = tmp_path / "out"
-    env = with_faults(",".join(f"{s['id']}=sleep:1.5" for s in studies))
+    env = with_faults("*=sleep:1.5")
     proc = subprocess.Popen([sys.executable, "-m", "spheroseg", "batch", str(folder / "cohort.json"), "--out",
                              str(out), "--workers", "2", *FAST], env={**os.environ, **env},
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=interruptible)
@@ -280,7 +280,7 @@ def test_worker_crash_and_timeout_fail_their_study_only(cohort, reference, tmp_p
     folder, studies = cohort
     chosen = [s for s in studies if s["id"] in ("v0", "v2", "s0", "s2")]
     (tmp_path / "m.json").write_text(json.dumps([dict(s, image=str(folder / s["image"])) for s in chosen]))
-    env = with_faults("v2=exit,s0=sleep:600")
+    env = with_faults("v2.mha=exit,s0.mha=sleep:600")
     proc = run("batch", tmp_path / "m.json", "--out", tmp_path / "out", "--workers", 2, "--timeout", 8, *FAST,
                env=env)
     assert proc.returncode == 1, proc.stderr
@@ -309,7 +309,7 @@ def test_dask_local_cluster_gives_the_same_summary_and_survives_a_killed_worker(
     folder, _ = cohort
     # the workers (spawned) inherit the faults; a study that kills its worker is retried once by Dask, then
     # reported. One task at a time on a worker (saturation 1.0): no innocent study queued on the worker that dies
-    for name, value in with_faults("v3=exit").items():
+    for name, value in with_faults("v3.nii.gz=exit").items():
         monkeypatch.setenv(name, value)
     with dask.config.set({"distributed.scheduler.allowed-failures": 1,
                           "distributed.scheduler.worker-saturation": 1.0}), \
