@@ -51,6 +51,7 @@ RUN_OPTIONS = ("iterations_per_frame", "no_data_value", "mask_suffix", "stl", "r
 #: a worker stuck past its timeout exits after this many more seconds (or half the timeout, if longer)
 HARD_TIMEOUT_GRACE = 10.0
 
+
 class StudyTimeout(Exception):
     """Raised in a worker's thread when its study exceeds the timeout."""
 
