@@ -119,7 +119,9 @@ class Tracker:
         the plane).  Without it the base plane is perpendicular to the
         apex-base line through ``base``.
     landmarks : array (k, 3), optional
-        World points the surface must pass through (to stop a leak).
+        World points of the wall the surface is drawn to (to stop a leak),
+        held by ``landmark_weight``; ``quality["landmark_residuals_mm"]``
+        gives how far it ends from each (over 2 mm: a warning).
     init : Surface, optional
         Start from this surface instead of the half-ellipsoid (no
         coarse-to-fine then); ``apex``, ``base`` and ``annulus`` are still
