@@ -78,16 +78,19 @@ def test_points_from_markups_and_landmarks(case, tmp_path):
     path = folder / "case.mha"
     sitk.WriteImage(image, str(path))
     shift = np.array(image.GetOrigin())
+    wall = ph.truth_mesh[0]
+    on_wall = wall[np.argmin(np.linalg.norm(wall - ((ph.apex + ph.base) / 2 + [12.0, 0, 0]), axis=1))]
     doc = {"markups": [{"coordinateSystem": "LPS", "controlPoints": [
         {"label": "apex", "position": list(ph.apex + shift)},
         {"label": "base", "position": list(ph.base + shift)},
-        {"label": "landmark", "position": list((ph.apex + ph.base) / 2 + shift + [12.0, 0, 0])},
+        {"label": "landmark", "position": list(on_wall + shift)},  # on the true wall: no warning
     ]}]}
     (tmp_path / "p.mrk.json").write_text(json.dumps(doc))
     proc = run("segment", path, "--points", tmp_path / "p.mrk.json", "--out", tmp_path / "o", "--quiet", "--no-report")
     assert proc.returncode == 0, proc.stderr
     results = json.loads((tmp_path / "o" / "results.json").read_text())
     assert len(results["landmarks"]) == 1
+    assert len(results["quality"]["landmark_residuals_mm"]) == 1 and results["quality"]["landmark_residuals_mm"][0] < 2
 
 
 def test_annulus_from_the_command_line_and_markups(case, tmp_path):
