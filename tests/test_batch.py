@@ -16,11 +16,20 @@ import SimpleITK as sitk
 from conftest import interruptible
 
 from spheroseg import segment_many
-from spheroseg.batch import (SUMMARY_FIELDS, TEST_HOOK_VARIABLE, ManifestError, Study, read_manifest, select_shard,
+from spheroseg.batch import (SUMMARY_FIELDS, ManifestError, Study, read_manifest, select_shard,
                              study_checksum)
 from spheroseg.io import load, load_sequence
 from spheroseg.phantom import make_phantom, make_sequence
 from spheroseg.segment import segment, track
+
+# faults a worker meets (tests/faults/sitecustomize.py, imported by every process Python starts)
+FAULTS_PATH = str(Path(__file__).parent / "faults")
+
+
+def with_faults(spec: str) -> dict:
+    return {"SPHEROSEG_TEST_FAULTS": spec,
+            "PYTHONPATH": os.pathsep.join([FAULTS_PATH] + [p for p in [os.environ.get("PYTHONPATH")] if p])}
+
 
 # what the CLI runs with by default, less the report (the slowest output; covered by test_outputs)
 FAST = ["--no-report", "--quiet"]
@@ -147,6 +156,9 @@ def test_manifests_json_and_csv_agree(cohort, tmp_path):
     ('{"id": "a"}', "list of studies"),
     ("[]", "no studies"),
     ("[{", "not JSON"),
+    ('[{"id": "summary.json", "image": "x.mha", "apex": [0, 0, 0], "base": [0, 0, 9]}]', "cohort's summary"),
+    ('[{"id": "Summary.CSV", "image": "x.mha", "apex": [0, 0, 0], "base": [0, 0, 9]}]', "cohort's summary"),
+    ('[{"id": "summary-2-of-4.json", "image": "x.mha", "apex": [0, 0, 0], "base": [0, 0, 9]}]', "cohort's summary"),
 ])
 def test_bad_manifest_is_one_error_before_anything_runs(tmp_path, content, pattern):
     (tmp_path / "m.json").write_text(content)
@@ -200,7 +212,8 @@ def test_cohort_finishes_the_good_reports_the_bad_and_resumes(cohort, reference,
     assert [t["error"] for t in table] == [r["error"] or "" for r in rows]
     assert no_partial_folders(out)
     assert "bad-missing: failed" in proc.stderr and "12/12" in proc.stderr  # the progress bar, on stderr
-    assert "8 ok, 4 failed" in proc.stdout
+    assert "8 ok (0 poor), 4 failed" in proc.stdout
+    assert [r["poor"] for r in rows] == [False] * 8 + [None] * 4
 
     # a rerun leaves the finished studies untouched and tries the failed ones again
     before = mtimes(out)
@@ -242,7 +255,7 @@ def test_changed_input_or_options_rerun_that_study_only(cohort, tmp_path):
 def test_interrupted_run_then_rerun_completes_with_identical_summary(cohort, reference, tmp_path):
     folder, studies = cohort
     out = tmp_path / "out"
-    env = {TEST_HOOK_VARIABLE: ",".join(f"{s['id']}=sleep:1.5" for s in studies)}
+    env = with_faults("*=sleep:1.5")
     proc = subprocess.Popen([sys.executable, "-m", "spheroseg", "batch", str(folder / "cohort.json"), "--out",
                              str(out), "--workers", "2", *FAST], env={**os.environ, **env},
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=interruptible)
@@ -267,7 +280,7 @@ def test_worker_crash_and_timeout_fail_their_study_only(cohort, reference, tmp_p
     folder, studies = cohort
     chosen = [s for s in studies if s["id"] in ("v0", "v2", "s0", "s2")]
     (tmp_path / "m.json").write_text(json.dumps([dict(s, image=str(folder / s["image"])) for s in chosen]))
-    env = {TEST_HOOK_VARIABLE: "v2=exit,s0=sleep:600"}
+    env = with_faults("v2.mha=exit,s0.mha=sleep:600")
     proc = run("batch", tmp_path / "m.json", "--out", tmp_path / "out", "--workers", 2, "--timeout", 8, *FAST,
                env=env)
     assert proc.returncode == 1, proc.stderr
@@ -294,9 +307,10 @@ def test_dask_local_cluster_gives_the_same_summary_and_survives_a_killed_worker(
     from distributed import Client, LocalCluster
 
     folder, _ = cohort
-    # the workers inherit the hook; a study that kills its worker is retried once by Dask, then reported.
-    # One task at a time on a worker (saturation 1.0): no innocent study queued on the worker that dies
-    monkeypatch.setenv(TEST_HOOK_VARIABLE, "v3=exit")
+    # the workers (spawned) inherit the faults; a study that kills its worker is retried once by Dask, then
+    # reported. One task at a time on a worker (saturation 1.0): no innocent study queued on the worker that dies
+    for name, value in with_faults("v3.nii.gz=exit").items():
+        monkeypatch.setenv(name, value)
     with dask.config.set({"distributed.scheduler.allowed-failures": 1,
                           "distributed.scheduler.worker-saturation": 1.0}), \
             LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
@@ -371,3 +385,22 @@ def test_annulus_instead_of_base(cohort, tmp_path):
     np.testing.assert_allclose(results["annulus"], annulus)
     with pytest.raises(ValueError, match="3 or more"):
         segment_many([{**study, "annulus": csv_row.rsplit(";", 1)[0]}], out=tmp_path)
+
+
+def test_poor_results_are_a_column_and_exit_3(cohort, tmp_path):
+    """A study that completes with a poor result (one iteration: still moving)
+    is ok, poor in the summary (JSON and CSV), and the run exits 3 unless
+    --allow-poor."""
+    folder, studies = cohort
+    (folder / "one.json").write_text(json.dumps(studies[:1]))
+    out = tmp_path / "out"
+    proc = run("batch", folder / "one.json", "--out", out, "--workers", 1, "--no-report", "--max-iterations", 1)
+    assert proc.returncode == 3, proc.stderr
+    assert "1 poor result(s)" in proc.stderr and "1 ok (1 poor), 0 failed" in proc.stdout
+    row = summary(out)[0]
+    assert row["status"] == "ok" and row["poor"] is True and row["quality"]["warnings"]
+    with open(out / "summary.csv", newline="") as handle:
+        assert next(csv.DictReader(handle))["poor"] == "True"
+    again = run("batch", folder / "one.json", "--out", out, "--workers", 1, "--no-report", "--max-iterations", 1,
+                "--allow-poor")
+    assert again.returncode == 0, again.stderr

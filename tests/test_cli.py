@@ -78,16 +78,19 @@ def test_points_from_markups_and_landmarks(case, tmp_path):
     path = folder / "case.mha"
     sitk.WriteImage(image, str(path))
     shift = np.array(image.GetOrigin())
+    wall = ph.truth_mesh[0]
+    on_wall = wall[np.argmin(np.linalg.norm(wall - ((ph.apex + ph.base) / 2 + [12.0, 0, 0]), axis=1))]
     doc = {"markups": [{"coordinateSystem": "LPS", "controlPoints": [
         {"label": "apex", "position": list(ph.apex + shift)},
         {"label": "base", "position": list(ph.base + shift)},
-        {"label": "landmark", "position": list((ph.apex + ph.base) / 2 + shift + [12.0, 0, 0])},
+        {"label": "landmark", "position": list(on_wall + shift)},  # on the true wall: no warning
     ]}]}
     (tmp_path / "p.mrk.json").write_text(json.dumps(doc))
     proc = run("segment", path, "--points", tmp_path / "p.mrk.json", "--out", tmp_path / "o", "--quiet", "--no-report")
     assert proc.returncode == 0, proc.stderr
     results = json.loads((tmp_path / "o" / "results.json").read_text())
     assert len(results["landmarks"]) == 1
+    assert len(results["quality"]["landmark_residuals_mm"]) == 1 and results["quality"]["landmark_residuals_mm"][0] < 2
 
 
 def test_annulus_from_the_command_line_and_markups(case, tmp_path):
@@ -132,6 +135,16 @@ def test_track_4d_image_and_frames(tmp_path):
     assert results["ef_percent"] == pytest.approx(100 * (results["edv_ml"] - results["esv_ml"]) / results["edv_ml"])
     assert len(list((tmp_path / "o" / "masks").iterdir())) == 4
     assert (tmp_path / "o" / "report.png").exists()
+    # --force over that longer run replaces the whole set: no stale frames
+    sitk.WriteImage(image[:, :, :, :2], str(tmp_path / "short.mha"))
+    (tmp_path / "o" / "notes.txt").write_text("mine")
+    proc = run("track", tmp_path / "short.mha", "--apex", *first.apex, "--base", *first.base, "--out", tmp_path / "o",
+               "--quiet", "--force", "--no-report")
+    assert proc.returncode == 0, proc.stderr
+    assert len(json.loads((tmp_path / "o" / "results.json").read_text())["volumes_ml"]) == 2
+    assert sorted(p.name for p in (tmp_path / "o" / "masks").iterdir()) == ["frame_000.mha", "frame_001.mha"]
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["masks", "meshes", "notes.txt", "results.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o", "seq.mha", "short.mha"]  # nothing hidden left
 
 
 def test_demo(tmp_path):
@@ -161,6 +174,22 @@ def test_refuses_to_overwrite_without_force(case, tmp_path):
     assert run(*args, "--force").returncode == 0
 
 
+def test_poor_result_warns_and_exits_3_with_its_outputs(case, tmp_path):
+    folder, image, ph = case
+    path = folder / "case.mha"
+    sitk.WriteImage(image, str(path))
+    shift = np.array(image.GetOrigin())
+    args = ["segment", path, *points_args(ph, shift), "--quiet", "--no-report", "--max-iterations", 1]
+    proc = run(*args, "--out", tmp_path / "o")  # one iteration: the surface is still moving
+    assert proc.returncode == 3, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("spheroseg: warning: check this segmentation"), proc.stderr
+    results = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert results["quality"]["poor"] is True
+    assert run(*args, "--out", tmp_path / "o2", "--allow-poor").returncode == 0
+    assert "3 done, outputs written, but the result is poor" in " ".join(run("segment", "--help").stdout.split())
+
+
 def test_never_overwrites_the_input(case, tmp_path):
     folder, image, ph = case
     path = tmp_path / "mask.mha"  # an input named like the output
@@ -188,6 +217,23 @@ def test_never_overwrites_the_input(case, tmp_path):
          "threads must be a positive integer"),
         (lambda d, img: ["track", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o", "--threads", -2],
          "threads must be a positive integer"),
+        (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o", "--patches",
+                         200, 200], "--patches must be at most 32 in each direction"),
+        (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o", "--step", 1e9],
+         "--step must be at most 10 mm"),
+        (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o",
+                         "--max-iterations", 0], "--max-iterations must be from 1 to 10000"),
+        (lambda d, img: ["track", img, "--apex", 20, 20, 20, "--base", 20, 20, 60, "--out", d / "o",
+                         "--iterations-per-frame", 0], "--iterations-per-frame must be from 1 to 10000"),
+        (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--base", 20, 20, 1e308, "--out", d / "o"],
+         "(20.00, 20.00, 1e+308) lies outside the image"),
+        # C++ readers' own lines (GDCM, MetaIO) do not precede the error line
+        (lambda d, img: ["segment", d / "empty", "--apex", 0, 0, 0, "--base", 0, 0, 9, "--out", d / "o"],
+         "no DICOM series"),
+        (lambda d, img: ["segment", d / "cut.mha", "--apex", 0, 0, 0, "--base", 0, 0, 9, "--out", d / "o"],
+         "cannot read image"),
+        (lambda d, img: ["segment", d / "huge.mhd", "--apex", 0, 0, 0, "--base", 0, 0, 9, "--out", d / "o"],
+         "over the memory budget of 4 GB"),
     ],
 )
 def test_bad_input_is_one_line(case, tmp_path, make_args, pattern):
@@ -197,9 +243,16 @@ def test_bad_input_is_one_line(case, tmp_path, make_args, pattern):
     (tmp_path / "notes.txt").write_text("hello")
     (tmp_path / "bad.mrk.json").write_text("{not json")
     sitk.WriteImage(sitk.GetImageFromArray(np.zeros((5, 6), np.uint8)), str(tmp_path / "flat.mha"))
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "readme.txt").write_text("no images here")
+    (tmp_path / "cut.mha").write_bytes(img.read_bytes()[:4000])
+    (tmp_path / "huge.mhd").write_text("ObjectType = Image\nNDims = 3\nDimSize = 2000 2000 2000\n"
+                                       "ElementType = MET_FLOAT\nElementDataFile = notes.txt\n")
+    before = sorted(p.name for p in tmp_path.iterdir())
     proc = run(*make_args(tmp_path, img))
     assert_one_line_error(proc, pattern)
     assert proc.returncode == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no --out left, nothing hidden
 
 
 @pytest.mark.skipif(os.geteuid() == 0, reason="root ignores file permissions")

@@ -6,7 +6,8 @@ import SimpleITK as sitk
 
 import spheroseg
 
-from spheroseg.io import ImageFileError, image_format, load, load_sequence, read_markups, save_mask, write_markups
+from spheroseg.io import (ImageFileError, image_format, load, load_sequence, read_markups, save_mask,
+                         write_folder_atomically, write_markups)
 from spheroseg.volume import Volume
 
 DIRECTION = (0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
@@ -142,6 +143,45 @@ def test_markups(tmp_path):
         read_markups(tmp_path / "bad.mrk.json")
 
 
+def _write_markups_doc(path, points, **markup):
+    path.write_text(json.dumps({"markups": [{"type": "Fiducial", **markup, "controlPoints": points}]}))
+    return path
+
+
+def test_markups_undefined_point_refused_unless_unused(tmp_path):
+    apex = {"label": "apex", "position": [1.0, 2.0, 3.0]}
+    base = {"label": "base", "position": [0.0, 0.0, 0.0], "positionStatus": "undefined"}
+    with pytest.raises(ValueError, match="'base' has positionStatus 'undefined'"):
+        read_markups(_write_markups_doc(tmp_path / "u.mrk.json", [apex, base]))
+    # a point spheroseg does not use may be unplaced
+    note = {"label": "note", "position": [0.0, 0.0, 0.0], "positionStatus": "undefined"}
+    marks = read_markups(_write_markups_doc(tmp_path / "n.mrk.json", [apex, note]))
+    np.testing.assert_array_equal(marks["apex"], [1.0, 2.0, 3.0])
+
+
+def test_markups_duplicate_apex_refused(tmp_path):
+    points = [{"label": "apex", "position": [1.0, 2.0, 3.0]}, {"label": "Apex", "position": [4.0, 5.0, 6.0]}]
+    with pytest.raises(ValueError, match="two control points labelled 'apex'"):
+        read_markups(_write_markups_doc(tmp_path / "d.mrk.json", points))
+
+
+@pytest.mark.parametrize("units, mm_per_unit", [("um", 1e-3), ("mm", 1.0), ("cm", 10.0), ("m", 1000.0),
+                                                (["cm", "cm", "cm"], 10.0)])
+def test_markups_units_converted_to_mm(tmp_path, units, mm_per_unit):
+    points = [{"label": "apex", "position": [1.0, 2.0, 3.0]}, {"label": "landmark-1", "position": [4.0, 5.0, 6.0]}]
+    marks = read_markups(_write_markups_doc(tmp_path / "p.mrk.json", points, coordinateSystem="RAS",
+                                            coordinateUnits=units))
+    np.testing.assert_allclose(marks["apex"], np.array([-1.0, -2.0, 3.0]) * mm_per_unit, rtol=1e-15)
+    np.testing.assert_allclose(marks["landmarks"], [np.array([-4.0, -5.0, 6.0]) * mm_per_unit], rtol=1e-15)
+
+
+@pytest.mark.parametrize("units", ["inch", ["mm", "cm", "mm"], 3])
+def test_markups_unknown_units_refused(tmp_path, units):
+    points = [{"label": "apex", "position": [1.0, 2.0, 3.0]}]
+    with pytest.raises(ValueError, match="coordinateUnits must be one of"):
+        read_markups(_write_markups_doc(tmp_path / "p.mrk.json", points, coordinateUnits=units))
+
+
 def test_markups_annulus_round_trip(tmp_path, rng):
     # Slicer labels as a user would type them; RAS converted to LPS
     doc = {"markups": [{"type": "Fiducial", "coordinateSystem": "RAS", "controlPoints": [
@@ -211,10 +251,74 @@ def test_save_volume_casts_to_the_dtype_asked(tmp_path):
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.int16, np.float32, np.float64])
 def test_load_owns_its_voxels(tmp_path, dtype, rng):
-    # load reads SimpleITK's buffer without a copy before the float32
-    # conversion; the voxels must not stay a view of the freed image
+    # load reads SimpleITK's buffer without a copy: float32 voxels stay a
+    # read-only view of it, which must keep the image alive (one working
+    # copy, not a dangling one); others are converted into a new array
+    import gc
+
     array = (rng.random((6, 7, 8)) * 100).astype(dtype)
     sitk.WriteImage(sitk.GetImageFromArray(array), str(tmp_path / "v.mha"))
     vol = load(tmp_path / "v.mha", no_data_value=None)
-    assert vol.array.flags.owndata and vol.array.dtype == np.float32
+    assert vol.array.dtype == np.float32
+    assert vol.array.flags.owndata == (dtype != np.float32)
+    assert vol.array.flags.owndata or not vol.array.flags.writeable
+    gc.collect()
+    overwrite = [sitk.GetImageFromArray(np.full(array.shape, -1.0, np.float32)) for _ in range(20)]
     np.testing.assert_array_equal(vol.array, array.astype(np.float32))
+    assert len(overwrite) == 20
+
+
+def test_write_folder_atomically_all_or_nothing(tmp_path):
+    def write(files, fail=False):
+        def into(folder):
+            for name, text in files.items():
+                (folder / name).parent.mkdir(exist_ok=True)
+                (folder / name).write_text(text)
+                if fail:
+                    raise OSError(28, "No space left on device")
+            return len(files)
+        return into
+
+    out = tmp_path / "new" / "out"
+    with pytest.raises(OSError, match="No space"):
+        write_folder_atomically(out, write({"a.txt": "1", "b.txt": "2"}, fail=True))
+    assert list(tmp_path.iterdir()) == []  # no out, no parent, nothing hidden
+    assert write_folder_atomically(out, write({"a.txt": "1", "f/1": "x", "f/2": "y"})) == 3
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == ["a.txt", "f", "f/1", "f/2"]
+    (out / "mine.txt").write_text("kept")
+    # a failure while writing the next set leaves the earlier one as it was
+    with pytest.raises(OSError):
+        write_folder_atomically(out, write({"a.txt": "new"}, fail=True), replaces=["a.txt", "f"])
+    assert (out / "a.txt").read_text() == "1" and (out / "f" / "2").exists()
+    # a complete set replaces the named entries (the folder f, all of it), keeps the others
+    write_folder_atomically(out, write({"a.txt": "new", "f/1": "z"}), replaces=["a.txt", "f", "gone"])
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == ["a.txt", "f", "f/1", "mine.txt"]
+    assert (out / "a.txt").read_text() == "new"
+    assert sorted(p.name for p in tmp_path.rglob(".*")) == []
+
+
+def _huge_header(path, n=2000):
+    (path.parent / "tiny.raw").write_bytes(b"\0" * 64)
+    path.write_text(f"ObjectType = Image\nNDims = 3\nDimSize = {n} {n} {n}\nElementType = MET_FLOAT\n"
+                    "ElementSpacing = 1 1 1\nElementDataFile = tiny.raw\n")
+    return path
+
+
+def test_declared_size_over_the_budget_is_refused_before_reading(tmp_path, monkeypatch):
+    monkeypatch.delenv("SPHEROSEG_MAX_IMAGE_GB", raising=False)
+    huge = _huge_header(tmp_path / "huge.mhd")  # 2000^3 floats: 32 GB declared, 64 bytes of data
+    for reader in (load, load_sequence):
+        with pytest.raises(ImageFileError, match=r"2000 x 2000 x 2000 voxels, 32 GB as float32, over the memory "
+                                                 r"budget of 4 GB \(set SPHEROSEG_MAX_IMAGE_GB"):
+            reader(huge)
+    # the budget is the user's: a small one refuses a small image, .npy included
+    small = np.zeros((10, 20, 30), np.float32)
+    np.save(tmp_path / "small.npy", small)
+    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", str(4 * small.size / 1e9 * 0.99))
+    with pytest.raises(ImageFileError, match="over the memory budget"):
+        load(tmp_path / "small.npy", spacing=(1, 1, 1))
+    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", str(4 * small.size / 1e9 * 1.01))
+    assert load(tmp_path / "small.npy", spacing=(1, 1, 1), no_data_value=None).shape == small.shape
+    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", "lots")
+    with pytest.raises(ValueError, match="SPHEROSEG_MAX_IMAGE_GB must be a positive number of GB, got 'lots'"):
+        load(tmp_path / "small.npy", spacing=(1, 1, 1))

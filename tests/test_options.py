@@ -22,7 +22,14 @@ def test_defaults_round_trip_through_json():
     (dict(tol=float("nan")), "tol must be a positive number"),
     (dict(coarse_tol=0.0), "coarse_tol must be a positive number"),
     (dict(max_iterations=True), "max_iterations must be a non-negative integer"),
-    (dict(order=0), "order must be a positive integer"),
+    (dict(order=0), "order must be from 1 to 16"),
+    (dict(patches=(200, 200)), "patches must be at most 32 in each direction"),
+    (dict(patches=(32, 32), order=16), "at most 65536"),
+    (dict(step=1e9), "step must be at most 10 mm, got 1e[+]09"),
+    (dict(band=1e6), "band must be at most 50 mm"),
+    (dict(band_out=51.0), "band_out must be at most 50 mm"),
+    (dict(max_iterations=0), "max_iterations must be from 1 to 10000, got 0"),
+    (dict(max_iterations=10**9), "max_iterations must be from 1 to 10000"),
     (dict(nu=-0.1), "nu must be a number >= 0"),
     (dict(radius_ratio=1.5), r"radius_ratio must be in \(0, 1\)"),
     (dict(interface=float("inf")), "interface must be a finite grey level"),
@@ -46,6 +53,7 @@ def test_format_point():
     import numpy as np
 
     assert format_point(np.array([1.0, -2.345, 1e3])) == "(1.00, -2.35, 1000.00)"
+    assert format_point(np.array([1.0, -1e308, 2.5e6])) == "(1.00, -1e+308, 2.5e+06)"
 
 
 def test_parameters_are_the_dataclass_fields():

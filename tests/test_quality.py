@@ -6,7 +6,8 @@ import pytest
 from spheroseg import segment
 from spheroseg.metrics import dice
 from spheroseg.phantom import FORMATIONS, make_phantom
-from spheroseg.quality import quality_report
+from spheroseg.quality import landmark_residuals, quality_report
+from spheroseg.surface import Surface
 
 
 def test_report_flags_what_is_out_of_the_ordinary():
@@ -98,6 +99,46 @@ def test_landmarks_stop_a_leak_through_a_third_of_the_wall():
     assert dice(held.mask(ph.volume), ph.truth_mask) >= 0.95
     assert abs(held.volume_ml / ph.truth_volume_ml - 1) < 0.06
     assert held.quality["bulge"] < 1.3
+    # landmarks on the true wall where it leaked: the surface passes within 2 mm of each, no warning about them
+    assert len(held.quality["landmark_residuals_mm"]) == 8 and max(held.quality["landmark_residuals_mm"]) < 2.0
+    assert not any("landmark" in w for w in held.quality["warnings"])
+
+
+def test_landmark_residuals_are_distances_to_the_wall():
+    """Exact where the nearest wall point is known: a point on the wall (0),
+    and points out from the base rim in its plane, where the half-ellipsoid
+    is widest (the rim is nearest: d)."""
+    s = Surface.from_apex_base([3.0, -2.0, 80.0], [1.0, 0.0, 2.0], patches=(8, 6))
+    lo, hi = s.grid.v2_range
+    rim = s.grid_points([0.0], [hi])[0, 0]
+    on_wall = s.grid_points([0.7], [0.5 * (lo + hi)])[0, 0]
+    radial = s.pose.rotation @ (s.pose.to_local(rim[None])[0] * [0, 1, 1])
+    radial /= np.linalg.norm(radial)
+    d = np.array([0.0, 2.5, 8.0, 30.0])
+    residuals = landmark_residuals(s, np.vstack([rim + dk * radial for dk in d] + [on_wall]))
+    np.testing.assert_allclose(residuals[:4], d, atol=1e-9)
+    assert residuals[4] < 0.5  # off the sampled points: within half their spacing
+    assert landmark_residuals(s, np.zeros((0, 3))).shape == (0,)
+
+
+def test_a_landmark_off_the_wall_is_reported():
+    """A landmark is held by a weight, not forced: 15 mm outside the wall the
+    surface stays near the wall and the report says how far it is from the
+    landmark (poor, a warning naming it)."""
+    ph = make_phantom(seed=1, spacing=2.0)
+    axis = (ph.base - ph.apex) / np.linalg.norm(ph.base - ph.apex)
+    points = ph.truth_mesh[0]
+    height = (points - ph.apex) @ axis
+    wall = points[np.argmin(np.abs(height - 0.5 * height.max()))]
+    radial = (wall - ph.apex) - ((wall - ph.apex) @ axis) * axis
+    off = wall + 15.0 * radial / np.linalg.norm(radial)
+    r = segment(ph.volume, ph.apex, ph.base, landmarks=[wall, off])
+    first, second = r.quality["landmark_residuals_mm"]
+    assert first < 2.0 and second > 8.0
+    assert r.quality["poor"] and any(w.startswith("the surface misses landmark 2 by") for w in r.quality["warnings"])
+    report = quality_report(contrast=2.0, low_contrast_fraction=0.0, no_data_fraction=0.0, converged=True,
+                            apex_shift_mm=1.0, volume_ratio=1.1, landmark_residuals_mm=[0.4, 3.04])
+    assert report["warnings"] == ["the surface misses landmark 2 by 3.0 mm (is it on the wall?)"]
 
 
 def test_wall_bulge():

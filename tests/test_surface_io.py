@@ -26,6 +26,15 @@ def test_vtk_is_marked_lps(tmp_path, surface):
     assert b"SPACE=LPS" in (tmp_path / "m.vtk").read_bytes().split(b"\n")[1]
 
 
+@pytest.mark.parametrize("suffix", [".vtk", ".ply", ".stl", ".obj"])
+def test_mesh_bytes_are_reproducible(tmp_path, surface, suffix):
+    """The same mesh written twice (meshio dates its PLY header) gives the same bytes."""
+    points, faces = surface.mesh()
+    write_mesh(tmp_path / f"a{suffix}", points, faces)
+    write_mesh(tmp_path / f"b{suffix}", points, faces)
+    assert (tmp_path / f"a{suffix}").read_bytes() == (tmp_path / f"b{suffix}").read_bytes()
+
+
 def test_surface_json_round_trip(tmp_path, surface):
     write_surface_json(tmp_path / "s.json", surface, volume_ml=surface.volume_ml())
     back = read_surface_json(tmp_path / "s.json")

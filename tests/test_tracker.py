@@ -196,3 +196,20 @@ def test_examples_in_docstrings_run():
     for module in map(importlib.import_module, ("spheroseg.segment", "spheroseg.tracker")):
         failures, tried = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
         assert tried > 0 and failures == 0, module.__name__
+
+
+def test_no_speckle_falls_back_to_the_local_means_and_says_so():
+    """A noise-free image (piecewise constant: no speckle to measure the log
+    compression from) in the default mode: the local means' wall, a warning
+    naming the fallback, instead of an error."""
+    from spheroseg.metrics import dice
+    from spheroseg.volume import Volume
+
+    ph = make_phantom(seed=1, spacing=2.0)
+    flat = Volume(np.where(ph.truth_mask, 20.0, 120.0), spacing=ph.volume.spacing, origin=ph.volume.origin)
+    r = segment(flat, ph.apex, ph.base)
+    assert r.parameters["mode"] == "intensity"
+    assert r.quality["poor"] and any("no speckle" in w and "mode='local'" in w for w in r.quality["warnings"])
+    local = segment(flat, ph.apex, ph.base, mode="local")
+    assert r.volume_ml == local.volume_ml  # the local means' wall, as mode='local' finds it
+    assert dice(r.mask(flat), ph.truth_mask) >= 0.9

@@ -16,17 +16,14 @@ replaced), or a worker that dies (the local pool is re-created; each study
 in flight when it broke is run again alone, so the one that kills its worker
 is the one reported).
 
-Test hook (for the test suite only): the environment variable
-``SPHEROSEG_BATCH_TEST_HOOK="ID=exit,ID2=sleep:SECONDS"`` makes a worker
-die abruptly (SIGKILL, as a crash) on study ``ID``, or spend ``SECONDS`` (in Python, so
-that a timeout interrupts it) before study ``ID2``.
+This module supervises the processes and runs a study; the manifest is
+:mod:`spheroseg.manifest`, the checksums and summaries
+:mod:`spheroseg.records` (their names are importable from here too).
 """
 
 from __future__ import annotations
 
-import csv
 import ctypes
-import hashlib
 import json
 import os
 import re
@@ -38,75 +35,25 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Executor, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import asdict, dataclass
-from io import StringIO
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from .manifest import MANIFEST_KEYS, ManifestError, Study, as_study, read_manifest, select_shard  # noqa: F401
+from .records import SUMMARY_FIELDS, study_checksum, summary_row, write_summary  # the names batch had
+
 __all__ = ["Study", "StudyOutcome", "StudyTimeout", "ManifestError", "read_manifest", "segment_many", "run_study",
            "study_checksum", "summary_row", "write_summary", "select_shard", "warm_up", "SUMMARY_FIELDS"]
 
-#: columns of ``summary.json`` / ``summary.csv``
-SUMMARY_FIELDS = ("id", "status", "kind", "volume_ml", "edv_ml", "esv_ml", "ef", "iterations", "descent_status",
-                  "quality", "seconds", "error")
-#: keys a manifest entry may have
-MANIFEST_KEYS = ("id", "image", "apex", "base", "annulus", "landmarks", "points", "spacing", "track")
 #: options of a run beside :class:`spheroseg.SegmentOptions`'s (see :func:`run_study`)
 RUN_OPTIONS = ("iterations_per_frame", "no_data_value", "mask_suffix", "stl", "report")
 #: a worker stuck past its timeout exits after this many more seconds (or half the timeout, if longer)
 HARD_TIMEOUT_GRACE = 10.0
-TEST_HOOK_VARIABLE = "SPHEROSEG_BATCH_TEST_HOOK"
-
-_SAFE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
-
-
-class ManifestError(ValueError):
-    """A manifest that cannot be run (nothing was started)."""
 
 
 class StudyTimeout(Exception):
     """Raised in a worker's thread when its study exceeds the timeout."""
-
-
-@dataclass(frozen=True)
-class Study:
-    """One study of a cohort (paths absolute; points world mm, LPS).
-
-    Attributes
-    ----------
-    id : str
-        Unique; the name of its output folder.
-    image : str
-        A volume or a sequence (file, folder of frames, glob, DICOM folder).
-    apex, base : tuple of 3 floats, optional
-        Needed unless ``points`` gives them (``base`` or ``annulus``).
-    annulus : tuple of points
-        Three or more points of the mitral annulus, instead of ``base``.
-    landmarks : tuple of points
-    points : str, optional
-        A 3D Slicer markups file with points labelled apex, base, landmark...
-    spacing : tuple of 3 floats, optional
-        Voxel spacing, mm (needed for ``.npy``).
-    track : bool, optional
-        Track a sequence (True) or segment one volume (False); None: track a
-        4D input.
-    """
-
-    id: str
-    image: str
-    apex: tuple | None = None
-    base: tuple | None = None
-    annulus: tuple = ()
-    landmarks: tuple = ()
-    points: str | None = None
-    spacing: tuple | None = None
-    track: bool | None = None
-
-    def as_entry(self) -> dict:
-        """The study as a manifest entry (JSON values)."""
-        return {k: (list(map(list, v)) if k in ("landmarks", "annulus") else list(v) if isinstance(v, tuple) else v)
-                for k, v in asdict(self).items()}
 
 
 @dataclass(frozen=True)
@@ -133,195 +80,6 @@ class StudyOutcome:
         return self.row["status"]
 
 
-# -- manifests ---------------------------------------------------------------
-
-
-def _numbers(value, count: int | None, what: str) -> tuple:
-    if isinstance(value, str):
-        value = value.replace(",", " ").split()
-    try:
-        numbers = tuple(float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what} must be numbers, got {value!r}") from None
-    if (count is not None and len(numbers) != count) or not all(np.isfinite(numbers)):
-        raise ValueError(f"{what} must be {count} finite numbers (x y z), got {value!r}")
-    return numbers
-
-
-def _point_list(value, what: str) -> tuple:
-    if value in (None, ""):
-        return ()
-    if isinstance(value, str):
-        value = [part for part in value.split(";") if part.strip()]
-    if not isinstance(value, (list, tuple)):
-        raise ValueError(f"{what} must be a list of points, got {value!r}")
-    return tuple(_numbers(p, 3, f"each point of {what}") for p in value)
-
-
-def _flag(value) -> bool | None:
-    if value is None or isinstance(value, bool):
-        return value
-    text = str(value).strip().lower()
-    if text == "":
-        return None
-    if text in ("true", "yes", "1"):
-        return True
-    if text in ("false", "no", "0"):
-        return False
-    raise ValueError(f"track must be true or false, got {value!r}")
-
-
-def _study(entry, folder: Path) -> Study:
-    if not isinstance(entry, dict):
-        raise ValueError(f"a study must be an object with keys {', '.join(MANIFEST_KEYS)}, got {type(entry).__name__}")
-    unknown = sorted(set(entry) - set(MANIFEST_KEYS))
-    if unknown:
-        raise ValueError(f"unknown key(s) {', '.join(unknown)} (known: {', '.join(MANIFEST_KEYS)})")
-    ident = str(entry.get("id") or "").strip()
-    if not _SAFE_ID.fullmatch(ident):
-        raise ValueError(f"id must be a safe folder name (letters, digits, . _ -; not starting with . _ -), got {ident!r}")
-    image = str(entry.get("image") or "").strip()
-    if not image:
-        raise ValueError("no image")
-    points = str(entry.get("points") or "").strip() or None
-    apex = None if entry.get("apex") in (None, "") else _numbers(entry["apex"], 3, "apex")
-    base = None if entry.get("base") in (None, "") else _numbers(entry["base"], 3, "base")
-    annulus = _point_list(entry.get("annulus"), "annulus")
-    if annulus and len(annulus) < 3:
-        raise ValueError(f"annulus needs 3 or more points, got {len(annulus)}")
-    if points is None and (apex is None or (base is None and not annulus)):
-        raise ValueError("give apex and base (x y z, mm) or apex and annulus, or points (a markups file)")
-    spacing = None if entry.get("spacing") in (None, "") else _numbers(entry["spacing"], 3, "spacing")
-    if spacing is not None and min(spacing) <= 0:
-        raise ValueError(f"spacing must be positive, got {spacing}")
-    resolve = lambda p: str(p if Path(p).is_absolute() else folder / p)  # noqa: E731
-    return Study(id=ident, image=resolve(image), apex=apex, base=base, annulus=annulus,
-                 landmarks=_point_list(entry.get("landmarks"), "landmarks"),
-                 points=None if points is None else resolve(points), spacing=spacing, track=_flag(entry.get("track")))
-
-
-def read_manifest(path: str | os.PathLike) -> list[Study]:
-    """Read the studies of a JSON or CSV manifest.
-
-    JSON: a list of objects.  CSV: a header row and one row a study, a point
-    written ``x y z``, landmarks ``x y z; x y z``.  Keys: ``id`` (unique, a
-    safe folder name), ``image``, ``apex`` and ``base`` (mm, LPS), optional
-    ``landmarks``, ``points`` (a markups file instead of apex/base),
-    ``spacing``, ``track`` and ``annulus`` (3 or more points of the mitral
-    annulus instead of ``base``).  Relative paths are relative to the manifest's
-    folder.  Input files are not opened here (a missing image fails its
-    study, not the manifest).
-
-    Raises
-    ------
-    ManifestError
-        With the file, the entry and the reason.
-    """
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except OSError as exc:
-        raise ManifestError(f"{path}: cannot read manifest ({exc.strerror})") from None
-    except UnicodeDecodeError:
-        raise ManifestError(f"{path}: a manifest must be UTF-8 text (JSON or CSV)") from None
-    if path.suffix.lower() == ".json":
-        try:
-            entries = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ManifestError(f"{path}: not JSON ({exc.msg}, line {exc.lineno})") from None
-        if not isinstance(entries, list):
-            raise ManifestError(f"{path}: a JSON manifest must be a list of studies")
-        where = lambda k: f"study {k + 1}"  # noqa: E731
-    elif path.suffix.lower() == ".csv":
-        reader = csv.DictReader(StringIO(text))
-        if reader.fieldnames is None:
-            raise ManifestError(f"{path}: empty CSV manifest (expected a header: {','.join(MANIFEST_KEYS)})")
-        entries = [{k.strip(): (v or "").strip() for k, v in row.items() if k is not None and (v or "").strip()}
-                   for row in reader]
-        where = lambda k: f"row {k + 2}"  # noqa: E731
-    else:
-        raise ManifestError(f"{path}: a manifest is .json or .csv, got {path.suffix or 'no suffix'}")
-    if not entries:
-        raise ManifestError(f"{path}: no studies")
-    studies, seen = [], set()
-    for k, entry in enumerate(entries):
-        try:
-            study = _study(entry, path.parent.resolve())
-        except ValueError as exc:
-            name = entry.get("id") if isinstance(entry, dict) else None
-            raise ManifestError(f"{path}: {where(k)}{f' ({name})' if name else ''}: {exc}") from None
-        if study.id.lower() in seen:
-            raise ManifestError(f"{path}: {where(k)}: id {study.id!r} appears twice")
-        seen.add(study.id.lower())
-        studies.append(study)
-    return studies
-
-
-def select_shard(studies: list, shard: tuple[int, int] | None) -> list:
-    """Studies ``i - 1, i - 1 + n, ...`` of shard ``(i, n)`` (1 <= i <= n); all if None."""
-    if shard is None:
-        return list(studies)
-    i, n = shard
-    if not (1 <= i <= n):
-        raise ValueError(f"shard must be I/N with 1 <= I <= N, got {i}/{n}")
-    return list(studies[i - 1::n])
-
-
-# -- checksums ---------------------------------------------------------------
-
-
-def _header_data_file(path: Path) -> Path | None:
-    """The data file a MetaImage (.mhd) or detached NRRD (.nhdr) header names."""
-    key = {".mhd": "elementdatafile", ".nhdr": "data file"}.get(path.suffix.lower())
-    if key is None:
-        return None
-    try:
-        with open(path, encoding="latin-1") as handle:
-            for line in handle:
-                name, sep, value = line.partition("=" if key == "elementdatafile" else ":")
-                if sep and name.strip().lower() == key:
-                    value = value.strip()
-                    return None if value.upper() in ("LOCAL", "") else path.parent / value
-    except OSError:
-        return None
-    return None
-
-
-def _input_files(image: str) -> list[Path]:
-    if any(ch in image for ch in "*?["):
-        import glob
-
-        files = [Path(f) for f in sorted(glob.glob(image))]
-    elif Path(image).is_dir():
-        files = sorted(p for p in Path(image).rglob("*") if p.is_file())
-    else:
-        files = [Path(image)]
-    for f in list(files):
-        data = _header_data_file(f)
-        if data is not None and data not in files:
-            files.append(data)
-    return files
-
-
-def study_checksum(study: Study, options: dict) -> str:
-    """SHA-256 of the study's entry, the options and the bytes of every input
-    file (an image's data file, a folder's files, the markups); a missing
-    file counts as missing, so the study runs and fails with its reason.
-    The thread count is left out: it changes no result."""
-    digest = hashlib.sha256()
-    options = {k: v for k, v in options.items() if k != "threads"}
-    digest.update(json.dumps({"study": study.as_entry(), "options": options}, sort_keys=True).encode())
-    for path in _input_files(study.image) + ([Path(study.points)] if study.points else []):
-        digest.update(f"\0{path.name}\0".encode())
-        try:
-            with open(path, "rb") as handle:
-                for block in iter(lambda: handle.read(1 << 20), b""):
-                    digest.update(block)
-        except OSError:
-            digest.update(b"\0missing\0")
-    return digest.hexdigest()
-
-
 # -- one study, in a worker --------------------------------------------------
 
 
@@ -330,22 +88,6 @@ def _die() -> None:
     import signal
 
     os.kill(os.getpid(), signal.SIGKILL)
-
-
-def _test_hook(study_id: str) -> None:
-    spec = os.environ.get(TEST_HOOK_VARIABLE)
-    if not spec:
-        return
-    for item in spec.split(","):
-        name, _, action = item.partition("=")
-        if name.strip() != study_id:
-            continue
-        if action == "exit":
-            _die()
-        if action.startswith("sleep:"):  # in small steps, as a long computation: a timeout interrupts it
-            end = time.monotonic() + float(action.split(":", 1)[1])
-            while time.monotonic() < end:
-                time.sleep(0.02)
 
 
 class _Deadline:
@@ -443,23 +185,6 @@ def _install(tmp: Path, final: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def summary_row(results: dict) -> dict:
-    """A study's summary line from its ``results.json`` content."""
-    tracked = "edv_ml" in results
-    iterations = results.get("iterations")
-    seconds = results.get("seconds", {})
-    return {
-        "id": results.get("id"), "status": "ok", "kind": "track" if tracked else "segment",
-        "volume_ml": None if tracked else results.get("volume_ml"),
-        "edv_ml": results.get("edv_ml"), "esv_ml": results.get("esv_ml"), "ef": results.get("ef_percent"),
-        "iterations": int(np.sum(iterations)) if iterations is not None else None,
-        # why the descent stopped (0 converged, 1 iteration cap, ...), when the result records it
-        "descent_status": results.get("status"), "quality": results.get("quality"),
-        "seconds": float(seconds.get("load", 0.0) + np.sum(seconds.get("segment", 0.0))),
-        "error": None,
-    }
-
-
 def _failed_row(study_id: str, error: str, seconds: float | None = None) -> dict:
     row = dict.fromkeys(SUMMARY_FIELDS)
     row.update(id=study_id, status="failed", error=error, seconds=seconds)
@@ -503,7 +228,6 @@ def run_study(study: Study, out: str | os.PathLike, *, options: dict | None = No
     tmp = out / f".{study.id}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:
         with _Deadline(timeout):
-            _test_hook(study.id)
             apex, base, landmarks, annulus = _points(study)
             sequence = _is_sequence(study.image) if study.track is None else study.track
             common = dict(source=study.image, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
@@ -656,10 +380,6 @@ def _run_executor(jobs: list, executor: Executor, call: Callable) -> Iterator[tu
             future.cancel()
 
 
-def _as_study(item, folder: Path) -> Study:
-    return item if isinstance(item, Study) else _study(item, folder)
-
-
 def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executor | None = None,
                  workers: int | None = None, timeout: float | None = None,
                  options: dict | None = None) -> Iterator[StudyOutcome]:
@@ -705,7 +425,7 @@ def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executo
     """
     from .options import SegmentOptions
 
-    studies = [_as_study(s, Path.cwd()) for s in studies]
+    studies = [as_study(s, Path.cwd()) for s in studies]
     ids = [s.id.lower() for s in studies]
     if len(set(ids)) != len(ids):
         raise ValueError("study ids must be unique")
@@ -753,20 +473,3 @@ def _call(study: Study, checksum: str, *, out: str, options: dict, timeout: floa
     return run_study(study, out, options=options, checksum=checksum, timeout=timeout)
 
 
-def write_summary(out: str | os.PathLike, rows: list[dict], *, name: str = "summary") -> tuple[Path, Path]:
-    """Write ``out/<name>.json`` (a list of rows) and ``out/<name>.csv``
-    (``quality`` as JSON text), each atomically."""
-    from .io import write_atomically
-    from .outputs import write_json
-
-    out = Path(out)
-    rows = [{k: row.get(k) for k in SUMMARY_FIELDS} for row in rows]
-    write_json(out / f"{name}.json", rows)
-    text = StringIO()
-    writer = csv.DictWriter(text, fieldnames=SUMMARY_FIELDS, lineterminator="\n")
-    writer.writeheader()
-    for row in rows:
-        writer.writerow({k: ("" if v is None else json.dumps(v) if isinstance(v, (dict, list)) else v)
-                         for k, v in row.items()})
-    write_atomically(out / f"{name}.csv", lambda tmp: tmp.write_text(text.getvalue()))
-    return out / f"{name}.json", out / f"{name}.csv"

@@ -20,6 +20,13 @@ from . import __version__
 from .options import MODES, SYSTEMS, SegmentOptions
 
 EXIT_ERROR = 2
+#: the run completed and wrote its outputs, but a result is poor (its quality
+#: report has warnings): a pipeline stops here unless --allow-poor
+EXIT_POOR = 3
+#: the exit statuses of segment and track, for their --help
+_EXIT_HELP = ("Exit status: 0 done; 2 an error, one line on stderr (nothing written); 3 done, outputs written, but the "
+              "result is poor (a warning line on stderr, quality in results.json; --allow-poor makes it 0); "
+              "130 interrupted (nothing written).")
 #: thread counts of the linear algebra libraries, set to 1 for batch workers unless given
 BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -53,7 +60,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--points", metavar="MRK_JSON",
                    help="3D Slicer markups with points labelled apex, base, annulus..., landmark...")
     p.add_argument("--landmark", nargs=3, type=float, action="append", default=[], metavar=("X", "Y", "Z"),
-                   help="a point the surface must pass through (repeatable)")
+                   help="a point of the wall the surface is drawn to (repeatable); quality in results.json "
+                        "gives how far the surface ends from each, more than 2 mm is a warning")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
     p.add_argument("--force", action="store_true", help="overwrite existing outputs in DIR")
     p.add_argument("--spacing", nargs=3, type=float, metavar=("SX", "SY", "SZ"),
@@ -79,6 +87,8 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stl", action="store_true", help="also write the mesh as STL")
     p.add_argument("--no-report", action="store_true", help="skip the PNG report")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stdout")
+    p.add_argument("--allow-poor", action="store_true",
+                   help="exit 0 when a result is poor (its quality report has warnings); default: exit 3")
     p.add_argument("--profile", action="store_true",
                    help="print the time of every stage (import, read, padding, segment, mask, meshes, writes, "
                         "report) on stderr; they are in results.json's seconds block either way")
@@ -114,10 +124,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"spheroseg {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    seg = sub.add_parser("segment", help="segment one 3D image")
+    seg = sub.add_parser("segment", help="segment one 3D image", description="Segment one 3D image. " + _EXIT_HELP)
     seg.add_argument("image", help="3D image (.mhd, .mha, .nii[.gz], .nrrd, .npy, DICOM folder)")
     _add_common(seg)
-    tr = sub.add_parser("track", help="segment every frame of a 3D+t sequence; EDV, ESV, EF")
+    tr = sub.add_parser("track", help="segment every frame of a 3D+t sequence; EDV, ESV, EF",
+                        description="Segment every frame of a 3D+t sequence; EDV, ESV, EF. " + _EXIT_HELP)
     tr.add_argument("sequence", help="4D image, .seq.nrrd, folder or glob of 3D frames, DICOM folder")
     _add_common(tr)
     tr.add_argument("--iterations-per-frame", type=int, default=20)
@@ -131,8 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--quiet", action="store_true")
     batch = sub.add_parser("batch", help="segment or track every study of a manifest (JSON or CSV), resumably",
                            description="Segment or track every study of a manifest; DIR/<id>/ per study, "
-                                       "DIR/summary.json and .csv. Exit status: 0 every study ok, 1 some failed, "
-                                       "2 a bad manifest or bad options (nothing run); 130 interrupted.")
+                                       "DIR/summary.json and .csv (a poor column). Exit status: 0 every study ok, 1 some "
+                                       "failed, 2 a bad manifest or bad options (nothing run), 3 none failed but some "
+                                       "result is poor (--allow-poor makes it 0); 130 interrupted.")
     batch.add_argument("manifest", help="JSON (a list of studies) or CSV; keys id, image, apex, base, landmarks, "
                                         "points, spacing, track")
     batch.add_argument("--out", required=True, metavar="DIR", help="cohort folder (created if missing)")
@@ -185,14 +197,35 @@ def _make_folder(out: Path) -> None:
         raise CliError(f"cannot create output folder {out}: {exc.strerror}") from None
 
 
+def _output_set() -> list[str]:
+    """Every entry ``segment`` or ``track`` may leave in ``--out``: what
+    ``--force`` replaces as one set."""
+    from .io import MASK_SUFFIXES
+
+    return (["results.json", "report.png", "masks", "meshes", "surface.json", "surface.exnode", "surface.exelem",
+             "mesh.vtk", "mesh.ply", "mesh.stl", "mask.raw", "mask.zraw"] + ["mask" + s for s in MASK_SUFFIXES])
+
+
 def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -> None:
-    _make_folder(out)
-    if not os.access(out, os.W_OK):
-        raise CliError(f"output folder {out} is not writable")
-    resolved_inputs = {p.resolve() for p in inputs if p.exists()}
+    """Refuse an output folder the outputs ``names`` cannot go to (before any
+    input is read); nothing is created."""
+    from .io import image_files
+
+    out = Path(os.path.abspath(out))
+    if out.exists() and not out.is_dir():
+        raise CliError(f"output folder {out} is a file")
+    anchor = out
+    while not anchor.exists() and anchor != anchor.parent:
+        anchor = anchor.parent
+    if not anchor.is_dir() or not os.access(anchor, os.W_OK):
+        raise CliError(f"output folder {out} is not writable" if anchor == out else
+                       f"cannot create output folder {out}: {anchor} is not a writable folder")
+    if anchor == out and not os.access(out.parent, os.W_OK):
+        raise CliError(f"cannot write beside output folder {out}: {out.parent} is not writable")
+    resolved_inputs = {f.resolve() for p in inputs for f in image_files(str(p)) if f.exists()}
     for name in names:
         target = (out / name).resolve()
-        if target in resolved_inputs:
+        if any(f == target or target in f.parents for f in resolved_inputs):
             raise CliError(f"output {target} would overwrite an input; choose another --out")
         if target.exists() and not force:
             raise CliError(f"{target} exists; use --force to overwrite")
@@ -215,6 +248,22 @@ def _points(args):
         raise CliError("give the apex and the base (--apex X Y Z --base X Y Z) or the apex and 3 or more points of "
                        "the mitral annulus (--annulus X Y Z, repeated), or --points with those labels")
     return apex, base, (np.array(landmarks) if landmarks else None), (np.array(annulus) if annulus else None)
+
+
+def _check_options(args) -> None:
+    """Bad options: one line naming the command-line option, before any input is read."""
+    from .options import LIMITS
+
+    per_frame = getattr(args, "iterations_per_frame", 1)
+    if not 1 <= per_frame <= LIMITS["max_iterations"]:
+        raise CliError(f"--iterations-per-frame must be from 1 to {LIMITS['max_iterations']}, got {per_frame}")
+    try:
+        SegmentOptions(**_segment_kwargs(args))
+    except ValueError as exc:
+        name, _, rest = str(exc).partition(" ")
+        if name in vars(args):
+            raise CliError(f"--{name.replace('_', '-')} {rest}") from None
+        raise
 
 
 def _segment_kwargs(args) -> dict:
@@ -309,41 +358,42 @@ def cmd_segment(args) -> int:
     # exceed the wall time it stands for)
     seconds = {"import": time.thread_time()}
     t0 = time.perf_counter()
+    from .io import write_folder_atomically
     from .outputs import write_segmentation_outputs
     from .segment import segment
 
     seconds["import"] += time.perf_counter() - t0
     source = Path(args.image)
-    SegmentOptions(**_segment_kwargs(args))  # bad options: an error before the image is read
+    _check_options(args)
     suffix = _mask_suffix(args, source)
-    names = ["mask" + suffix, "mesh.vtk", "mesh.ply", "surface.json", "surface.exnode", "surface.exelem", "results.json",
-             "report.png"] + (["mesh.stl"] if args.stl else [])
     apex, base, landmarks, annulus = _points(args)
-    _prepare_out(Path(args.out), names, args.force, [source])
     out = Path(args.out)
+    _prepare_out(out, _output_set(), args.force, [source])
     with _report_worker(args) as worker:
         volume = _load_timed(source, args, seconds)
         t0 = time.perf_counter()
         result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, **_segment_kwargs(args))
         seconds["segment"] = time.perf_counter() - t0
         seconds["descent"] = result.seconds
-        written = write_segmentation_outputs(out, volume, result, source=source, apex=apex, base=base,
-                                             annulus=annulus, landmarks=landmarks, mask_suffix=suffix, stl=args.stl,
-                                             report=not args.no_report, seconds=seconds, report_worker=worker)
+        written = write_folder_atomically(out, lambda tmp: write_segmentation_outputs(
+            tmp, volume, result, source=source, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
+            mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds=seconds, report_worker=worker),
+            replaces=_output_set())
     if args.profile:
         print(profile_lines(written["seconds"]), file=sys.stderr)
     _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
-    _warn_quality([result])
-    return 0
+    return _warn_quality([result], args)
 
 
-def _warn_quality(frames) -> None:
-    """One line on stderr when a result is poor (results.json has the report)."""
+def _warn_quality(frames, args) -> int:
+    """One line on stderr when a result is poor (results.json has the
+    report); the exit status: :data:`EXIT_POOR` then, unless ``--allow-poor``."""
     from .quality import quality_warning
 
     line = quality_warning(frames)
     if line:
         print(f"spheroseg: warning: {line}", file=sys.stderr)
+    return EXIT_POOR if line and not args.allow_poor else 0
 
 
 def profile_lines(seconds: dict) -> str:
@@ -357,17 +407,16 @@ def profile_lines(seconds: dict) -> str:
 
 
 def cmd_track(args) -> int:
-    from .io import load_sequence
+    from .io import load_sequence, write_folder_atomically
     from .outputs import write_tracking_outputs
     from .segment import track
 
     source = Path(args.sequence)
-    SegmentOptions(**_segment_kwargs(args))  # bad options: an error before the sequence is read
+    _check_options(args)
     suffix = _mask_suffix(args, source)
     apex, base, landmarks, annulus = _points(args)
-    names = ["masks", "meshes", "results.json", "report.png"]
-    _prepare_out(Path(args.out), names, args.force, [source])
     out = Path(args.out)
+    _prepare_out(out, _output_set(), args.force, [source])
     with _report_worker(args) as worker:
         t0 = time.perf_counter()
         volumes = load_sequence(args.sequence, spacing=args.spacing, no_data_value=args.no_data)
@@ -378,7 +427,8 @@ def cmd_track(args) -> int:
         if not args.quiet:
             from tqdm import tqdm
 
-            bar = tqdm(total=len(volumes), unit="frame", desc="tracking", file=sys.stderr)
+            # leave=False: the bar clears itself, so an error after it is the only line
+            bar = tqdm(total=len(volumes), unit="frame", desc="tracking", file=sys.stderr, leave=False)
         progress = (lambda done, total: bar.update(done - bar.n)) if bar is not None else None
         try:
             result = track(volumes, apex, base, annulus=annulus, landmarks=landmarks,
@@ -386,17 +436,17 @@ def cmd_track(args) -> int:
         finally:
             if bar is not None:
                 bar.close()
-        written = write_tracking_outputs(out, volumes, result, source=source, apex=apex, base=base, annulus=annulus,
-                                         landmarks=landmarks, mask_suffix=suffix, stl=args.stl,
-                                         report=not args.no_report, seconds=timings, report_worker=worker)
+        written = write_folder_atomically(out, lambda tmp: write_tracking_outputs(
+            tmp, volumes, result, source=source, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
+            mask_suffix=suffix, stl=args.stl, report=not args.no_report, seconds=timings, report_worker=worker),
+            replaces=_output_set())
     if args.profile:
         seconds = written["seconds"]
         print(profile_lines({"load": seconds["load"], "kernels": seconds["kernels"],
                              "segment": sum(seconds["segment"])}), file=sys.stderr)
     _say(args, f"EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
                f"(frame {result.es_frame}), EF {result.ef:.1f} %; outputs in {out}")
-    _warn_quality(result.frames)
-    return 0
+    return _warn_quality(result.frames, args)
 
 
 def cmd_scan_convert(args) -> int:
@@ -439,9 +489,7 @@ def cmd_batch(args) -> int:
     from .batch import read_manifest, segment_many, select_shard, warm_up, write_summary
 
     studies = select_shard(read_manifest(args.manifest), args.shard)
-    SegmentOptions(**_segment_kwargs(args))  # bad options: an error before anything runs
-    if args.iterations_per_frame < 1:
-        raise CliError(f"--iterations-per-frame must be a positive integer, got {args.iterations_per_frame}")
+    _check_options(args)
     options = {**_segment_kwargs(args), "iterations_per_frame": args.iterations_per_frame,
                "no_data_value": args.no_data, "mask_suffix": _mask_suffix(args, Path("")) if args.mask_format else None,
                "stl": args.stl, "report": not args.no_report}
@@ -483,8 +531,11 @@ def cmd_batch(args) -> int:
     name = "summary" if args.shard is None else "summary-{}-of-{}".format(*args.shard)
     write_summary(out, [rows[s.id] for s in studies], name=name)
     failed = sum(row["status"] != "ok" for row in rows.values())
-    _say(args, f"{len(rows) - failed} ok, {failed} failed; summary in {out / name}.json and .csv")
-    return 1 if failed else 0
+    poor = sum(bool(row.get("poor")) for row in rows.values())
+    _say(args, f"{len(rows) - failed} ok ({poor} poor), {failed} failed; summary in {out / name}.json and .csv")
+    if poor:
+        print(f"spheroseg: warning: {poor} poor result(s): see the poor column of {out / name}.csv", file=sys.stderr)
+    return 1 if failed else (EXIT_POOR if poor and not args.allow_poor else 0)
 
 
 def _fresh_demo_folder() -> Path:
@@ -505,6 +556,7 @@ def cmd_demo(args) -> int:
 
     out = Path(args.out) if args.out else _fresh_demo_folder()
     _prepare_out(out, ["results.json", "report.png", "masks", "meshes"], args.force, [])
+    _make_folder(out)
     _say(args, "spheroseg demo: a synthetic apical 3D+t echo sequence (10 frames, 1.25 mm voxels, speckle), tracked "
                "from its apex and base points and compared with its exact truth")
     t0 = time.perf_counter()

@@ -407,6 +407,11 @@ def patch_of_rows(grid, order: int, rows: np.ndarray) -> np.ndarray:
     return ((rows // n_row) // order) * grid.n1 + (rows % n_row) // order
 
 
+class NoSpeckleError(ValueError):
+    """No speckle to estimate the log compression from (a noise-free or
+    heavily smoothed image): :func:`speckle_nepers` cannot measure it."""
+
+
 def speckle_nepers(samples: np.ndarray, patch: np.ndarray, *, min_rays: int = 6) -> float:
     """Grey levels per neper of intensity from log-compressed speckle.
 
@@ -433,7 +438,7 @@ def speckle_nepers(samples: np.ndarray, patch: np.ndarray, *, min_rays: int = 6)
     variances = (squares[enough] - total[enough] ** 2 / n) / (n - 1)
     median = nanmedian(variances)
     if not variances.size or median <= 0:
-        raise ValueError("no speckle around the surface to estimate the log compression from "
+        raise NoSpeckleError("no speckle around the surface to estimate the log compression from "
                          "(use mode='local' for images that are not log-compressed echo)")
     typical = variances[variances <= 3 * median]
     return float(np.sqrt(typical.mean())) / IntensityInterface.LOG_SPREAD

@@ -13,7 +13,7 @@ import numpy as np
 
 from .surface import DEFAULT_RADIUS_RATIO
 
-__all__ = ["SegmentOptions", "MODES", "SYSTEMS", "BACKENDS", "format_point"]
+__all__ = ["SegmentOptions", "MODES", "SYSTEMS", "BACKENDS", "LIMITS", "format_point"]
 
 #: data terms (see :mod:`spheroseg.dataterms`)
 MODES = ("intensity", "local", "chan-vese", "fast")
@@ -21,11 +21,21 @@ MODES = ("intensity", "local", "chan-vese", "fast")
 SYSTEMS = ("prolate", "spherical", "cylindrical")
 #: array backends (see :mod:`spheroseg.backends`)
 BACKENDS = ("auto", "compiled", "numpy")
+#: upper bounds of the options that size memory or time: patches per
+#: direction and sample points per patch and direction (32 x 32 patches of
+#: 8 x 8 points hold 1.2 GB during a descent, and memory grows with the
+#: number of points), band widths and step (mm: a ventricle's radius is some 25 mm;
+#: a wider band or a longer step measures or moves past the heart)
+#: and iterations per level
+LIMITS = {"patches": 32, "order": 16, "sample_points": 32 * 32 * 8 * 8, "band": 50.0, "band_out": 50.0,
+          "step": 10.0, "max_iterations": 10000}
 
 
 def format_point(point) -> str:
-    """``(x, y, z)`` with two decimals, for messages."""
-    return "(" + ", ".join(f"{float(v):.2f}" for v in np.ravel(point)) + ")"
+    """``(x, y, z)`` with two decimals (three significant digits beyond a
+    million), for messages."""
+    return "(" + ", ".join(f"{float(v):.2f}" if abs(float(v)) < 1e6 else f"{float(v):.3g}"
+                           for v in np.ravel(point)) + ")"
 
 
 @dataclass(frozen=True)
@@ -144,11 +154,16 @@ class SegmentOptions:
             patches = ()
         if len(patches) != 2 or min(patches) < 2 or patches != tuple(self.patches):
             raise ValueError(f"patches must be two integers >= 2 (around, along), got {self.patches!r}")
+        if max(patches) > LIMITS["patches"]:
+            raise ValueError(f"patches must be at most {LIMITS['patches']} in each direction, got {self.patches!r}")
         object.__setattr__(self, "patches", patches)
         for name in ("step", "tol", "band", "band_out"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
+        for name in ("step", "band", "band_out"):
+            if getattr(self, name) > LIMITS[name]:
+                raise ValueError(f"{name} must be at most {LIMITS[name]:g} mm, got {getattr(self, name):.3g}")
         if self.coarse_tol is not None and not (isinstance(self.coarse_tol, (int, float, np.number))
                                                 and np.isfinite(self.coarse_tol) and self.coarse_tol > 0):
             raise ValueError(f"coarse_tol must be a positive number (or None: twice tol), got {self.coarse_tol!r}")
@@ -163,8 +178,14 @@ class SegmentOptions:
             raise ValueError(f"threads must be a positive integer (or None: numba's setting), got {self.threads!r}")
         if self.threads is not None:
             object.__setattr__(self, "threads", int(self.threads))  # JSON-ready
-        if self.order < 1:
-            raise ValueError(f"order must be a positive integer, got {self.order!r}")
+        if self.max_iterations < 1 or self.max_iterations > LIMITS["max_iterations"]:
+            raise ValueError(f"max_iterations must be from 1 to {LIMITS['max_iterations']}, got {self.max_iterations!r}")
+        if self.order < 1 or self.order > LIMITS["order"]:
+            raise ValueError(f"order must be from 1 to {LIMITS['order']}, got {self.order!r}")
+        points = patches[0] * patches[1] * self.order ** 2
+        if points > LIMITS["sample_points"]:
+            raise ValueError(f"patches {patches[0]} x {patches[1]} at order {self.order} make {points} sample points; "
+                             f"at most {LIMITS['sample_points']} (32 x 32 patches at order 8)")
         for name in ("nu", "smoothness", "landmark_weight", "apex_weight"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value >= 0):

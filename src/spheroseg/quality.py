@@ -20,6 +20,10 @@ report says what the descent saw and did:
     Distance from the clicked apex to the surface's apex.
 ``volume_ratio``
     Final volume over the initial half-ellipsoid's.
+``landmark_residuals_mm``
+    Distance from each landmark the user gave to the final surface, in the
+    order given.  A landmark is held by a weight against the data, not
+    forced: one put off the wall (a misclick) pulls the wall part way only.
 ``bulge``
     How much farther the wall went out in its most-moved place than it did
     elsewhere (:func:`wall_bulge`): a leak through a stretch of wall without
@@ -45,11 +49,11 @@ import numpy as np
 
 from .dataterms import nanmedian
 
-__all__ = ["quality_report", "quality_warning", "wall_bulge", "axis_distances"]
+__all__ = ["quality_report", "quality_warning", "wall_bulge", "axis_distances", "landmark_residuals"]
 
 #: the bounds of a plausible result
 LIMITS = {"contrast": 0.5, "low_contrast_fraction": 0.3, "no_data_fraction": 0.1, "apex_shift_mm": 10.0,
-          "volume_ratio": (1 / 3, 3.0), "bulge": 1.6}
+          "volume_ratio": (1 / 3, 3.0), "bulge": 1.6, "landmark_residual_mm": 2.0}
 
 
 def wall_bulge(surface, initial, *, reference: np.ndarray | None = None) -> float:
@@ -70,6 +74,21 @@ def wall_bulge(surface, initial, *, reference: np.ndarray | None = None) -> floa
     return float(ratio.max() / nanmedian(ratio))  # NaN if any is: so is the max
 
 
+def landmark_residuals(surface, landmarks) -> np.ndarray:
+    """Distance (mm) from each landmark ``(k, 3)`` to ``surface``'s wall.
+
+    The nearest of 256 x 128 points of the wall (evenly in ``v1``, ``v2``,
+    base rim included): within half their spacing, some 0.3 mm on a
+    ventricle, of the distance to the surface itself.
+    """
+    points = np.asarray(landmarks, dtype=float).reshape(-1, 3)
+    if not len(points):
+        return np.zeros(0)
+    lo, hi = surface.grid.v2_range
+    wall = surface.grid_points(np.linspace(0, 2 * np.pi, 256, endpoint=False), np.linspace(lo, hi, 128)).reshape(-1, 3)
+    return np.array([np.sqrt(np.min(np.sum((wall - p) ** 2, axis=1))) for p in points])
+
+
 def axis_distances(surface, initial) -> np.ndarray:
     """Distances (mm) of ``surface``'s wall from ``initial``'s long axis at
     the parameters :func:`wall_bulge` compares."""
@@ -85,7 +104,8 @@ def axis_distances(surface, initial) -> np.ndarray:
 
 
 def quality_report(*, contrast: float, low_contrast_fraction: float, no_data_fraction: float, converged: bool,
-                   apex_shift_mm: float, volume_ratio: float, bulge: float = math.nan) -> dict:
+                   apex_shift_mm: float, volume_ratio: float, bulge: float = math.nan,
+                   landmark_residuals_mm=()) -> dict:
     """The report of :mod:`spheroseg.quality` from its measurements (plain
     floats and bools, ready for JSON), with ``warnings`` and ``poor``."""
     warnings = []
@@ -105,10 +125,15 @@ def quality_report(*, contrast: float, low_contrast_fraction: float, no_data_fra
     if bulge > LIMITS["bulge"]:
         warnings.append(f"the wall bulges out {bulge:.1f} times as far in one region as elsewhere (a leak? a landmark "
                         "on the wall there stops it)")
+    residuals = [float(r) for r in np.ravel(landmark_residuals_mm)]
+    far = [(k + 1, r) for k, r in enumerate(residuals) if not r <= LIMITS["landmark_residual_mm"]]
+    if far:
+        warnings.append("the surface misses landmark " + ", ".join(f"{k} by {r:.1f} mm" for k, r in far)
+                        + " (is it on the wall?)")
     return {"contrast": float(contrast), "low_contrast_fraction": float(low_contrast_fraction),
             "no_data_fraction": float(no_data_fraction), "converged": bool(converged),
             "apex_shift_mm": float(apex_shift_mm), "volume_ratio": float(volume_ratio), "bulge": float(bulge),
-            "warnings": warnings, "poor": bool(warnings)}
+            "landmark_residuals_mm": residuals, "warnings": warnings, "poor": bool(warnings)}
 
 
 def quality_warning(frames) -> str | None:

@@ -42,7 +42,9 @@ def segment(volume, apex, base=None, *, annulus=None, landmarks=None, init: Surf
         closed at their least-squares plane, whose normal is the long axis;
         the apex may lie off it (see :class:`spheroseg.Tracker`).
     landmarks : array (k, 3), optional
-        World points the surface must pass through (to stop a leak).
+        World points of the wall the surface is drawn to (to stop a leak),
+        held by ``landmark_weight``; ``quality["landmark_residuals_mm"]``
+        gives how far it ends from each (over 2 mm: a warning).
     init : Surface, optional
         Start from this surface instead of the half-ellipsoid (no
         coarse-to-fine then); ``apex`` and ``base`` are then only checked.

@@ -67,7 +67,8 @@ def write_mesh(path: str | os.PathLike, points: np.ndarray, faces: np.ndarray) -
     """Write a triangle mesh (world mm, LPS) with meshio, atomically.
 
     The format follows the suffix (.vtk, .ply, .stl, .obj); legacy VTK is
-    binary with ``SPACE=LPS`` in its header line for 3D Slicer.
+    binary with ``SPACE=LPS`` in its header line for 3D Slicer.  The same
+    mesh gives the same bytes (meshio's dated PLY and OBJ comments are replaced).
     """
     import meshio
 
@@ -86,6 +87,14 @@ def write_mesh(path: str | os.PathLike, points: np.ndarray, faces: np.ndarray) -
             head, rest = tmp.read_bytes().split(b"\n", 1)
             _, rest = rest.split(b"\n", 1)
             tmp.write_bytes(head + b"\nspheroseg cavity mesh, SPACE=LPS, units mm\n" + rest)
+        elif suffix == ".ply":
+            data = tmp.read_bytes()
+            start = data.index(b"\ncomment Created by meshio")
+            end = data.index(b"\n", start + 1)
+            tmp.write_bytes(data[:start] + b"\ncomment spheroseg cavity mesh, LPS, mm" + data[end:])
+        elif suffix == ".obj":
+            _, rest = tmp.read_bytes().split(b"\n", 1)
+            tmp.write_bytes(b"# spheroseg cavity mesh, LPS, mm\n" + rest)
 
     write_atomically(path, write)
 

@@ -24,10 +24,11 @@ import numpy as np
 
 from .backends import kernel_thread_count, kernel_threads
 from .coords import Pose, annulus_plane
-from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, band_offsets, nanmedian
+from .dataterms import (DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, NoSpeckleError, band_offsets,
+                        nanmedian)
 from .descent import Descent
 from .options import SegmentOptions, format_point
-from .quality import axis_distances, quality_report, wall_bulge
+from .quality import axis_distances, landmark_residuals, quality_report, wall_bulge
 from .results import STATUS_MESSAGES, Intermediate, SegmentationResult
 from .surface import Surface
 
@@ -118,7 +119,9 @@ class Tracker:
         the plane).  Without it the base plane is perpendicular to the
         apex-base line through ``base``.
     landmarks : array (k, 3), optional
-        World points the surface must pass through (to stop a leak).
+        World points of the wall the surface is drawn to (to stop a leak),
+        held by ``landmark_weight``; ``quality["landmark_residuals_mm"]``
+        gives how far it ends from each (over 2 mm: a warning).
     init : Surface, optional
         Start from this surface instead of the half-ellipsoid (no
         coarse-to-fine then); ``apex``, ``base`` and ``annulus`` are still
@@ -191,6 +194,7 @@ class Tracker:
         self._initial_volume = surface.volume_ml()
         self._initial = surface  # the quality report's reference shape
         self._bulge_reference = None
+        self._no_speckle = False  # this frame fell back to the local means' wall
         self._seconds = time.perf_counter() - started
         self._skip_empty_levels()
 
@@ -338,7 +342,13 @@ class Tracker:
             self._level_iterations = 0
             self._terms[self.levels[self.level].data_term].reset()
             if self.levels[self.level].patches == self.levels[self.level - 1].patches:
-                self._hand_over()
+                try:
+                    self._hand_over()
+                except NoSpeckleError:  # nothing to undo the log compression with: the local means' wall stands
+                    self.level -= 1
+                    self._no_speckle = True
+                    self.status = 0 if converged else 1
+                    return
                 # the intensity stage: same grid, same landmarks
                 self._descent.restart(self._stage_step(settled=converged))
             else:
@@ -433,6 +443,7 @@ class Tracker:
             self._descent.reset_step(self._stage_step())
         self._terms[self.levels[self.level].data_term].reset()
         self.iteration, self._level_iterations, self.status, self._converged = 0, 0, None, False
+        self._no_speckle = False
         self._seconds = time.perf_counter() - started
         self._frame_options = {"max_iterations": cap, "coarse_to_fine": False}
         return self.run(iter_callback)
@@ -502,9 +513,15 @@ class Tracker:
         if self._bulge_reference is None:  # the initial surface's: once for every frame
             self._bulge_reference = axis_distances(self._initial, self._initial)
         with np.errstate(invalid="ignore", divide="ignore"):
-            return quality_report(
+            report = quality_report(
                 contrast=float(nanmedian(contrast) / spread), no_data_fraction=no_data,
                 low_contrast_fraction=float(np.mean(np.broadcast_to(contrast, (1,) + np.shape(contrast)) < 0.1 * spread)),
                 converged=self.status == 0, apex_shift_mm=float(np.linalg.norm(surface.tip() - self.apex)),
                 volume_ratio=surface.volume_ml() / self._initial_volume,
-                bulge=wall_bulge(surface, self._initial, reference=self._bulge_reference))
+                bulge=wall_bulge(surface, self._initial, reference=self._bulge_reference),
+                landmark_residuals_mm=landmark_residuals(surface, self.landmarks))
+        if self._no_speckle:
+            report["warnings"].append("no speckle around the surface to undo the log compression with (a noise-free "
+                                      "or smoothed image?): the wall is the local means' (mode='local')")
+            report["poor"] = True
+        return report
