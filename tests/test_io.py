@@ -1,4 +1,5 @@
 import json
+import locale
 
 import numpy as np
 import pytest
@@ -69,10 +70,14 @@ def test_folder_and_glob_of_frames(tmp_path, rng):
         np.testing.assert_array_equal(seq[1].array, arrays[1])
 
 
-def test_dicom_series(tmp_path, rng):
+def test_dicom_series(tmp_path, rng, request):
     array = rng.integers(0, 1000, size=(4, 6, 5)).astype(np.int16)
     writer = sitk.ImageFileWriter()
     writer.KeepOriginalImageUIDOn()
+    # GDCM's writer sets the process's C locale; put it back, or every later
+    # subprocess of this test run decodes its output as ASCII
+    ctype = locale.setlocale(locale.LC_CTYPE)
+    request.addfinalizer(lambda: locale.setlocale(locale.LC_CTYPE, ctype))
     for k in range(array.shape[0]):
         s = sitk.GetImageFromArray(array[k : k + 1])
         s.SetSpacing((0.7, 0.7, 1.5))
