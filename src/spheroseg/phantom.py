@@ -37,10 +37,11 @@ from scipy import ndimage
 
 from .backends import usable_cores
 from .beamspace import BeamGeometry, BeamVolume, scan_convert
-from .echo import ImageFormation, form_image, sector_geometry
+from .echo import ImageFormation, PostProcessing, form_image, postprocess, sector_geometry
 from .volume import ImageGrid, Volume
 
-__all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES", "FORMATIONS", "sweep_cases",
+__all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES", "FORMATIONS", "POSTPROCESSINGS",
+           "sweep_cases",
            "probe_sector", "MitralScene", "tilted_mitral_scene"]
 
 #: the phantom families of the benchmarks, as keyword arguments of make_phantom
@@ -76,6 +77,21 @@ FORMATIONS = {
     # haze nearly as bright as tissue over the apical third of the cavity (a poor window)
     "clutter_strong": replace(_DEFAULT, clutter_db=-3.0, clutter_depth_mm=40.0),
     "dropout": replace(_DEFAULT, dropout_db=30.0),
+}
+
+#: a scanner's post-processing of the default formation's export, as options
+#: of make_phantom: smoothing, speckle reduction, persistence, and a finer or
+#: coarser Cartesian grid (lateral resolution after scan conversion)
+POSTPROCESSINGS = {
+    "raw": {},
+    "gaussian_1mm": dict(postprocessing=PostProcessing(gaussian_mm=1.0)),
+    "gaussian_2mm": dict(postprocessing=PostProcessing(gaussian_mm=2.0)),
+    "median_1mm": dict(postprocessing=PostProcessing(median_mm=1.0)),
+    "median_2mm": dict(postprocessing=PostProcessing(median_mm=2.0)),
+    "diffusion": dict(postprocessing=PostProcessing(diffusion_iterations=10)),
+    "persistence_3": dict(postprocessing=PostProcessing(persistence=3)),
+    "grid_0.7mm": dict(spacing=0.7),
+    "grid_1.5mm": dict(spacing=1.5),
 }
 
 #: the options of make_phantom that place the scene (a family made only of
@@ -248,6 +264,16 @@ def _formed_image(formation, *, grid, probe, seed, speckle_seed, half_angle_deg,
     return image, beam
 
 
+def _persistence(image, frames, formation, *, speckle_seed, **options):
+    """Mean grey levels of ``image`` and ``frames - 1`` more images of the
+    same scene with independent speckle (a scanner's persistence on a still
+    scene)."""
+    total = image.astype(np.float32)
+    for j in range(1, frames):
+        total += _formed_image(formation, speckle_seed=speckle_seed + 7919 * j, **options)[0]
+    return np.where(image > 0, np.clip(np.round(total / frames), 1, 255), 0).astype(np.uint8)
+
+
 def make_phantom(
     *,
     seed: int = 0,
@@ -263,6 +289,7 @@ def make_phantom(
     dynamic_range_db: float = 45.0,
     formation: ImageFormation | None = None,
     beam_space: bool = False,
+    postprocessing: PostProcessing | None = None,
     _shape: _Shape | None = None,
     _speckle_seed: int | None = None,
     _base_descent: float = 0.0,
@@ -303,6 +330,11 @@ def make_phantom(
         conversion (:attr:`Phantom.beam_volume`, a
         :class:`spheroseg.beamspace.BeamVolume`; probe at the top centre of
         the Cartesian volume, centre beam along +z, tan convention).
+    postprocessing : PostProcessing, optional
+        Smoothing of the exported grey levels, as a scanner applies it
+        (:func:`spheroseg.echo.postprocess`); its ``persistence`` averages the
+        grey levels of that many images of the scene with independent speckle
+        (a formation only).  The truth is unchanged.
     """
     if spacing <= 0:
         raise ValueError(f"spacing must be positive, got {spacing!r}")
@@ -317,6 +349,8 @@ def make_phantom(
                              "ImageFormation (dropout_db, clutter_db, contrast_db, dynamic_range_db)")
     elif beam_space:
         raise ValueError("beam_space=True needs a formation: the legacy image is made on the Cartesian grid")
+    if formation is None and postprocessing is not None and postprocessing.persistence > 1:
+        raise ValueError("postprocessing.persistence > 1 needs a formation (it images the scene again)")
     rng = np.random.default_rng(seed)
     length = float(length if length is not None else rng.uniform(75, 95))
     radius = float(radius if radius is not None else length * rng.uniform(0.28, 0.36))
@@ -383,6 +417,16 @@ def make_phantom(
                                     half_angle_deg=38.0 + tilt_deg * 0.6,
                                     scene=dict(base=base, frame=frame, shape_fn=shape_fn, wall=wall, length=length,
                                                radius=radius, azimuth=azimuth))
+        if postprocessing is not None and postprocessing.persistence > 1:
+            image = _persistence(image, postprocessing.persistence, formation, grid=grid, probe=probe, seed=seed,
+                                 speckle_seed=seed if _speckle_seed is None else _speckle_seed,
+                                 half_angle_deg=38.0 + tilt_deg * 0.6,
+                                 scene=dict(base=base, frame=frame, shape_fn=shape_fn, wall=wall, length=length,
+                                            radius=radius, azimuth=azimuth))
+    if postprocessing is not None:
+        if not isinstance(postprocessing, PostProcessing):
+            raise TypeError(f"postprocessing must be a PostProcessing, got {type(postprocessing).__name__}")
+        image = postprocess(image, spacing, postprocessing)
 
     volume = Volume(image, spacing=(spacing,) * 3, no_data_value=0)
     return Phantom(
