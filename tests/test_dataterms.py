@@ -228,3 +228,16 @@ def test_offsets_are_fresh_arrays():
     changed = band_offsets(8.0)
     changed *= -1
     np.testing.assert_array_equal(band_offsets(8), np.linspace(0, 8.0, 5)[1:])
+
+
+def test_a_smoothed_phantom_keeps_its_volume():
+    """The default formation's export smoothed by a Gaussian of 1 mm: the
+    speckle's spread falls to 0.45 of the raw one's; held by the contrast
+    bound, the volume is within 3 % (+2.8 %; +3.9 % from the spread with a
+    50 dB bound)."""
+    from spheroseg.echo import PostProcessing
+    from spheroseg.phantom import FORMATIONS, make_phantom
+
+    ph = make_phantom(seed=0, formation=FORMATIONS["default"], postprocessing=PostProcessing(gaussian_mm=1.0))
+    r = segment(ph.volume, ph.apex, ph.base)
+    assert abs(r.volume_ml / ph.truth_volume_ml - 1) < 0.03
