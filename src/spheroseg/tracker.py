@@ -490,7 +490,7 @@ class Tracker:
         self._seconds = time.perf_counter() - started
         self._frame_options = {"max_iterations": cap, "coarse_to_fine": False}
         self.run(iter_callback)
-        if self.options.coarse_to_fine:
+        if self.options.coarse_to_fine and self.status != 2:  # not when stopped from outside
             self._keep_better_start(surface)
         return self.result()
 
