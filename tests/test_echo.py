@@ -3,7 +3,8 @@ import pytest
 
 from spheroseg.beamspace import BeamGeometry, BeamVolume, scan_convert
 from spheroseg.echo import (
-    RAYLEIGH_DB_STD, TOP_DB, ImageFormation, form_image, log_compress, sector_geometry, speckle_envelope,
+    RAYLEIGH_DB_STD, TOP_DB, ImageFormation, PostProcessing, form_image, log_compress, postprocess, sector_geometry,
+    speckle_envelope,
 )
 from spheroseg.volume import ImageGrid
 
@@ -130,3 +131,64 @@ def test_envelope_input_validation():
         speckle_envelope(np.ones((9, 5, 5)), g, f, np.random.default_rng(0))
     with pytest.raises(ValueError, match=">= 0"):
         speckle_envelope(-np.ones(g.shape), g, f, np.random.default_rng(0))
+
+
+def sector_image(rng, shape=(24, 26, 28)):
+    """Grey levels in 1-255 inside a cone, 0 (no data) outside."""
+    k, j, i = np.indices(shape)
+    inside = np.hypot(i - shape[2] / 2, j - shape[1] / 2) <= 0.6 * k + 2
+    grey = rng.integers(1, 256, shape)
+    return np.where(inside, grey, 0).astype(np.uint8), inside
+
+
+def test_postprocess_keeps_no_data_and_a_constant_sector():
+    """Normalised convolution: a constant sector stays constant up to its
+    edge (the padding does not darken it); "no data" stays 0."""
+    grey, inside = sector_image(np.random.default_rng(0))
+    flat = np.where(inside, 120, 0).astype(np.uint8)
+    for processing in (PostProcessing(gaussian_mm=1.5), PostProcessing(median_mm=1.0),
+                       PostProcessing(diffusion_iterations=5)):
+        out = postprocess(flat, 1.0, processing)
+        assert out.dtype == np.uint8 and np.array_equal(out == 0, ~inside)
+        assert np.all(out[inside] == 120)
+        out = postprocess(grey, (1.0, 0.8, 0.8), processing)
+        assert np.array_equal(out == 0, ~inside) and out[inside].min() >= 1
+
+
+def test_postprocess_gaussian_and_median_against_scipy():
+    """Away from the sector's edge the filters are scipy's (sigma in mm over
+    the spacing; the median's cube of half width ``median_mm``)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(1)
+    grey = rng.integers(1, 256, (20, 20, 20)).astype(np.uint8)
+    out = postprocess(grey, (1.0, 0.5, 0.5), PostProcessing(gaussian_mm=1.0))
+    ref = ndimage.gaussian_filter(grey.astype(np.float32), (1.0, 2.0, 2.0))
+    inner = (slice(6, -6),) * 3
+    assert np.abs(out[inner].astype(float) - np.clip(np.round(ref[inner]), 1, 255)).max() <= 1
+    out = postprocess(grey, 1.0, PostProcessing(median_mm=1.0))
+    ref = ndimage.median_filter(grey, size=3)
+    assert np.array_equal(out[inner], ref[inner])
+
+
+def test_diffusion_reduces_speckle_keeps_the_mean_and_the_edge():
+    """Perona-Malik conserves the grey levels' sum (no flux across the
+    sector's edge), narrows the spread within a region, and keeps a strong
+    edge where it was."""
+    rng = np.random.default_rng(2)
+    mean = np.where(np.arange(40)[None, None, :] < 20, 60.0, 200.0) * np.ones((20, 20, 1))
+    grey = np.clip(np.round(mean + rng.normal(0, 12, mean.shape)), 1, 255).astype(np.uint8)
+    out = postprocess(grey, 1.0, PostProcessing(diffusion_iterations=10)).astype(float)
+    assert out.sum() == pytest.approx(grey.astype(float).sum(), rel=2e-3)
+    assert out[:, :, 5:15].std() < 0.6 * grey[:, :, 5:15].std()
+    profile = out.mean(axis=(0, 1))
+    assert profile[18] < 130 < profile[21]
+
+
+@pytest.mark.parametrize("bad", [dict(gaussian_mm=-1.0), dict(median_mm=np.nan), dict(diffusion_iterations=1.5),
+                                 dict(persistence=0)])
+def test_postprocessing_validation(bad):
+    with pytest.raises(ValueError, match="PostProcessing"):
+        PostProcessing(**bad)
+    with pytest.raises(ValueError, match="3D"):
+        postprocess(np.ones((3, 3), np.uint8), 1.0, PostProcessing())

@@ -76,7 +76,7 @@ def _ncc(a: np.ndarray, b: np.ndarray) -> float:
     return float((a * b).sum() / denominator) if denominator > 0 else -np.inf
 
 
-def annulus_shift(previous, volume, base, axis, ring_radius: float, *, reach: float = 20.0, search: float = 8.0,
+def annulus_shift(previous, volume, base, axis, ring_radius: float, *, reach: float = 20.0, search: float = 16.0,
                   resolution: float = 1.0) -> float:
     """How far (mm) the basal structures moved along ``axis`` (towards the
     apex positive) from ``previous`` to ``volume``.
@@ -91,7 +91,9 @@ def annulus_shift(previous, volume, base, axis, ring_radius: float, *, reach: fl
     reach : float
         Depth (mm) of the profile beyond the base plane.
     search : float
-        Largest shift tried each way (mm).
+        Largest shift tried each way (mm): the whole systolic descent (8-15
+        mm), so that frames far apart in the cycle (few frames a cycle, or
+        end-diastole to end-systole directly) stay in reach.
     resolution : float
         Spacing (mm) of the heights and shifts tried.
     """

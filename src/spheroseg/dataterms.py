@@ -45,13 +45,17 @@ from typing import NamedTuple
 import numpy as np
 
 __all__ = ["DataTerm", "Force", "FixedInterface", "GlobalMeans", "LocalMeans", "IntensityInterface", "DATA_TERMS",
-           "band_offsets", "shell_offsets", "otsu_threshold", "speckle_nepers", "patch_of_rows", "nanmedian"]
+           "band_offsets", "shell_offsets", "otsu_threshold", "speckle_nepers", "interface_nepers", "patch_of_rows",
+           "nanmedian", "MAX_CONTRAST_DB"]
 
 #: fractions of f at which the cavity is sampled along each ray (the global means)
 CAVITY_FRACTIONS = np.array([0.15, 0.35, 0.55, 0.75, 0.95])
 # the force's scale is at least this fraction of the grey-level spread
 # around the initial surface, squared (a flat region must not blow it up)
 _MIN_CONTRAST = 0.05
+#: the largest blood-to-myocardium backscatter contrast taken for echo, dB
+#: (published figures are 20-40 dB): it bounds the log compression from below
+MAX_CONTRAST_DB = 40.0
 
 
 def band_offsets(band: float) -> np.ndarray:
@@ -317,8 +321,10 @@ class IntensityInterface(LocalMeans):
     read at voxel centres: interpolation averages the log and narrows its
     spread).  Speckle that scan conversion or the scanner's filters averaged
     has a smaller spread: ``k`` comes out low and ``g*`` a little high (the
-    wall a fraction of a PSF width outwards).  A contrast of over 50 dB per
-    ``k`` is not echo: it bounds ``k`` from below.
+    wall a fraction of a PSF width outwards).  A contrast of over
+    :data:`MAX_CONTRAST_DB` per ``k`` is not echo: it bounds ``k`` from below
+    (:func:`interface_nepers`), which holds when smoothing has narrowed the
+    spread and leaves the contrast of the region means.
 
     References
     ----------
@@ -388,16 +394,12 @@ class IntensityInterface(LocalMeans):
                         max(float(nanmedian(contrast)) ** 2, self.min_scale))
 
     def estimate_nepers(self, backend, volume, obs) -> float:
-        """``k`` from the spread of the grey levels in the outer band at
-        voxel centres, bounded below by the contrast (50 dB at most)."""
+        """``k`` of :func:`interface_nepers` from the grey levels of the outer
+        band at voxel centres and the band means' contrast."""
         d = backend.discretisation
         rows = d.band_rows
         outer = backend.samples_along(volume, obs, self.band_offsets, rows, order=0)  # (rows, offsets)
-        nepers = speckle_nepers(outer, patch_of_rows(d.grid, d.order, rows))
-        contrast = nanmedian(obs.outside - obs.inside)
-        if np.isfinite(contrast) and contrast > 0:
-            nepers = max(nepers, float(contrast) / np.log(10.0**5))
-        return nepers
+        return interface_nepers(outer, patch_of_rows(d.grid, d.order, rows), nanmedian(obs.outside - obs.inside))
 
 
 def patch_of_rows(grid, order: int, rows: np.ndarray) -> np.ndarray:
@@ -410,6 +412,25 @@ def patch_of_rows(grid, order: int, rows: np.ndarray) -> np.ndarray:
 class NoSpeckleError(ValueError):
     """No speckle to estimate the log compression from (a noise-free or
     heavily smoothed image): :func:`speckle_nepers` cannot measure it."""
+
+
+def interface_nepers(samples: np.ndarray, patch: np.ndarray, contrast: float, *,
+                     max_contrast_db: float = MAX_CONTRAST_DB) -> float:
+    """Grey levels per neper of intensity that set the intensity interface.
+
+    ``k = max(k_s, C / ln(10^(max_contrast_db / 10)))``: ``k_s`` from the
+    spread of the speckle (:func:`speckle_nepers` of ``samples``, ``patch``)
+    and ``C`` the contrast of the region means in grey levels.  The spread
+    gives ``k`` on unprocessed speckle; smoothing (a scanner's Gaussian,
+    median or speckle-reducing filters, persistence) narrows it and leaves
+    the region means, so that the contrast bound then holds ``k``: it takes
+    the blood-to-myocardium contrast at most ``max_contrast_db`` (dB of
+    intensity).  A non-finite or non-positive ``C`` sets no bound.
+    """
+    nepers = speckle_nepers(samples, patch)
+    if np.isfinite(contrast) and contrast > 0:
+        nepers = max(nepers, float(contrast) / np.log(10.0 ** (max_contrast_db / 10)))
+    return nepers
 
 
 def speckle_nepers(samples: np.ndarray, patch: np.ndarray, *, min_rays: int = 6) -> float:

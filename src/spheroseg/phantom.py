@@ -37,10 +37,11 @@ from scipy import ndimage
 
 from .backends import usable_cores
 from .beamspace import BeamGeometry, BeamVolume, scan_convert
-from .echo import ImageFormation, form_image, sector_geometry
+from .echo import ImageFormation, PostProcessing, form_image, postprocess, sector_geometry
 from .volume import ImageGrid, Volume
 
-__all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES", "FORMATIONS", "sweep_cases",
+__all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES", "FORMATIONS", "POSTPROCESSINGS",
+           "sweep_cases",
            "probe_sector", "MitralScene", "tilted_mitral_scene"]
 
 #: the phantom families of the benchmarks, as keyword arguments of make_phantom
@@ -76,6 +77,21 @@ FORMATIONS = {
     # haze nearly as bright as tissue over the apical third of the cavity (a poor window)
     "clutter_strong": replace(_DEFAULT, clutter_db=-3.0, clutter_depth_mm=40.0),
     "dropout": replace(_DEFAULT, dropout_db=30.0),
+}
+
+#: a scanner's post-processing of the default formation's export, as options
+#: of make_phantom: smoothing, speckle reduction, persistence, and a finer or
+#: coarser Cartesian grid (lateral resolution after scan conversion)
+POSTPROCESSINGS = {
+    "raw": {},
+    "gaussian_1mm": dict(postprocessing=PostProcessing(gaussian_mm=1.0)),
+    "gaussian_2mm": dict(postprocessing=PostProcessing(gaussian_mm=2.0)),
+    "median_1mm": dict(postprocessing=PostProcessing(median_mm=1.0)),
+    "median_2mm": dict(postprocessing=PostProcessing(median_mm=2.0)),
+    "diffusion": dict(postprocessing=PostProcessing(diffusion_iterations=10)),
+    "persistence_3": dict(postprocessing=PostProcessing(persistence=3)),
+    "grid_0.7mm": dict(spacing=0.7),
+    "grid_1.5mm": dict(spacing=1.5),
 }
 
 #: the options of make_phantom that place the scene (a family made only of
@@ -174,9 +190,12 @@ def _frame(axis):
     return np.column_stack([e1, e2, np.cross(e1, e2)])
 
 
-def _anatomy(world, *, base, frame, shape_fn, wall, length, radius, azimuth) -> dict:
+def _anatomy(world, *, base, frame, shape_fn, wall, length, radius, azimuth, papillary=False,
+             trabecular_mm=0.0) -> dict:
     """Tissue classes at world points ``world`` (float32, ``(..., 3)``), and
-    the points in the ventricle's frame (``local``)."""
+    the points in the ventricle's frame (``local``).  ``inner_tissue``:
+    papillary muscles and trabeculae, tissue standing in the cavity (which
+    they are part of: the truth follows the compact wall)."""
     local = (world - base.astype(np.float32)) @ frame.astype(np.float32)
     r = np.linalg.norm(local, axis=-1)
     rho = np.hypot(local[..., 1], local[..., 2])
@@ -199,7 +218,48 @@ def _anatomy(world, *, base, frame, shape_fn, wall, length, radius, azimuth) -> 
     rv_c = local - np.array([0.45 * length, 0, 0]) - rv_dir * (radius * 1.1 + wall + 10)
     rv = ((rv_c[..., 0] / (0.45 * length)) ** 2 + (rv_c[..., 1:] @ rv_dir[1:] / 9.0) ** 2 + ((rv_c[..., 1:] @ np.array([-rv_dir[2], rv_dir[1]])) / 22.0) ** 2) <= 1
     rv &= ~myocardium & ~cavity
-    return dict(local=local, cavity=cavity, myocardium=myocardium, atrium=atrium, atrium_wall=atrium_wall, rv=rv)
+    inner = np.zeros(cavity.shape, bool)
+    if papillary:
+        inner |= _papillary_muscles(local, shape_fn, length=length, azimuth=azimuth)
+    if trabecular_mm > 0:
+        inner |= _trabeculae(r, big_r, theta, phi, depth_mm=trabecular_mm)
+    return dict(local=local, cavity=cavity, myocardium=myocardium, atrium=atrium, atrium_wall=atrium_wall, rv=rv,
+                inner_tissue=inner & cavity)
+
+
+#: papillary muscles: (angle about the axis from the scene's azimuth, rad;
+#: radius mm) of the anterolateral and posteromedial muscles
+PAPILLARY_MUSCLES = ((0.9, 4.5), (-1.4, 5.0))
+
+
+def _papillary_muscles(local, shape_fn, *, length, azimuth) -> np.ndarray:
+    """Two muscles standing in the cavity: capsules from the wall at a third
+    of the way from the apex to the base, their tips at two thirds, half
+    way to the axis (where the chordae leave for the mitral leaflets)."""
+    inside = np.zeros(local.shape[:-1], bool)
+    for angle, radius in PAPILLARY_MUSCLES:
+        theta = azimuth + angle
+        ring = np.array([0.0, np.cos(theta), np.sin(theta)])
+        x_root, x_tip = 0.67 * length, 0.3 * length
+        phi = np.pi / 4
+        for _ in range(30):  # the wall's point at height x_root: R(theta, phi) cos(phi) = x_root
+            phi = np.arccos(min(1.0, x_root / shape_fn(theta, phi)))
+        rho_root = shape_fn(theta, phi) * np.sin(phi) + 1.0  # into the wall by 1 mm: attached
+        root = np.array([x_root, 0, 0]) + rho_root * ring
+        tip = np.array([x_tip, 0, 0]) + 0.5 * shape_fn(theta, np.pi / 2) * ring
+        along = tip - root
+        t = np.clip(((local - root) @ along) / (along @ along), 0, 1)
+        distance = np.linalg.norm(local - root - t[..., None] * along, axis=-1)
+        inside |= distance <= radius
+    return inside
+
+
+def _trabeculae(r, big_r, theta, phi, *, depth_mm) -> np.ndarray:
+    """A spongy rim ``depth_mm`` deep inside the compact wall: ridges along
+    the long axis (about 40 % tissue), thinning towards the base."""
+    rim = (r <= big_r) & (r >= big_r - depth_mm * np.sqrt(np.clip(np.cos(phi), 0, 1)))
+    ridges = np.cos(18 * theta + 3 * np.sin(5 * phi)) > 0.25
+    return rim & ridges
 
 
 def _texture(shape, spacing, rng):
@@ -232,6 +292,7 @@ def _formed_image(formation, *, grid, probe, seed, speckle_seed, half_angle_deg,
     myo = 10 ** ((f.blood_db + f.contrast_db + 1.5 * texture) / 10)
     echo = np.where(anatomy["myocardium"] | anatomy["atrium_wall"], myo, tissue)
     echo = np.where(anatomy["cavity"] | anatomy["atrium"] | anatomy["rv"], 10 ** (f.blood_db / 10), echo)
+    echo = np.where(anatomy["inner_tissue"], myo, echo)
     if f.dropout_db > 0:
         # signal lost over a lateral wall region (as the legacy dropout)
         s = scene
@@ -246,6 +307,16 @@ def _formed_image(formation, *, grid, probe, seed, speckle_seed, half_angle_deg,
     beam = form_image(echo.astype(np.float32), geometry, f, np.random.default_rng(speckle_seed))
     image = np.round(scan_convert(beam, grid).array).astype(np.uint8)
     return image, beam
+
+
+def _persistence(image, frames, formation, *, speckle_seed, **options):
+    """Mean grey levels of ``image`` and ``frames - 1`` more images of the
+    same scene with independent speckle (a scanner's persistence on a still
+    scene)."""
+    total = image.astype(np.float32)
+    for j in range(1, frames):
+        total += _formed_image(formation, speckle_seed=speckle_seed + 7919 * j, **options)[0]
+    return np.where(image > 0, np.clip(np.round(total / frames), 1, 255), 0).astype(np.uint8)
 
 
 def make_phantom(
@@ -263,6 +334,9 @@ def make_phantom(
     dynamic_range_db: float = 45.0,
     formation: ImageFormation | None = None,
     beam_space: bool = False,
+    postprocessing: PostProcessing | None = None,
+    papillary: bool = False,
+    trabecular_mm: float = 0.0,
     _shape: _Shape | None = None,
     _speckle_seed: int | None = None,
     _base_descent: float = 0.0,
@@ -303,6 +377,18 @@ def make_phantom(
         conversion (:attr:`Phantom.beam_volume`, a
         :class:`spheroseg.beamspace.BeamVolume`; probe at the top centre of
         the Cartesian volume, centre beam along +z, tan convention).
+    postprocessing : PostProcessing, optional
+        Smoothing of the exported grey levels, as a scanner applies it
+        (:func:`spheroseg.echo.postprocess`); its ``persistence`` averages the
+        grey levels of that many images of the scene with independent speckle
+        (a formation only).  The truth is unchanged.
+    papillary : bool
+        Two papillary muscles standing in the cavity, as bright as the
+        myocardium and attached to its wall (:data:`PAPILLARY_MUSCLES`).
+    trabecular_mm : float
+        Depth (mm) of a trabecular rim inside the compact wall (0: none).
+        Muscles and trabeculae are cavity (the CETUS and ASE convention):
+        the truth follows the compact wall, unchanged by them.
     """
     if spacing <= 0:
         raise ValueError(f"spacing must be positive, got {spacing!r}")
@@ -317,6 +403,8 @@ def make_phantom(
                              "ImageFormation (dropout_db, clutter_db, contrast_db, dynamic_range_db)")
     elif beam_space:
         raise ValueError("beam_space=True needs a formation: the legacy image is made on the Cartesian grid")
+    if formation is None and postprocessing is not None and postprocessing.persistence > 1:
+        raise ValueError("postprocessing.persistence > 1 needs a formation (it images the scene again)")
     rng = np.random.default_rng(seed)
     length = float(length if length is not None else rng.uniform(75, 95))
     radius = float(radius if radius is not None else length * rng.uniform(0.28, 0.36))
@@ -338,8 +426,11 @@ def make_phantom(
 
     z, y, x = np.meshgrid(*(np.arange(n, dtype=np.float32) * np.float32(spacing) for n in (nz, ny, nx)), indexing="ij")
     world = np.stack([x, y, z], -1)
+    if not (np.isfinite(trabecular_mm) and 0 <= trabecular_mm < wall):
+        raise ValueError(f"trabecular_mm must be in [0, wall), got {trabecular_mm!r}")
+    inner_options = dict(papillary=bool(papillary), trabecular_mm=float(trabecular_mm))
     anatomy = _anatomy(world, base=base, frame=frame, shape_fn=shape_fn, wall=wall, length=length, radius=radius,
-                       azimuth=azimuth)
+                       azimuth=azimuth, **inner_options)
     local, cavity, myocardium = anatomy["local"], anatomy["cavity"], anatomy["myocardium"]
     atrium, atrium_wall, rv = anatomy["atrium"], anatomy["atrium_wall"], anatomy["rv"]
 
@@ -352,6 +443,7 @@ def make_phantom(
         myo = 0.04 + 0.9 * contrast * (1 + 0.15 * texture)
         echo = np.where(myocardium | atrium_wall, myo, tissue)
         echo = np.where(cavity | atrium | rv, blood, echo)
+        echo = np.where(anatomy["inner_tissue"], myo, echo)
         if dropout:
             # a lateral wall region as dark as the blood pool
             centre = np.array([0.5 * length, 0, 0]) + np.array([0, np.cos(azimuth - 1.0), np.sin(azimuth - 1.0)]) * (radius + wall / 2)
@@ -382,7 +474,17 @@ def make_phantom(
                                     speckle_seed=seed if _speckle_seed is None else _speckle_seed,
                                     half_angle_deg=38.0 + tilt_deg * 0.6,
                                     scene=dict(base=base, frame=frame, shape_fn=shape_fn, wall=wall, length=length,
-                                               radius=radius, azimuth=azimuth))
+                                               radius=radius, azimuth=azimuth, **inner_options))
+        if postprocessing is not None and postprocessing.persistence > 1:
+            image = _persistence(image, postprocessing.persistence, formation, grid=grid, probe=probe, seed=seed,
+                                 speckle_seed=seed if _speckle_seed is None else _speckle_seed,
+                                 half_angle_deg=38.0 + tilt_deg * 0.6,
+                                 scene=dict(base=base, frame=frame, shape_fn=shape_fn, wall=wall, length=length,
+                                            radius=radius, azimuth=azimuth, **inner_options))
+    if postprocessing is not None:
+        if not isinstance(postprocessing, PostProcessing):
+            raise TypeError(f"postprocessing must be a PostProcessing, got {type(postprocessing).__name__}")
+        image = postprocess(image, spacing, postprocessing)
 
     volume = Volume(image, spacing=(spacing,) * 3, no_data_value=0)
     return Phantom(
@@ -395,7 +497,8 @@ def make_phantom(
         params=dict(seed=seed, spacing=spacing, length=length, radius=radius, wall=wall, tilt_deg=tilt_deg,
                     speckle=speckle, dropout=dropout, clutter=clutter, contrast=contrast,
                     **({} if formation is None else dict(formation=formation)),
-                    **({} if _base_descent == 0 else dict(base_descent=_base_descent))),
+                    **({} if _base_descent == 0 else dict(base_descent=_base_descent)),
+                    **({k: v for k, v in inner_options.items() if v})),
         beam_volume=beam if beam_space else None,
     )
 

@@ -253,6 +253,19 @@ class Surface:
             return self.pose.to_world(self.system.to_cartesian(f, 0.0, lo))
         return self.grid_points(np.linspace(0, 2 * np.pi, 16, endpoint=False), lo)[0].mean(axis=0)
 
+    @property
+    def base_v2(self) -> float:
+        """The end of the ``v2`` range that lies in the base plane."""
+        return self.grid.v2_range[0 if self._base_row(1) == 0 else 1]
+
+    def base_radii(self, n: int = 64) -> np.ndarray:
+        """Distances (mm) from the long axis to ``n`` points of the surface's
+        ring in the base plane, evenly spaced in ``v1`` from 0: the radius of
+        the cavity's opening at the mitral plane, angle by angle."""
+        v1 = np.linspace(0, 2 * np.pi, n, endpoint=False)
+        p = self.grid_points(v1, self.base_v2, local=True)[0]
+        return np.hypot(p[:, 1], p[:, 2])
+
     def model_coordinates(self, world) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(v0, v1, v2)`` of world points."""
         return self.system.from_cartesian(self.pose.to_local(world))

@@ -27,12 +27,21 @@ from .coords import Pose, annulus_plane
 from .dataterms import (DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, NoSpeckleError, band_offsets,
                         nanmedian)
 from .descent import Descent
+from .energy import data_energy
 from .options import SegmentOptions, format_point
 from .quality import axis_distances, landmark_residuals, quality_report, wall_bulge
 from .results import STATUS_MESSAGES, Intermediate, SegmentationResult
 from .surface import Surface
 
-__all__ = ["Tracker", "Level", "schedule"]
+__all__ = ["Tracker", "Level", "schedule", "BASE_RING_MM"]
+
+#: plausible radii of the mitral annulus in adults, mm (the base ring's range)
+BASE_RING_MM = (10.0, 20.0)
+#: a frame segmented again replaces the stepped one when its data energy is
+#: lower by more than this fraction of the stepped one's: below it the
+#: candidates differ by the descent's own noise (0.0001-0.3 % on phantom
+#: cycles of 4-20 frames), a stepped wall left behind by 3 % and more
+RESEGMENT_MARGIN = 0.01
 
 
 @dataclass(frozen=True)
@@ -264,7 +273,8 @@ class Tracker:
         if samples.size < 10 or np.ptp(samples) <= 1e-6 * max(np.abs(samples).max(), 1.0):
             raise ValueError("the image is constant (or empty) around the initial surface: nothing to segment")
         terms = {}
-        for level in self.levels:
+        # and the coarse levels' term, for a frame segmented again from it (_keep_better_start)
+        for level in self.levels + schedule(self.options)[:1]:
             if level.data_term not in terms:
                 terms[level.data_term] = level.data_term(samples, band=opts.band, band_out=opts.band_out,
                                                          interface=opts.interface)
@@ -387,7 +397,52 @@ class Tracker:
 
     def run(self, iter_callback=None) -> SegmentationResult:
         """Iterate until the current frame stops; ``iter_callback(intermediate)``
-        is called after every iteration and may raise ``StopIteration``."""
+        is called after every iteration and may raise ``StopIteration``.
+        A frame whose base ring came out narrower than an annulus runs its
+        finest level again with the ring held open (:meth:`_widen_base_ring`)."""
+        self._iterate_until_stopped(iter_callback)
+        if self.status in (0, 1) and self._widen_base_ring():
+            self._iterate_until_stopped(iter_callback)
+        return self.result()
+
+    def base_ring_floor(self) -> float:
+        """The least radius (mm) of the base ring: :data:`BASE_RING_MM`'s
+        lower end, or with a clicked annulus three quarters of its points'
+        mean distance from their centre."""
+        if self.annulus is None:
+            return BASE_RING_MM[0]
+        return 0.75 * float(np.mean(np.linalg.norm(self.annulus - self.annulus.mean(axis=0), axis=1)))
+
+    def _widen_base_ring(self, n: int = 32) -> bool:
+        """Hold the base ring open where it is narrower than
+        :meth:`base_ring_floor`: landmarks on the base plane at that radius,
+        at the angles where it is narrower, then the finest level runs again.
+
+        The mitral annulus is a ring (10-20 mm in radius in adults); in low
+        contrast at the base nothing stops the smoothing prior and the bright
+        mitral apparatus from closing the cavity into a cusp about the base
+        point.  Returns whether it held it (the frame then continues)."""
+        surface = self.surface
+        floor = self.base_ring_floor()
+        narrow = surface.base_radii(n) < floor
+        if not narrow.any():
+            return False
+        v1 = np.linspace(0, 2 * np.pi, n, endpoint=False)[narrow]
+        direction = surface.system.to_cartesian(np.ones_like(v1), v1, np.full_like(v1, surface.base_v2))
+        direction[:, 0] = 0.0  # in the base plane, away from the axis
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        ring = surface.pose.to_world(floor * direction)
+        points, weights = self._held_points(surface.pose)
+        weight = np.full(len(ring), self.options.landmark_weight)
+        points = ring if points is None else np.concatenate([points, ring])
+        weights = weight if weights is None else np.concatenate([weights, weight])
+        self._descent.set_landmarks(points, weights)
+        self.level = len(self.levels) - 1
+        self._descent.reset_step(self._stage_step())
+        self._level_iterations, self.status = 0, None
+        return True
+
+    def _iterate_until_stopped(self, iter_callback=None) -> None:
         while self.status is None:
             if iter_callback is None and self.run_level():
                 continue
@@ -397,7 +452,6 @@ class Tracker:
                     iter_callback(self.intermediate())
                 except StopIteration:
                     self.stop(2)
-        return self.result()
 
     def step(self, volume, *, max_iterations: int | None = None, iter_callback=None,
              follow_base: bool = False) -> SegmentationResult:
@@ -446,7 +500,66 @@ class Tracker:
         self._no_speckle = False
         self._seconds = time.perf_counter() - started
         self._frame_options = {"max_iterations": cap, "coarse_to_fine": False}
-        return self.run(iter_callback)
+        self.run(iter_callback)
+        if self.options.coarse_to_fine and self.status != 2:  # not when stopped from outside
+            self._keep_better_start(surface)
+        return self.result()
+
+    def _keep_better_start(self, start: Surface) -> None:
+        """Segment the current frame again through the coarse data term, from
+        ``start`` (the frame's start surface) and from the initial shape
+        posed at the current apex and base (coarse to fine), and keep the
+        segmentation of the lowest data energy (the stepped one unless
+        another is lower by more than :data:`RESEGMENT_MARGIN` of it).
+
+        A wall that moved between frames by more than the finest levels'
+        bands can follow leaves the stepped surface where the local means
+        balance on the wrong side of it (a long time step: few frames a
+        cycle, or end-diastole to end-systole directly), while the global
+        means bring the surface to the walls from afar.  The surfaces share
+        the pose and the grid; all are scored by the Chan-Vese data energy
+        (paper eq. 14) with the same scalar levels, the mean of the
+        segmentations' interface levels: ``int_cavity (u - c_in)^2 -
+        (u - c_out)^2 dV``, lowest when the cavity holds every voxel darker
+        than the interface and none brighter.
+        """
+        started = time.perf_counter()
+        options = {name: getattr(self.options, name) for name in SegmentOptions.names()}
+        place = dict(annulus=self.annulus, landmarks=self.landmarks if len(self.landmarks) else None)
+        fresh = Tracker(self.volume, self.apex, self.base, **place, **options)
+        again = Tracker(self.volume, self.apex, self.base, init=start, **place, **options)
+        coarse = schedule(self.options)[0]
+        again.levels.insert(0, Level(again.patches, coarse.data_term, coarse.max_iterations, coarse.tol))
+        candidates = [self]
+        for tracker in (again, fresh):
+            tracker.run()
+            if tracker.patches == self.patches:
+                candidates.append(tracker)
+        model = self._descent.model
+        levels = np.mean([tracker.interface_levels() for tracker in candidates], axis=0)
+
+        def sample(world):  # no data weighs nothing
+            return self.volume.sample(world, fill_value=float(levels.mean()))
+
+        energies = [data_energy(model, model.parameters(tracker.surface.coefficients), sample, *levels)
+                    for tracker in candidates]
+        best = candidates[int(np.argmin(energies))]
+        if energies[0] - min(energies) > RESEGMENT_MARGIN * abs(energies[0]):
+            kept = ("_descent", "_terms", "_reference", "c_in", "c_out", "_last", "_observation", "motion",
+                    "_converged", "status")
+            self.__dict__.update({name: best.__dict__[name] for name in kept if name in best.__dict__})
+            self.level = len(self.levels) - 1  # every candidate ended on its finest level
+            self.iteration += best.iteration
+        self._seconds += time.perf_counter() - started
+
+    def interface_levels(self) -> tuple[float, float]:
+        """Scalar ``(c_in, c_out)`` (grey levels) about the finest level's
+        interface: the medians of its fixed levels (the intensity
+        interface's), else of the region means last measured."""
+        term = self._terms[self.levels[-1].data_term]
+        fixed = getattr(term, "_frozen", None)
+        c_in, c_out = (fixed[0], fixed[1]) if fixed is not None else (self.c_in, self.c_out)
+        return float(nanmedian(c_in)), float(nanmedian(c_out))
 
     def _follow_base(self, volume) -> None:
         """Move the base plane with the annulus from the current frame to
