@@ -1,0 +1,322 @@
+"""The left ventricle found without clicks, and clicks checked against it.
+
+An apical acquisition looks down the ventricle from the probe: the cavity is
+a dark (blood) pool whose apex is nearest the probe, closed at the far end by
+the mitral annulus, beyond which the atrium is dark again.  :func:`locate`
+finds that pool on a coarse copy of the image (about 3 mm voxels, which also
+averages the speckle out):
+
+1. blood is what is darker than Otsu's threshold of the smoothed grey levels
+   inside the sector;
+2. its connected pools (after an opening of one coarse voxel, which cuts thin
+   bridges) are the candidates; the left ventricle is the one of plausible
+   size (the part before its waist, :data:`VOLUME_RANGE_ML`) scored by its
+   size and its closeness to the sector's axis (the apical view centres the
+   left ventricle; the right ventricle lies to one side and is smaller);
+3. the long axis is the pool's principal axis, turned towards the probe;
+4. along that axis the pool's cross-section grows from the apex to the base
+   and narrows at the mitral orifice before the atrium widens it again: the
+   base is the narrowest section (the waist) beyond the widest one, or the
+   pool's far end when the atrium is not joined to it (a closed valve, an
+   atrium out of the sector);
+5. the apex is the pool's first section along the axis from the probe side.
+
+``confidence`` combines how well blood and tissue separate, how clear the
+waist is and how plausible the size and length are.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["Located", "NoVentricleError", "locate", "check_points", "VOLUME_RANGE_ML"]
+
+#: cavity volumes (mL, the part before the waist) a left ventricle can have
+VOLUME_RANGE_ML = (20.0, 450.0)
+#: apex-to-base lengths (mm) a left ventricle can have
+LENGTH_RANGE_MM = (35.0, 140.0)
+
+
+class NoVentricleError(ValueError):
+    """No dark pool in the image looks like a left ventricle."""
+
+
+@dataclass(frozen=True)
+class Located:
+    """Where :func:`locate` found the left ventricle (world mm, LPS).
+
+    Attributes
+    ----------
+    apex : (3,) array
+        The endocardial apex.
+    base : (3,) array
+        The centre of the mitral plane.
+    normal : (3,) array
+        Unit normal of the mitral plane, from the base towards the apex.
+    confidence : float
+        In [0, 1]: the product of the scores in ``scores``.
+    reason : str
+        Why the confidence is low ('' when it is not).
+    volume_ml : float
+        Volume of the dark pool between apex and base (coarse, mL).
+    scores : dict
+        ``separation`` (blood against tissue), ``waist`` (how clearly the
+        pool narrows at the base), ``size`` and ``length`` (plausibility),
+        each in [0, 1].
+    """
+
+    apex: np.ndarray
+    base: np.ndarray
+    normal: np.ndarray
+    confidence: float
+    reason: str = ""
+    volume_ml: float = float("nan")
+    scores: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        """Plain JSON values."""
+        return {"apex": [float(x) for x in self.apex], "base": [float(x) for x in self.base],
+                "normal": [float(x) for x in self.normal], "confidence": float(self.confidence),
+                "reason": self.reason, "volume_ml": float(self.volume_ml),
+                "scores": {k: float(v) for k, v in self.scores.items()}}
+
+
+def _coarse(volume, spacing: float):
+    """``(grey levels with NaN off the data, world of index [k, j, i], probe
+    point, depth direction)`` on a grid of about ``spacing`` mm."""
+    from .beamspace import BeamVolume, scan_convert
+
+    if isinstance(volume, BeamVolume):
+        geometry = volume.geometry
+        fine = scan_convert(volume, geometry.cartesian_grid(spacing / 2))
+        probe, depth = geometry.apex, geometry.rotation[:, 2]
+    else:
+        fine, probe, depth = volume, None, volume.direction[:, 2]
+    array = np.asarray(fine.array, dtype=np.float32)
+    missing = fine.no_data_mask if fine.no_data_mask is not None else np.zeros(array.shape, bool)
+    missing = missing | ~np.isfinite(array)
+    factor = np.maximum(1, np.rint(spacing / fine.spacing[::-1])).astype(int)  # [z, y, x]
+    shape = np.array(array.shape) // factor
+    if np.any(shape < 4):
+        raise NoVentricleError(f"no left ventricle found: the image ({array.shape}) is too small to hold one")
+    cut = tuple(slice(0, n * f) for n, f in zip(shape, factor))
+    blocks = tuple(x for n, f in zip(shape, factor) for x in (n, f))
+    ok = (~missing[cut]).reshape(blocks)
+    total = np.where(ok, array[cut].reshape(blocks), 0).sum((1, 3, 5))
+    count = ok.sum((1, 3, 5))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        grey = np.where(count > 0.5 * factor.prod(), total / count, np.nan)
+    coarse_spacing = fine.spacing * factor[::-1]
+    origin = fine.index_to_world((factor[::-1] - 1) / 2.0)
+    direction = fine.direction if hasattr(fine, "direction") else np.eye(3)
+
+    def to_world(index_zyx):
+        return origin + (np.asarray(index_zyx, float)[..., ::-1] * coarse_spacing) @ direction.T
+
+    if probe is None:
+        # the probe sits over the data of the shallowest slice, at depth index 0
+        rows = np.flatnonzero(np.isfinite(grey).any((1, 2)))
+        if rows.size == 0:
+            raise NoVentricleError("no left ventricle found: the image has no data")
+        jj, ii = np.nonzero(np.isfinite(grey[rows[0]]))
+        probe = to_world(np.array([-(factor[0] - 1) / 2.0 / factor[0], jj.mean(), ii.mean()]))
+    return grey, to_world, np.asarray(probe, float), np.asarray(depth, float) / np.linalg.norm(depth), coarse_spacing
+
+
+def _otsu(values: np.ndarray) -> tuple[float, float]:
+    """Otsu's threshold of ``values`` and its separability (between-class
+    over total variance, in [0, 1])."""
+    hist, edges = np.histogram(values, bins=128)
+    p = hist / hist.sum()
+    centres = (edges[:-1] + edges[1:]) / 2
+    w0 = np.cumsum(p)
+    m0 = np.cumsum(p * centres)
+    mean = m0[-1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        between = (mean * w0 - m0) ** 2 / (w0 * (1 - w0))
+    between = np.nan_to_num(between[:-1])
+    k = int(np.argmax(between))
+    total = float(values.var())
+    return float(edges[k + 1]), float(between[k] / total) if total > 0 else 0.0
+
+
+def locate(volume, *, spacing: float = 3.0) -> Located:
+    """Find the left ventricle of an apical 3D echo volume.
+
+    Parameters
+    ----------
+    volume : Volume or BeamVolume
+        Apical acquisition (probe at the sector's apex, blood dark).
+    spacing : float
+        Voxel size (mm) of the coarse copy the search runs on.
+
+    Returns
+    -------
+    Located
+        Apex, base, the mitral plane's normal, ``confidence`` and ``reason``.
+
+    Raises
+    ------
+    NoVentricleError
+        When no dark pool of a ventricle's size is in the image.
+    """
+    if not (np.isfinite(spacing) and spacing > 0):
+        raise ValueError(f"spacing must be a positive number of mm, got {spacing!r}")
+    grey, to_world, probe, depth, step = _coarse(volume, spacing)
+    data = np.isfinite(grey)
+    if data.sum() < 64:
+        raise NoVentricleError("no left ventricle found: the image has too little data")
+    voxel_ml = float(np.prod(step)) / 1000.0
+    # smoothed over the data only (normalised convolution), the sector edge kept out
+    sigma = 3.0 / step[::-1]
+    weight = ndimage.gaussian_filter(data.astype(np.float32), sigma)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        smooth = ndimage.gaussian_filter(np.where(data, grey, 0).astype(np.float32), sigma) / weight
+    inside = data & (weight > 0.5)
+    values = smooth[inside]
+    if values.size < 64 or not np.ptp(values) > 0:
+        raise NoVentricleError("no left ventricle found: the image is constant")
+    threshold, separation = _otsu(values)
+    blood = inside & (smooth < threshold)
+    blood = ndimage.binary_opening(blood, iterations=1)
+    labels, n = ndimage.label(blood)
+    if n == 0:
+        raise NoVentricleError("no left ventricle found: nothing in the image is as dark as blood")
+    sizes = ndimage.sum_labels(np.ones_like(labels), labels, np.arange(1, n + 1)) * voxel_ml
+    best = None
+    for label in np.flatnonzero(sizes >= VOLUME_RANGE_ML[0]) + 1:
+        candidate = _pool(labels == label, to_world, probe, depth, voxel_ml, float(step.max()))
+        if candidate is None:
+            continue
+        if best is None or candidate["score"] > best["score"]:
+            best = candidate
+    if best is None:
+        raise NoVentricleError(f"no left ventricle found: no dark region of {VOLUME_RANGE_ML[0]:.0f}-"
+                               f"{VOLUME_RANGE_ML[1]:.0f} mL (the largest is {sizes.max():.0f} mL)")
+    apex = _endocardial_apex(volume, best["apex"], best["normal"], threshold)
+    scores = {"separation": float(np.clip((separation - 0.3) / 0.3, 0, 1)), **best["scores"]}
+    confidence = float(np.prod(list(scores.values())))
+    low = [name for name, value in scores.items() if value < 0.5]
+    reason = "" if confidence >= 0.5 else "low " + ", ".join(low or ["scores"])
+    normal = (apex - best["base"]) / np.linalg.norm(apex - best["base"])
+    return Located(apex=apex, base=best["base"], normal=normal, confidence=confidence, reason=reason,
+                   volume_ml=best["volume_ml"], scores=scores)
+
+
+def _pool(mask: np.ndarray, to_world, probe, depth, voxel_ml, slab) -> dict | None:
+    """The apex, base and scores of one dark pool (None if it is no ventricle)."""
+    points = to_world(np.argwhere(mask))
+    centre = points.mean(0)
+    _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
+    axis = vt[0]
+    if axis @ (probe - centre) < 0:
+        axis = -axis  # towards the probe: the apex side
+    t = (points - centre) @ axis
+    bin_mm = 2.0
+    edges = np.arange(t.min() - bin_mm / 2, t.max() + bin_mm, bin_mm)
+    area = np.histogram(t, edges)[0] * voxel_ml * 1000.0 / bin_mm  # mm^2 of section
+    heights = (edges[:-1] + edges[1:]) / 2
+    # from the apex side (largest t) towards the base
+    order = np.argsort(-heights)
+    heights, area = heights[order], ndimage.uniform_filter1d(area[order], 3)
+    present = np.flatnonzero(area > 0.05 * area.max())
+    first, last = present[0], present[-1]
+    # the waist: the section narrowest against the widest on either side of it
+    # (a ventricle's own sections only narrow towards the apex)
+    waist, depth_of_waist = last, 0.0
+    for k in range(first + 1, last):
+        if heights[first] - heights[k] < LENGTH_RANGE_MM[0]:
+            continue
+        dip = 1 - area[k] / min(area[first:k].max(), area[k:last + 1].max())
+        if dip > depth_of_waist:
+            waist, depth_of_waist = k, dip
+    if depth_of_waist < 0.1:
+        waist, depth_of_waist = last, 0.0
+    apex_t, base_t = heights[first] - bin_mm / 2, heights[waist]
+    length = apex_t - base_t
+    lv = t >= base_t
+    volume_ml = float(lv.sum() * voxel_ml)
+    lo, hi = VOLUME_RANGE_ML
+    if not (lo <= volume_ml <= hi):
+        return None
+    # whole layers of voxels on either side (a thinner slab of a slightly
+    # tilted grid is a strip off to one side)
+    p = points[np.abs(t - base_t) <= slab].mean(0)
+    base = p + axis * (base_t - (p - centre) @ axis)
+    p = points[t >= apex_t - 2 * slab].mean(0)
+    apex = p + axis * (apex_t - (p - centre) @ axis)
+    normal = (apex - base) / np.linalg.norm(apex - base)
+    l_lo, l_hi = LENGTH_RANGE_MM
+    scores = {
+        "waist": float(np.clip(depth_of_waist / 0.2, 0, 1)) if waist != last else 0.5,
+        "size": 1.0 if 35 <= volume_ml <= 380 else 0.5,
+        "length": float(l_lo <= length <= l_hi),
+    }
+    # the apical view centres the left ventricle: off the sector axis counts against a pool
+    middle = points[lv].mean(0) - probe
+    off_axis = np.linalg.norm(middle - (middle @ depth) * depth)
+    score = volume_ml * np.exp(-((off_axis / 30.0) ** 2)) * scores["length"]
+    return {"apex": apex, "base": base, "normal": normal, "volume_ml": volume_ml, "scores": scores, "score": score}
+
+
+def _endocardial_apex(volume, apex, axis, threshold: float, *, reach: float = 12.0, disc: float = 3.0) -> np.ndarray:
+    """Where the grey level along ``axis`` first rises above ``threshold``
+    beyond the cavity, within ``reach`` mm of the coarse ``apex`` either way.
+
+    The coarse pool's tip is rounded off by the opening and the 3 mm voxels;
+    the full-resolution image along the axis (averaged over a disc of radius
+    ``disc`` mm across it, and over 2 mm along it, for the speckle) finds the
+    wall itself.
+    """
+    e2 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e2 /= np.linalg.norm(e2)
+    e3 = np.cross(axis, e2)
+    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    offsets = np.concatenate([[[0.0, 0.0, 0.0]], disc * (np.cos(angles)[:, None] * e2 + np.sin(angles)[:, None] * e3)])
+    heights = np.arange(-reach, reach + 0.25, 0.5)
+    points = apex + heights[:, None, None] * axis + offsets[None]
+    values = volume.sample(points)
+    ok = np.isfinite(values)
+    with np.errstate(invalid="ignore"):
+        profile = np.where(ok, values, 0).sum(1) / ok.sum(1)
+    if not np.isfinite(profile).all():
+        return apex
+    profile = ndimage.gaussian_filter1d(profile, 2.0)
+    inside = np.flatnonzero(profile < threshold)
+    if inside.size == 0:
+        return apex
+    # from the deepest blood sample at or before the coarse apex outwards to the first tissue
+    start = inside[inside <= len(heights) // 2]
+    if start.size == 0:
+        return apex
+    beyond = np.flatnonzero(profile[start[-1]:] >= threshold)
+    if beyond.size == 0:
+        return apex
+    k = start[-1] + beyond[0]
+    # interpolate the crossing between samples k - 1 and k
+    a, b = profile[k - 1], profile[k]
+    height = heights[k - 1] + 0.5 * (threshold - a) / (b - a)
+    return apex + height * axis
+
+
+def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) -> list[str]:
+    """Warnings about clicked points that disagree grossly with ``located``.
+
+    Parameters
+    ----------
+    located : Located
+    apex, base : (3,) world mm
+        The points given.
+    tolerance_mm : float
+        How far (mm) the base may be from the located mitral plane, and the
+        apex from the located apex, before it is called wrong.
+
+    Returns
+    -------
+    list of str
+        Empty when the points agree (or ``located`` is not confident).
+    """
+    raise NotImplementedError
