@@ -40,6 +40,16 @@ VOLUME_RANGE_ML = (20.0, 450.0)
 LENGTH_RANGE_MM = (35.0, 140.0)
 
 
+#: what a low score means, for ``Located.reason``
+_REASONS = {
+    "separation": "blood and tissue barely differ in grey level",
+    "waist": "no narrowing where the cavity meets the atrium (the base is a guess)",
+    "size": "the cavity's size is unusual",
+    "length": "the long axis has an unusual length",
+    "taper": "the cavity ends bluntly towards the probe (haze or the sector's edge hides the apex?)",
+}
+
+
 class NoVentricleError(ValueError):
     """No dark pool in the image looks like a left ventricle."""
 
@@ -84,21 +94,9 @@ class Located:
                 "scores": {k: float(v) for k, v in self.scores.items()}}
 
 
-def _coarse(volume, spacing: float):
-    """``(grey levels with NaN off the data, world of index [k, j, i], probe
-    point, depth direction)`` on a grid of about ``spacing`` mm."""
-    from .beamspace import BeamVolume, scan_convert
-
-    if isinstance(volume, BeamVolume):
-        geometry = volume.geometry
-        fine = scan_convert(volume, geometry.cartesian_grid(spacing / 2))
-        probe, depth = geometry.apex, geometry.rotation[:, 2]
-    else:
-        fine, probe, depth = volume, None, volume.direction[:, 2]
-    array = np.asarray(fine.array, dtype=np.float32)
-    missing = fine.no_data_mask if fine.no_data_mask is not None else np.zeros(array.shape, bool)
-    missing = missing | ~np.isfinite(array)
-    factor = np.maximum(1, np.rint(spacing / fine.spacing[::-1])).astype(int)  # [z, y, x]
+def _block_mean(array: np.ndarray, missing: np.ndarray, factor) -> np.ndarray:
+    """Means over blocks of ``factor`` samples (NaN where half of one has no data)."""
+    factor = np.asarray(factor, int)
     shape = np.array(array.shape) // factor
     if np.any(shape < 4):
         raise NoVentricleError(f"no left ventricle found: the image ({array.shape}) is too small to hold one")
@@ -108,22 +106,63 @@ def _coarse(volume, spacing: float):
     total = np.where(ok, array[cut].reshape(blocks), 0).sum((1, 3, 5))
     count = ok.sum((1, 3, 5))
     with np.errstate(invalid="ignore", divide="ignore"):
-        grey = np.where(count > 0.5 * factor.prod(), total / count, np.nan)
-    coarse_spacing = fine.spacing * factor[::-1]
-    origin = fine.index_to_world((factor[::-1] - 1) / 2.0)
-    direction = fine.direction if hasattr(fine, "direction") else np.eye(3)
+        return np.where(count > 0.5 * factor.prod(), total / count, np.nan)
+
+
+def _missing(volume) -> np.ndarray:
+    array = np.asarray(volume.array)
+    missing = volume.no_data_mask if volume.no_data_mask is not None else np.zeros(array.shape, bool)
+    return missing | ~np.isfinite(array)
+
+
+def _coarse(volume, spacing: float):
+    """The image on a Cartesian grid of about ``spacing`` mm, speckle averaged:
+    ``(grey levels [k, j, i] with NaN off the data, index -> world function,
+    voxel size (x, y, z) mm, probe point, whether it is known, depth direction)``."""
+    from .beamspace import BeamVolume
+
+    if isinstance(volume, BeamVolume):
+        # averaged along each beam to about the coarse voxel, then read at the
+        # coarse grid's points: the beams are already that far apart laterally
+        geometry = volume.geometry
+        f_r = max(1, int(round(spacing / geometry.radius_sample_size)))
+        beams = _block_mean(np.asarray(volume.array, np.float32), _missing(volume), (f_r, 1, 1))
+        grid = geometry.cartesian_grid(spacing)
+        index = np.stack(np.meshgrid(*(np.arange(n, dtype=float) for n in grid.shape[::-1]), indexing="ij"), -1)
+        world = grid.index_to_world(index.reshape(-1, 3))
+        beam_index = geometry.world_to_index(world)
+        beam_index[:, 0] = (beam_index[:, 0] - (f_r - 1) / 2) / f_r
+        outside = ~np.all(np.isfinite(beam_index) & (beam_index >= 0) & (beam_index <= np.array(beams.shape) - 1), 1)
+        beam_index[outside] = 0
+        grey = ndimage.map_coordinates(beams, beam_index.T, order=1)
+        grey[outside] = np.nan
+        grey = grey.reshape(grid.shape[::-1]).transpose(2, 1, 0)
+        origin, direction, step = grid.origin, grid.direction, grid.spacing
+        probe, depth = geometry.apex, geometry.rotation[:, 2]
+        probe_known = True
+    else:
+        probe_known = True
+        factor = np.maximum(1, np.rint(spacing / volume.spacing[::-1])).astype(int)  # [z, y, x]
+        grey = _block_mean(np.asarray(volume.array, np.float32), _missing(volume), factor)
+        step = volume.spacing * factor[::-1]
+        origin = volume.index_to_world((factor[::-1] - 1) / 2.0)
+        direction, depth = volume.direction, volume.direction[:, 2]
+        # an apical sector (data missing around it) has its probe over the shallowest data
+        probe = None
+        if volume.no_data_mask is not None and volume.no_data_mask.any():
+            rows = np.flatnonzero(np.isfinite(grey).any((1, 2)))
+            if rows.size:
+                jj, ii = np.nonzero(np.isfinite(grey[rows[0]]))
+                probe = origin + direction @ (np.array([ii.mean(), jj.mean(), -0.5]) * step)
+        if probe is None:  # no sector: the project's convention, the probe over the top face's centre
+            probe = origin + direction @ (np.array([(grey.shape[2] - 1) / 2, (grey.shape[1] - 1) / 2, -0.5]) * step)
+            probe_known = False
 
     def to_world(index_zyx):
-        return origin + (np.asarray(index_zyx, float)[..., ::-1] * coarse_spacing) @ direction.T
+        return origin + (np.asarray(index_zyx, float)[..., ::-1] * step) @ np.asarray(direction).T
 
-    if probe is None:
-        # the probe sits over the data of the shallowest slice, at depth index 0
-        rows = np.flatnonzero(np.isfinite(grey).any((1, 2)))
-        if rows.size == 0:
-            raise NoVentricleError("no left ventricle found: the image has no data")
-        jj, ii = np.nonzero(np.isfinite(grey[rows[0]]))
-        probe = to_world(np.array([-(factor[0] - 1) / 2.0 / factor[0], jj.mean(), ii.mean()]))
-    return grey, to_world, np.asarray(probe, float), np.asarray(depth, float) / np.linalg.norm(depth), coarse_spacing
+    return (grey, to_world, np.asarray(step, float), np.asarray(probe, float), probe_known,
+            np.asarray(depth, float) / np.linalg.norm(depth))
 
 
 def _otsu(values: np.ndarray) -> tuple[float, float]:
@@ -165,7 +204,7 @@ def locate(volume, *, spacing: float = 3.0) -> Located:
     """
     if not (np.isfinite(spacing) and spacing > 0):
         raise ValueError(f"spacing must be a positive number of mm, got {spacing!r}")
-    grey, to_world, probe, depth, step = _coarse(volume, spacing)
+    grey, to_world, step, probe, probe_known, depth = _coarse(volume, spacing)
     data = np.isfinite(grey)
     if data.sum() < 64:
         raise NoVentricleError("no left ventricle found: the image has too little data")
@@ -188,7 +227,7 @@ def locate(volume, *, spacing: float = 3.0) -> Located:
     sizes = ndimage.sum_labels(np.ones_like(labels), labels, np.arange(1, n + 1)) * voxel_ml
     best = None
     for label in np.flatnonzero(sizes >= VOLUME_RANGE_ML[0]) + 1:
-        candidate = _pool(labels == label, to_world, probe, depth, voxel_ml, float(step.max()))
+        candidate = _pool(labels == label, to_world, probe, probe_known, depth, voxel_ml, float(step.max()))
         if candidate is None:
             continue
         if best is None or candidate["score"] > best["score"]:
@@ -199,29 +238,45 @@ def locate(volume, *, spacing: float = 3.0) -> Located:
     apex = _endocardial_apex(volume, best["apex"], best["normal"], threshold)
     scores = {"separation": float(np.clip((separation - 0.3) / 0.3, 0, 1)), **best["scores"]}
     confidence = float(np.prod(list(scores.values())))
-    low = [name for name, value in scores.items() if value < 0.5]
-    reason = "" if confidence >= 0.5 else "low " + ", ".join(low or ["scores"])
+    reason = "; ".join(_REASONS[name] for name, value in scores.items() if value < 0.5) if confidence < 0.5 else ""
     normal = (apex - best["base"]) / np.linalg.norm(apex - best["base"])
     return Located(apex=apex, base=best["base"], normal=normal, confidence=confidence, reason=reason,
                    volume_ml=best["volume_ml"], scores=scores)
 
 
-def _pool(mask: np.ndarray, to_world, probe, depth, voxel_ml, slab) -> dict | None:
-    """The apex, base and scores of one dark pool (None if it is no ventricle)."""
+def _pool(mask: np.ndarray, to_world, probe, probe_known: bool, depth, voxel_ml, slab) -> dict | None:
+    """The apex, base and scores of one dark pool (None if it is no ventricle).
+
+    With the probe known, the apex is the end towards it; otherwise the end
+    whose side of the waist holds more blood (a ventricle holds two to three
+    times its atrium)."""
     points = to_world(np.argwhere(mask))
     centre = points.mean(0)
     _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
-    axis = vt[0]
-    if axis @ (probe - centre) < 0:
-        axis = -axis  # towards the probe: the apex side
+    axis = vt[0] if vt[0] @ (probe - centre) >= 0 else -vt[0]
+    found = [_along(points, centre, axis, voxel_ml, slab)]
+    if not probe_known:
+        found.append(_along(points, centre, -axis, voxel_ml, slab))
+        found = [max(found, key=lambda f: (f is not None, f is not None and f["scores"]["waist"] == 1.0,
+                                            f is not None and -f["taper"]))]
+    best = found[0]
+    if best is None:
+        return None
+    # the apical view centres the left ventricle: off the sector axis counts against a pool
+    middle = best["middle"] - probe
+    off_axis = np.linalg.norm(middle - (middle @ depth) * depth)
+    best["score"] = best["volume_ml"] * np.exp(-((off_axis / 30.0) ** 2)) * best["scores"]["length"]
+    return best
+
+
+def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict | None:
+    """Apex, base and scores of a pool whose apex lies along ``axis``."""
     t = (points - centre) @ axis
-    bin_mm = 2.0
     edges = np.arange(t.min() - bin_mm / 2, t.max() + bin_mm, bin_mm)
     area = np.histogram(t, edges)[0] * voxel_ml * 1000.0 / bin_mm  # mm^2 of section
     heights = (edges[:-1] + edges[1:]) / 2
     # from the apex side (largest t) towards the base
-    order = np.argsort(-heights)
-    heights, area = heights[order], ndimage.uniform_filter1d(area[order], 3)
+    heights, area = heights[::-1], ndimage.uniform_filter1d(area[::-1], 3)
     present = np.flatnonzero(area > 0.05 * area.max())
     first, last = present[0], present[-1]
     # the waist: the section narrowest against the widest on either side of it
@@ -233,8 +288,18 @@ def _pool(mask: np.ndarray, to_world, probe, depth, voxel_ml, slab) -> dict | No
         dip = 1 - area[k] / min(area[first:k].max(), area[k:last + 1].max())
         if dip > depth_of_waist:
             waist, depth_of_waist = k, dip
+    stepped = False
     if depth_of_waist < 0.1:
         waist, depth_of_waist = last, 0.0
+        # no waist: a step down into a narrower atrium (or the pool's end)
+        widest = first + int(np.argmax(area[first:last + 1]))
+        reach = int(round(10.0 / bin_mm))
+        for k in range(max(widest, first + 2), last - reach):
+            if heights[first] - heights[k] < LENGTH_RANGE_MM[0] or area[k + reach] < 0.3 * area[widest]:
+                continue
+            drop = 1 - area[k + 2] / area[k - 2]
+            if drop > max(depth_of_waist, 0.15):
+                waist, depth_of_waist, stepped = k, drop, True
     apex_t, base_t = heights[first] - bin_mm / 2, heights[waist]
     length = apex_t - base_t
     lv = t >= base_t
@@ -248,18 +313,20 @@ def _pool(mask: np.ndarray, to_world, probe, depth, voxel_ml, slab) -> dict | No
     base = p + axis * (base_t - (p - centre) @ axis)
     p = points[t >= apex_t - 2 * slab].mean(0)
     apex = p + axis * (apex_t - (p - centre) @ axis)
-    normal = (apex - base) / np.linalg.norm(apex - base)
+    # an apex tapers: 10 mm from it the section is a quarter to a third of
+    # the widest (2 x 10 / length for an ellipsoid); a blunt end is a cavity
+    # cut off by haze or the sector's edge
+    widest = area[first:waist + 1].max()
+    taper = float(np.interp(apex_t - 10.0, heights[::-1], area[::-1]) / widest)
     l_lo, l_hi = LENGTH_RANGE_MM
     scores = {
-        "waist": float(np.clip(depth_of_waist / 0.2, 0, 1)) if waist != last else 0.5,
+        "waist": 0.4 if stepped or waist == last else float(np.clip(depth_of_waist / 0.2, 0, 1)),
         "size": 1.0 if 35 <= volume_ml <= 380 else 0.5,
         "length": float(l_lo <= length <= l_hi),
+        "taper": float(np.clip((0.65 - taper) / 0.2, 0, 1)),
     }
-    # the apical view centres the left ventricle: off the sector axis counts against a pool
-    middle = points[lv].mean(0) - probe
-    off_axis = np.linalg.norm(middle - (middle @ depth) * depth)
-    score = volume_ml * np.exp(-((off_axis / 30.0) ** 2)) * scores["length"]
-    return {"apex": apex, "base": base, "normal": normal, "volume_ml": volume_ml, "scores": scores, "score": score}
+    return {"apex": apex, "base": base, "normal": axis, "volume_ml": volume_ml, "scores": scores,
+            "middle": points[lv].mean(0), "taper": taper}
 
 
 def _endocardial_apex(volume, apex, axis, threshold: float, *, reach: float = 12.0, disc: float = 3.0) -> np.ndarray:
