@@ -40,12 +40,24 @@ VOLUME_RANGE_ML = (20.0, 450.0)
 LENGTH_RANGE_MM = (35.0, 140.0)
 
 
+#: Otsu's classes of one Gaussian grey-level distribution are 2.7 deviations
+#: apart: an image whose classes are not farther apart has no blood pool
+SEPARATION_MIN = 2.8
+#: a dark region whose surroundings are not this much brighter (in the
+#: classes' deviations) is a dark patch of tissue, not a cavity
+WALL_MIN = 1.0
+
+#: an apical view looks down the long axis: at most this angle (degrees)
+#: between the long axis and the sector's centre line (25 is a tilted view)
+AXIS_MAX_DEG = 45.0
+
 #: what a low score means, for ``Located.reason``
 _REASONS = {
     "separation": "blood and tissue barely differ in grey level",
     "waist": "no narrowing where the cavity meets the atrium (the base is a guess)",
     "size": "the cavity's size is unusual",
     "length": "the long axis has an unusual length",
+    "wall": "the cavity's wall is barely brighter than its blood",
     "taper": "the cavity ends bluntly towards the probe (haze or the sector's edge hides the apex?)",
 }
 
@@ -165,9 +177,10 @@ def _coarse(volume, spacing: float):
             np.asarray(depth, float) / np.linalg.norm(depth))
 
 
-def _otsu(values: np.ndarray) -> tuple[float, float]:
-    """Otsu's threshold of ``values`` and its separability (between-class
-    over total variance, in [0, 1])."""
+def _otsu(values: np.ndarray) -> tuple[float, float, float]:
+    """Otsu's threshold of ``values`` and how far apart its two classes are:
+    the difference of their means over their pooled standard deviation
+    (about 2.7 for one Gaussian class split in two), and that deviation."""
     hist, edges = np.histogram(values, bins=128)
     p = hist / hist.sum()
     centres = (edges[:-1] + edges[1:]) / 2
@@ -176,10 +189,11 @@ def _otsu(values: np.ndarray) -> tuple[float, float]:
     mean = m0[-1]
     with np.errstate(invalid="ignore", divide="ignore"):
         between = (mean * w0 - m0) ** 2 / (w0 * (1 - w0))
-    between = np.nan_to_num(between[:-1])
-    k = int(np.argmax(between))
-    total = float(values.var())
-    return float(edges[k + 1]), float(between[k] / total) if total > 0 else 0.0
+    k = int(np.argmax(np.nan_to_num(between[:-1])))
+    threshold = float(edges[k + 1])
+    dark, bright = values[values < threshold], values[values >= threshold]
+    spread = np.sqrt(0.5 * (dark.var() + bright.var()))
+    return threshold, float((bright.mean() - dark.mean()) / spread) if spread > 0 else 0.0, float(spread)
 
 
 def locate(volume, *, spacing: float = 3.0) -> Located:
@@ -218,25 +232,41 @@ def locate(volume, *, spacing: float = 3.0) -> Located:
     values = smooth[inside]
     if values.size < 64 or not np.ptp(values) > 0:
         raise NoVentricleError("no left ventricle found: the image is constant")
-    threshold, separation = _otsu(values)
-    blood = inside & (smooth < threshold)
-    blood = ndimage.binary_opening(blood, iterations=1)
-    labels, n = ndimage.label(blood)
-    if n == 0:
-        raise NoVentricleError("no left ventricle found: nothing in the image is as dark as blood")
-    sizes = ndimage.sum_labels(np.ones_like(labels), labels, np.arange(1, n + 1)) * voxel_ml
-    best = None
-    for label in np.flatnonzero(sizes >= VOLUME_RANGE_ML[0]) + 1:
-        candidate = _pool(labels == label, to_world, probe, probe_known, depth, voxel_ml, float(step.max()))
-        if candidate is None:
+    threshold, separation, spread = _otsu(values)
+    if separation < SEPARATION_MIN:
+        raise NoVentricleError(f"no left ventricle found: no region of the image is darker than the rest as blood "
+                               f"is (dark and bright classes {separation:.1f} deviations apart, fewer than "
+                               f"{SEPARATION_MIN})")
+    dark = inside & (smooth < threshold)
+    best, largest = None, 0.0
+    # a wider opening cuts wider bridges (a ventricle joined to the atrium
+    # through an open valve, or to clutter out of the sector)
+    for opening in (1, 2, 3):
+        labels, n = ndimage.label(ndimage.binary_opening(dark, iterations=opening))
+        if n == 0:
             continue
-        if best is None or candidate["score"] > best["score"]:
-            best = candidate
-    if best is None:
+        sizes = ndimage.sum_labels(np.ones_like(labels), labels, np.arange(1, n + 1)) * voxel_ml
+        largest = max(largest, float(sizes.max()))
+        for label in np.flatnonzero(sizes >= VOLUME_RANGE_ML[0]) + 1:
+            mask = labels == label
+            candidate = _pool(mask, to_world, probe, probe_known, depth, voxel_ml, float(step.max()))
+            if candidate is None:
+                continue
+            # a cavity is walled by tissue brighter than its blood
+            shell = ndimage.binary_dilation(mask, iterations=2) & ~mask & inside
+            wall = (smooth[shell].mean() - smooth[mask].mean()) / spread if shell.any() else 0.0
+            candidate["scores"]["wall"] = float(np.clip((wall - WALL_MIN) / 1.0, 0, 1))
+            candidate["score"] *= candidate["scores"]["wall"]
+            if best is None or candidate["score"] > best["score"]:
+                best = candidate
+        if best is not None and best["score"] > 0:
+            break
+    if best is None or best["score"] <= 0:
         raise NoVentricleError(f"no left ventricle found: no dark region of {VOLUME_RANGE_ML[0]:.0f}-"
-                               f"{VOLUME_RANGE_ML[1]:.0f} mL (the largest is {sizes.max():.0f} mL)")
+                               f"{VOLUME_RANGE_ML[1]:.0f} mL, walled by brighter tissue, along the sector (the "
+                               f"largest dark region is {largest:.0f} mL)")
     apex = _endocardial_apex(volume, best["apex"], best["normal"], threshold)
-    scores = {"separation": float(np.clip((separation - 0.3) / 0.3, 0, 1)), **best["scores"]}
+    scores = {"separation": float(np.clip(separation - SEPARATION_MIN, 0, 1)), **best["scores"]}
     confidence = float(np.prod(list(scores.values())))
     reason = "; ".join(_REASONS[name] for name, value in scores.items() if value < 0.5) if confidence < 0.5 else ""
     normal = (apex - best["base"]) / np.linalg.norm(apex - best["base"])
@@ -247,13 +277,16 @@ def locate(volume, *, spacing: float = 3.0) -> Located:
 def _pool(mask: np.ndarray, to_world, probe, probe_known: bool, depth, voxel_ml, slab) -> dict | None:
     """The apex, base and scores of one dark pool (None if it is no ventricle).
 
-    With the probe known, the apex is the end towards it; otherwise the end
+    With the probe known, the apex is the end towards it (and a pool lying
+    across the sector is no ventricle in an apical view); otherwise the end
     whose side of the waist holds more blood (a ventricle holds two to three
     times its atrium)."""
     points = to_world(np.argwhere(mask))
     centre = points.mean(0)
     _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
     axis = vt[0] if vt[0] @ (probe - centre) >= 0 else -vt[0]
+    if probe_known and abs(axis @ depth) < np.cos(np.radians(AXIS_MAX_DEG)):
+        return None  # not an apical view of this pool
     found = [_along(points, centre, axis, voxel_ml, slab)]
     if not probe_known:
         found.append(_along(points, centre, -axis, voxel_ml, slab))
