@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["Located", "NoVentricleError", "locate", "check_points", "VOLUME_RANGE_ML"]
+__all__ = ["Located", "NoVentricleError", "locate", "check_points", "initialise", "annotate", "VOLUME_RANGE_ML"]
 
 #: cavity volumes (mL, the part before the waist) a left ventricle can have
 VOLUME_RANGE_ML = (20.0, 450.0)
@@ -405,18 +405,96 @@ def _endocardial_apex(volume, apex, axis, threshold: float, *, reach: float = 12
 def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) -> list[str]:
     """Warnings about clicked points that disagree grossly with ``located``.
 
+    Three errors are looked for: apex and base swapped (the clicked long axis
+    points away from the located one), the base off the located mitral plane
+    (measured along its normal: into the atrium, or short of the plane
+    towards the apex) and the apex far from the located one.
+
     Parameters
     ----------
     located : Located
+        What :func:`locate` found; nothing is said when its confidence is
+        under 0.5.
     apex, base : (3,) world mm
         The points given.
     tolerance_mm : float
-        How far (mm) the base may be from the located mitral plane, and the
-        apex from the located apex, before it is called wrong.
+        How far (mm) the base may lie from the located mitral plane, and the
+        apex (1.5 times as far) from the located apex, before it is called
+        wrong.
 
     Returns
     -------
     list of str
-        Empty when the points agree (or ``located`` is not confident).
+        One warning per point that looks wrong, naming where the located one
+        is; empty when the points agree (or ``located`` is not confident).
     """
-    raise NotImplementedError
+    if not located.confidence >= 0.5:
+        return []
+    apex, base = np.asarray(apex, float), np.asarray(base, float)
+    here = lambda p: "(" + ", ".join(f"{x:.1f}" for x in p) + ")"  # noqa: E731
+    axis = apex - base
+    if axis @ located.normal < 0:
+        return [f"the apex and the base look swapped: the ventricle's apex was found at {here(located.apex)} and "
+                f"its base at {here(located.base)}"]
+    warnings = []
+    offset = float((base - located.base) @ located.normal)
+    if abs(offset) > tolerance_mm:
+        where = "short of the mitral plane, towards the apex" if offset > 0 else "beyond the mitral plane, in the atrium"
+        warnings.append(f"the base looks wrong: {abs(offset):.0f} mm {where}; the mitral plane's centre was found "
+                        f"at {here(located.base)}")
+    miss = float(np.linalg.norm(apex - located.apex))
+    if miss > 1.5 * tolerance_mm:
+        warnings.append(f"the apex looks wrong: {miss:.0f} mm from the apex found at {here(located.apex)}")
+    return warnings
+
+
+def initialise(volume, apex, base, *, annulus=None, init=None, check: bool = True):
+    """The points a segmentation starts from, and how they were had.
+
+    With no points (and no ``annulus`` or ``init``) the ventricle is located;
+    otherwise the points given are used and, if ``check``, located as well to
+    check them (:func:`check_points`).
+
+    Returns
+    -------
+    apex, base : arrays or the inputs
+    initialisation : dict
+        ``method`` (``"located"`` or ``"given"``), ``apex``, ``base``, and
+        ``located`` (:meth:`Located.as_dict`) when it was located.
+    located : Located or None
+    """
+    if apex is None and base is None and annulus is None and init is None:
+        found = locate(volume)
+        return found.apex, found.base, {"method": "located", "apex": found.apex.tolist(),
+                                        "base": found.base.tolist(), "located": found.as_dict()}, found
+    if apex is None:
+        raise ValueError("give the apex with the base (or annulus), or neither to locate the ventricle")
+    initialisation = {"method": "given", "apex": np.asarray(apex, float).tolist(),
+                      "base": None if base is None else np.asarray(base, float).tolist()}
+    found = None
+    if check and init is None:
+        try:
+            found = locate(volume)
+            initialisation["located"] = found.as_dict()
+        except NoVentricleError as error:
+            initialisation["located"] = str(error)
+    return apex, base, initialisation, found
+
+
+def annotate(result, initialisation: dict, located: Located | None) -> None:
+    """Record ``initialisation`` on ``result`` and add to its quality report
+    what the location says: a low confidence when the points were located,
+    the click checks when they were given."""
+    result.initialisation = initialisation
+    if located is None or result.quality is None:
+        return
+    if initialisation["method"] == "located":
+        warnings = [] if located.confidence >= 0.5 else [
+            f"the ventricle was found with low confidence ({located.confidence:.2f}: {located.reason}); "
+            "give the apex and base"]
+    else:
+        base = result.surface.pose.origin if initialisation["base"] is None else initialisation["base"]
+        warnings = check_points(located, initialisation["apex"], base)
+    if warnings:
+        result.quality["warnings"] = list(result.quality["warnings"]) + warnings
+        result.quality["poor"] = True

@@ -92,9 +92,10 @@ def write_frame_files(out: Path, volumes, result, *, mask_suffix: str = ".nii.gz
 
 
 def _outcome(result) -> dict:
-    """``quality`` always (None until results carry it), ``status`` and
+    """``quality`` and ``initialisation`` always (None until results carry
+    them), ``status`` and
     ``message`` when the result has them."""
-    outcome = {"quality": getattr(result, "quality", None)}
+    outcome = {"quality": getattr(result, "quality", None), "initialisation": getattr(result, "initialisation", None)}
     for name in ("status", "message"):
         if hasattr(result, name):
             outcome[name] = getattr(result, name)
