@@ -189,8 +189,11 @@ def _study(entry, folder: Path) -> Study:
     annulus = _point_list(entry.get("annulus"), "annulus")
     if annulus and len(annulus) < 3:
         raise ValueError(f"annulus needs 3 or more points, got {len(annulus)}")
-    if points is None and (apex is None or (base is None and not annulus)):
-        raise ValueError("give apex and base (x y z, mm) or apex and annulus, or points (a markups file)")
+    if points is None and (base is not None or annulus) and apex is None:
+        raise ValueError("give apex and base (x y z, mm) or apex and annulus, or points (a markups file), or none "
+                         "(the ventricle is located)")
+    if points is None and apex is not None and base is None and not annulus:
+        raise ValueError("give the base (x y z, mm) or the annulus with the apex")
     spacing = None if entry.get("spacing") in (None, "") else _numbers(entry["spacing"], 3, "spacing")
     if spacing is not None and min(spacing) <= 0:
         raise ValueError(f"spacing must be positive, got {spacing}")
@@ -425,9 +428,11 @@ def _points(study: Study):
         base = marks["base"] if base is None else base
         landmarks += [tuple(p) for p in marks["landmarks"]]
         annulus = annulus or [tuple(p) for p in marks.get("annulus", [])]
+    as_array = lambda points: np.array(points, dtype=float) if points else None  # noqa: E731
+    if apex is None and base is None and not annulus and not study.points:
+        return None, None, as_array(landmarks), None  # the ventricle is located
     if apex is None or (base is None and not annulus):
         raise ValueError(f"{study.points}: no points labelled apex and base (or annulus)")
-    as_array = lambda points: np.array(points, dtype=float) if points else None  # noqa: E731
     return (np.asarray(apex, float), None if base is None else np.asarray(base, float), as_array(landmarks),
             as_array(annulus))
 

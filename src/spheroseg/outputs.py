@@ -118,6 +118,8 @@ def _placement(result, apex, base, annulus) -> dict:
     """The points given and the plane the cavity was closed at (the base used
     is the model's origin: the annulus's centre when only that was given)."""
     pose = result.surface.pose
+    if apex is None:  # located (results.json's initialisation says so)
+        apex = (getattr(result, "initialisation", None) or {}).get("apex")
     return {"apex": np.asarray(apex, dtype=float), "base": pose.origin if base is None else np.asarray(base, float),
             "annulus": _points(annulus), "long_axis": pose.rotation[:, 0]}
 
