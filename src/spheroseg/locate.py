@@ -405,10 +405,12 @@ def _endocardial_apex(volume, apex, axis, threshold: float, *, reach: float = 12
 def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) -> list[str]:
     """Warnings about clicked points that disagree grossly with ``located``.
 
-    Three errors are looked for: apex and base swapped (the clicked long axis
+    Four errors are looked for: apex and base swapped (the clicked long axis
     points away from the located one), the base off the located mitral plane
     (measured along its normal: into the atrium, or short of the plane
-    towards the apex) and the apex far from the located one.
+    towards the apex), the apex beyond that plane (in the atrium) and the
+    apex far from the located one (2.5 ``tolerance_mm``: haze over the apex
+    can hide the located apex by more than a centimetre).
 
     Parameters
     ----------
@@ -418,9 +420,8 @@ def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) ->
     apex, base : (3,) world mm
         The points given.
     tolerance_mm : float
-        How far (mm) the base may lie from the located mitral plane, and the
-        apex (1.5 times as far) from the located apex, before it is called
-        wrong.
+        How far (mm) the base may lie from the located mitral plane before it
+        is called wrong.
 
     Returns
     -------
@@ -442,9 +443,13 @@ def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) ->
         where = "short of the mitral plane, towards the apex" if offset > 0 else "beyond the mitral plane, in the atrium"
         warnings.append(f"the base looks wrong: {abs(offset):.0f} mm {where}; the mitral plane's centre was found "
                         f"at {here(located.base)}")
-    miss = float(np.linalg.norm(apex - located.apex))
-    if miss > 1.5 * tolerance_mm:
-        warnings.append(f"the apex looks wrong: {miss:.0f} mm from the apex found at {here(located.apex)}")
+    if (apex - located.base) @ located.normal < 0:
+        warnings.append(f"the apex looks wrong: it lies beyond the mitral plane, in the atrium; the apex was found at "
+                        f"{here(located.apex)}")
+    else:
+        miss = float(np.linalg.norm(apex - located.apex))
+        if miss > 2.5 * tolerance_mm:
+            warnings.append(f"the apex looks wrong: {miss:.0f} mm from the apex found at {here(located.apex)}")
     return warnings
 
 
