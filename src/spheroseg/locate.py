@@ -268,7 +268,9 @@ def locate(volume, *, spacing: float = 3.0) -> Located:
     apex = _endocardial_apex(volume, best["apex"], best["normal"], threshold)
     scores = {"separation": float(np.clip(separation - SEPARATION_MIN, 0, 1)), **best["scores"]}
     confidence = float(np.prod(list(scores.values())))
-    reason = "; ".join(_REASONS[name] for name, value in scores.items() if value < 0.5) if confidence < 0.5 else ""
+    # the scores that brought it down (the lowest, when each alone is fair)
+    low = [name for name, value in scores.items() if value < 0.75] or [min(scores, key=scores.get)]
+    reason = "; ".join(_REASONS[name] for name in low) if confidence < 0.5 else ""
     normal = (apex - best["base"]) / np.linalg.norm(apex - best["base"])
     return Located(apex=apex, base=best["base"], normal=normal, confidence=confidence, reason=reason,
                    volume_ml=best["volume_ml"], scores=scores)
