@@ -7,7 +7,9 @@ finds that pool on a coarse copy of the image (about 3 mm voxels, which also
 averages the speckle out):
 
 1. blood is what is darker than Otsu's threshold of the smoothed grey levels
-   inside the sector;
+   inside the sector, once each shell of depth from the probe is brought to
+   one level of its brighter quartile (time-gain compensation leaves the
+   grey level drifting with depth);
 2. its connected pools (after an opening of one coarse voxel, which cuts thin
    bridges) are the candidates; the left ventricle is the one of plausible
    size (the part before its waist, :data:`VOLUME_RANGE_ML`) scored by its
@@ -46,6 +48,9 @@ SEPARATION_MIN = 2.8
 #: a dark region whose surroundings are not this much brighter (in the
 #: classes' deviations) is a dark patch of tissue, not a cavity
 WALL_MIN = 1.0
+
+#: thickness (mm) of the shells of depth whose grey levels are levelled
+DEPTH_SHELL_MM = 6.0
 
 #: an apical view looks down the long axis: at most this angle (degrees)
 #: between the long axis and the sector's centre line (25 is a tilted view)
@@ -229,7 +234,25 @@ def locate(volume, *, spacing: float = 3.0) -> Located:
     with np.errstate(invalid="ignore", divide="ignore"):
         smooth = ndimage.gaussian_filter(np.where(data, grey, 0).astype(np.float32), sigma) / weight
     inside = data & (weight > 0.5)
-    values = smooth[inside]
+    # time-gain compensation leaves the grey level drifting with depth: each
+    # shell of depth is brought to one level of its brighter (tissue) quartile
+    cells = np.argwhere(inside)
+    distance = np.linalg.norm(to_world(cells) - probe, axis=1)
+    shell = (distance // DEPTH_SHELL_MM).astype(int)
+    raw = smooth[inside]
+    levels = np.full(shell.max() + 1, np.nan)
+    for k in np.unique(shell):
+        here = raw[shell == k]
+        if here.size >= 20:
+            levels[k] = np.percentile(here, 75)
+    known = np.flatnonzero(np.isfinite(levels))
+    if known.size == 0:
+        raise NoVentricleError("no left ventricle found: the image has too little data")
+    centres = (np.arange(levels.size) + 0.5) * DEPTH_SHELL_MM
+    drift = np.interp(centres, centres[known], levels[known]) - np.median(levels[known])
+    values = raw - np.interp(distance, centres, drift)
+    smooth = smooth.copy()
+    smooth[inside] = values
     if values.size < 64 or not np.ptp(values) > 0:
         raise NoVentricleError("no left ventricle found: the image is constant")
     threshold, separation, spread = _otsu(values)
@@ -265,7 +288,8 @@ def locate(volume, *, spacing: float = 3.0) -> Located:
         raise NoVentricleError(f"no left ventricle found: no dark region of {VOLUME_RANGE_ML[0]:.0f}-"
                                f"{VOLUME_RANGE_ML[1]:.0f} mL, walled by brighter tissue, along the sector (the "
                                f"largest dark region is {largest:.0f} mL)")
-    apex = _endocardial_apex(volume, best["apex"], best["normal"], threshold)
+    local = threshold + np.interp(np.linalg.norm(best["apex"] - probe), centres, drift)
+    apex = _endocardial_apex(volume, best["apex"], best["normal"], local)
     scores = {"separation": float(np.clip(separation - SEPARATION_MIN, 0, 1)), **best["scores"]}
     confidence = float(np.prod(list(scores.values())))
     # the scores that brought it down (the lowest, when each alone is fair)
