@@ -193,7 +193,7 @@ def _study(entry, folder: Path) -> Study:
         raise ValueError("give apex and base (x y z, mm) or apex and annulus, or points (a markups file), or none "
                          "(the ventricle is located)")
     if points is None and apex is not None and base is None and not annulus:
-        raise ValueError("give the base (x y z, mm) or the annulus with the apex")
+        raise ValueError("give apex and base (x y z, mm) or apex and annulus, not the apex alone")
     spacing = None if entry.get("spacing") in (None, "") else _numbers(entry["spacing"], 3, "spacing")
     if spacing is not None and min(spacing) <= 0:
         raise ValueError(f"spacing must be positive, got {spacing}")
