@@ -145,3 +145,17 @@ def test_cli_segment_without_points_records_the_located_points(tmp_path, p157):
     assert np.linalg.norm(np.array(results["apex"]) - p157.apex) < 6.0
     assert np.linalg.norm(np.array(results["base"]) - p157.base) < 6.0
     assert abs(results["volume_ml"] - p157.truth_volume_ml) < 0.1 * p157.truth_volume_ml
+
+
+def test_track_without_points_locates_in_the_first_frame():
+    from spheroseg import track
+    from spheroseg.phantom import make_sequence
+
+    sequence = make_sequence(n_frames=2, seed=4, spacing=2.0)
+    result = track(sequence.volumes)
+    assert result.initialisation["method"] == "located"
+    first = sequence.frames[0]
+    assert np.linalg.norm(np.array(result.initialisation["base"]) - first.base) < 6.0
+    # (two frames are end-diastole and end-systole: the second is the tracker's, not locate's, to follow)
+    assert abs(result.volumes_ml[0] / sequence.truth_volumes_ml[0] - 1) < 0.1
+    assert result.frames[1].initialisation is None
