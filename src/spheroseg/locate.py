@@ -145,15 +145,16 @@ def _coarse(volume, spacing: float):
         f_r = max(1, int(round(spacing / geometry.radius_sample_size)))
         beams = _block_mean(np.asarray(volume.array, np.float32), _missing(volume), (f_r, 1, 1))
         grid = geometry.cartesian_grid(spacing)
-        index = np.stack(np.meshgrid(*(np.arange(n, dtype=float) for n in grid.shape[::-1]), indexing="ij"), -1)
-        world = grid.index_to_world(index.reshape(-1, 3))
-        beam_index = geometry.world_to_index(world)
-        beam_index[:, 0] = (beam_index[:, 0] - (f_r - 1) / 2) / f_r
-        outside = ~np.all(np.isfinite(beam_index) & (beam_index >= 0) & (beam_index <= np.array(beams.shape) - 1), 1)
+        # the grid's axes are the probe's: its points in the probe frame are a product of three ranges
+        start = (grid.origin - geometry.apex) @ geometry.rotation
+        x, y, z = (start[d] + np.arange(n) * grid.spacing[d] for d, n in enumerate(grid.shape[::-1]))
+        probe_points = np.stack(np.broadcast_arrays(x, y[:, None], z[:, None, None]), -1)  # [k, j, i, xyz]
+        beam_index = (geometry.probe_to_spherical(probe_points) - geometry.index_offset) / geometry.separations
+        beam_index[..., 0] = (beam_index[..., 0] - (f_r - 1) / 2) / f_r
+        outside = ~np.all(np.isfinite(beam_index) & (beam_index >= 0) & (beam_index <= np.array(beams.shape) - 1), -1)
         beam_index[outside] = 0
-        grey = ndimage.map_coordinates(beams, beam_index.T, order=1)
+        grey = ndimage.map_coordinates(beams, np.moveaxis(beam_index, -1, 0), order=1)
         grey[outside] = np.nan
-        grey = grey.reshape(grid.shape[::-1]).transpose(2, 1, 0)
         origin, direction, step = grid.origin, grid.direction, grid.spacing
         probe, depth = geometry.apex, geometry.rotation[:, 2]
         probe_known = True
