@@ -38,6 +38,9 @@ __all__ = ["Located", "NoVentricleError", "locate", "check_points", "initialise"
 
 #: cavity volumes (mL, the part before the waist) a left ventricle can have
 VOLUME_RANGE_ML = (20.0, 450.0)
+#: coarse pool volumes (mL) of the usual ventricles, 40-350 mL: the pool
+#: measures 0.8-0.9 of the cavity (the opening and the blurred wall)
+SIZE_RANGE_ML = (30.0, 380.0)
 #: apex-to-base lengths (mm) a left ventricle can have
 LENGTH_RANGE_MM = (35.0, 140.0)
 
@@ -381,7 +384,7 @@ def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict
     l_lo, l_hi = LENGTH_RANGE_MM
     scores = {
         "waist": 0.4 if stepped or waist == last else float(np.clip(depth_of_waist / 0.2, 0, 1)),
-        "size": 1.0 if 35 <= volume_ml <= 380 else 0.5,
+        "size": 1.0 if SIZE_RANGE_ML[0] <= volume_ml <= SIZE_RANGE_ML[1] else 0.5,
         "length": float(l_lo <= length <= l_hi),
         "taper": float(np.clip((0.65 - taper) / 0.2, 0, 1)),
     }
