@@ -544,7 +544,7 @@ def warm_up() -> None:
     from .segment import segment
 
     phantom = make_phantom(seed=0, spacing=4.0)
-    segment(phantom.volume, phantom.apex, phantom.base, max_iterations=2)
+    segment(phantom.volume, phantom.apex, phantom.base, max_iterations=2, check=False)
 
 
 # -- many studies ------------------------------------------------------------
