@@ -470,7 +470,8 @@ def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) ->
     warnings = []
     offset = float((base - located.base) @ located.normal)
     if abs(offset) > tolerance_mm:
-        where = "short of the mitral plane, towards the apex" if offset > 0 else "beyond the mitral plane, in the atrium"
+        where = ("short of the mitral plane, towards the apex" if offset > 0
+                 else "beyond the mitral plane, in the atrium")
         warnings.append(f"the base looks wrong: {abs(offset):.0f} mm {where}; the mitral plane's centre was found "
                         f"at {here(located.base)}")
     if (apex - located.base) @ located.normal < 0:
