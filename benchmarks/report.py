@@ -723,8 +723,8 @@ def _locate(data) -> list[str]:
             "is two thirds of the widest, against a quarter to a third for a tapering apex) takes the confidence "
             "under 0.5. (6) Under-compensated attenuation (`tgc_under`) darkens the deep sector until Otsu's dark "
             "class is the depth, not the blood (classes 2.0 deviations apart on an end-systolic case, refused); "
-            "levelling each 6 mm shell of depth to its brighter quartile brings it to 5.1, raises every phantom's (4.9-6.3) "
-            "and brought the legacy `clutter` apex from 11 to 3.5 mm. Not tried for want of time: refining "
+            "levelling each 6 mm shell of depth to its brighter quartile brings it to 5.1, raises every phantom's "
+            "(4.9-6.3) and brought the legacy `clutter` apex from 11 to 3.5 mm. Not tried for want of time: refining "
             "candidate poses by coarse descents and scoring them by the energy. CETUS Patient 7 is refused: its "
             "cavity's dark pool joins the dark tissue beyond a faint wall near the base over a wide front (openings "
             "of up to 9 mm do not cut it) and the pool lies across the sector.",
