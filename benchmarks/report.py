@@ -786,6 +786,82 @@ def _anatomy(data) -> list[str]:
     return out
 
 
+def _locate(data) -> list[str]:
+    rows = data["cases"]
+    found = [r for r in rows if "refused" not in r]
+    confident = [r for r in found if r["confidence"] >= 0.5]
+    apex, base = np.array([r["apex_mm"] for r in found]), np.array([r["base_mm"] for r in found])
+    worst = max((max(r["apex_mm"], r["base_mm"]) for r in confident), default=float("nan"))
+    d, v = np.array([r["dice"] for r in found]), np.array([r["volume_error_pct"] for r in found])
+    bad = [r for r in found if r["dice"] < 0.90 and not r["poor"]]
+    t = np.array([r["locate_s"] for r in found])
+    out = ["## Finding the ventricle without clicks (issue 29)", "",
+           f"Command: `{data['command']}`. Seeded random phantoms (2 mm voxels): tilt 0-25 degrees, long axis "
+           "60-100 mm, radius 0.26-0.38 of it, ED or ES (radius 0.7 as large, wall 13.5 mm), each imaged by the next "
+           "formation of the sweep. `locate(volume)`, then `segment(volume)` with no points.", "",
+           "| measure | value | target |", "| --- | --- | --- |",
+           f"| cases located / refused | {len(found)} / {len(rows) - len(found)} | all located |",
+           f"| apex error, median (worst) | {np.median(apex):.1f} mm ({apex.max():.1f}) | 5 (10) mm |",
+           f"| base error, median (worst) | {np.median(base):.1f} mm ({base.max():.1f}) | 5 (10) mm |",
+           f"| worst error with confidence >= 0.5 ({len(confident)} cases) | {worst:.1f} mm | 10 mm |",
+           f"| Dice without points, median (worst) | {np.median(d):.3f} ({d.min():.3f}) | 0.95 (0.90 or poor) |",
+           f"| Dice < 0.90 not flagged poor | {len(bad)} | 0 |",
+           f"| volume error, median | {np.median(v):+.1f} % | within 5 % |",
+           f"| locate time, median (worst) | {1000 * np.median(t):.0f} ms ({1000 * t.max():.0f}) | 300 ms |", "",
+           "| formation | phase | tilt | truth mL | apex mm | base mm | confidence | Dice | volume error | poor |",
+           "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        if "refused" in r:
+            out.append(f"| {r['formation']} | {r['phase']} | {r['tilt_deg']:.0f} | {r['truth_ml']:.0f} | refused: "
+                       f"{r['refused']} | | | | | |")
+        else:
+            out.append(f"| {r['formation']} | {r['phase']} | {r['tilt_deg']:.0f} | {r['truth_ml']:.0f} | "
+                       f"{r['apex_mm']:.1f} | {r['base_mm']:.1f} | {r['confidence']:.2f} | {r['dice']:.3f} | "
+                       f"{r['volume_error_pct']:+.1f} % | {r['poor']} |")
+    out += ["", "The generator's range is wider than the issue's 40-350 mL: four end-systolic cases are 21-38 mL, and "
+            "they hold the misses (one refused at 21 mL; at 25 mL the base 7.6 mm off, Dice 0.888 not flagged). The "
+            "located base lies 1-4 mm beyond the mitral plane (the waist of the blood is at the orifice, just past "
+            "the plane): with the descent's own bias (+3.7 % from the true points on the 157 mL phantom, +6.2 % "
+            "from the located ones) the volumes come out 5-9 % large; the haze case (`clutter_strong`) is the "
+            "worst apex, with confidence 0 and flagged poor."]
+    cetus = data.get("cetus_patient7")
+    if cetus:
+        out += ["", "CETUS Patient 7 (0.9 mm assumed), against the clicked points of `Patient7_points.json`:", "",
+                "| phase | clicked mL | located | clicks flagged |", "| --- | --- | --- | --- |"]
+        for phase, r in cetus.items():
+            where = (f"refused ({r['refused']})" if "refused" in r else
+                     f"apex {r['apex_mm']:.0f} mm, base {r['base_mm']:.0f} mm off, confidence {r['confidence']:.2f}, "
+                     f"{r['located_ml']:.0f} mL")
+            out.append(f"| {phase} | {r['clicked_ml']:.0f} | {where} | {'; '.join(r['clicks_flagged']) or 'no'} |")
+    out += ["", "How `locate` works and what was tried (each choice measured on the formation sweep's scenes, the "
+            "legacy families, the tilted mitral scenes and CETUS Patient 7, not on one phantom): a 3 mm block-mean "
+            "copy of the image, Otsu's threshold of its smoothed grey levels, the dark pools after an opening of 1 "
+            "(then 2, 3) voxels, the long axis by PCA turned towards the probe, the base at the waist of the pool's "
+            "cross-section along the axis, the apex where the full-resolution axial profile meets the wall. "
+            "(1) The apex of the coarse pool alone was 4-8 mm short on every case (the opening and the 3 mm voxels "
+            "round the tip off); the axial profile brings it to about 2 mm. (2) A 2 mm slab of voxels around the "
+            "base, on a grid slightly tilted to the axis, is a strip to one side: the base was 14-17 mm off "
+            "laterally on upright phantoms; whole voxel layers fixed it. (3) Otsu's between-class variance ratio "
+            "cannot refuse tissue (0.63 for any single Gaussian class, 0.69-0.86 on phantoms); the distance "
+            "between the two classes' means in their pooled deviations can (2.6 on speckled tissue, 4.7-5.7 on "
+            "the sweep; refused below 2.8). A phantom whose blood is as bright as its wall still has dark "
+            "background tissue (3.2): it is refused because no dark pool lies along the sector (a long axis "
+            "within 45 degrees of the centre line). (4) The widest-section-first waist search put the base at "
+            "the far end of the atrium when the atrium was wider than the ventricle's base; the waist is now the "
+            "narrowest section against the widest on both sides. (5) Haze over the apex (`clutter_strong`) makes "
+            "the pool start 34-38 mm deep; this is not fixed, but the blunt end (the section 10 mm from the apex "
+            "is two thirds of the widest, against a quarter to a third for a tapering apex) takes the confidence "
+            "under 0.5. (6) Under-compensated attenuation (`tgc_under`) darkens the deep sector until Otsu's dark "
+            "class is the depth, not the blood (classes 2.0 deviations apart on an end-systolic case, refused); "
+            "levelling each 6 mm shell of depth to its brighter quartile brings it to 5.1, raises every phantom's "
+            "(4.9-6.3) and brought the legacy `clutter` apex from 11 to 3.5 mm. Not tried for want of time: refining "
+            "candidate poses by coarse descents and scoring them by the energy. CETUS Patient 7 is refused: its "
+            "cavity's dark pool joins the dark tissue beyond a faint wall near the base over a wide front (openings "
+            "of up to 9 mm do not cut it) and the pool lies across the sector.",
+            "", f"Machine: {_machine(data['machine'])}; a shared machine under load (six developers on 2 cores)."]
+    return out
+
+
 def write_markdown() -> Path:
     parts = ["# Benchmarks", "",
              "Generated by the scripts in `benchmarks/` (each section names its command); the numbers are also in the "
@@ -796,7 +872,7 @@ def write_markdown() -> Path:
                      ("accuracy.json", _accuracy),
                      ("accuracy_sweep.json", _formation_sweep), ("speed.json", _speed), ("beamspace.json", _beamspace),
                      ("postprocessing.json", _postprocessing), ("framerate.json", _framerate),
-                     ("anatomy.json", _anatomy),
+                     ("anatomy.json", _anatomy), ("locate.json", _locate),
                      ("batch.json", batch_section), ("userspeed.json", _userspeed), ("viewer.json", _viewer)):
         data = _load(name)
         if data:

@@ -14,6 +14,7 @@ from .coords import Cylindrical, Pose, ProlateSpheroidal, Spherical
 from .hermite import HermiteGrid
 from .batch import segment_many
 from .io import ImageFileError, load, load_sequence, save_mask, save_volume
+from .locate import Located, NoVentricleError, locate
 from .options import SegmentOptions
 from .results import Intermediate, SegmentationResult, TrackingResult
 from .segment import segment, track
@@ -25,5 +26,5 @@ __all__ = [
     "load", "load_sequence", "save_mask", "segment", "track", "Tracker", "SegmentOptions", "Intermediate",
     "Volume", "Surface", "ImageGrid", "Pose", "ProlateSpheroidal", "Spherical", "Cylindrical", "HermiteGrid",
     "SegmentationResult", "TrackingResult", "ImageFileError", "BeamGeometry", "BeamVolume", "scan_convert",
-    "to_beam_space", "save_volume", "segment_many",
+    "to_beam_space", "save_volume", "segment_many", "locate", "Located", "NoVentricleError",
 ]

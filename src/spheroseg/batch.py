@@ -167,9 +167,11 @@ def _points(study: Study):
         base = marks["base"] if base is None else base
         landmarks += [tuple(p) for p in marks["landmarks"]]
         annulus = annulus or [tuple(p) for p in marks.get("annulus", [])]
+    as_array = lambda points: np.array(points, dtype=float) if points else None  # noqa: E731
+    if apex is None and base is None and not annulus and not study.points:
+        return None, None, as_array(landmarks), None  # the ventricle is located
     if apex is None or (base is None and not annulus):
         raise ValueError(f"{study.points}: no points labelled apex and base (or annulus)")
-    as_array = lambda points: np.array(points, dtype=float) if points else None  # noqa: E731
     return (np.asarray(apex, float), None if base is None else np.asarray(base, float), as_array(landmarks),
             as_array(annulus))
 
@@ -263,7 +265,7 @@ def warm_up() -> None:
     from .segment import segment
 
     phantom = make_phantom(seed=0, spacing=4.0)
-    segment(phantom.volume, phantom.apex, phantom.base, max_iterations=2)
+    segment(phantom.volume, phantom.apex, phantom.base, max_iterations=2, check=False)
 
 
 # -- many studies ------------------------------------------------------------

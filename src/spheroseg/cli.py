@@ -52,7 +52,8 @@ def _no_data(text: str):
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--apex", nargs=3, type=float, metavar=("X", "Y", "Z"), help="apex point, world mm (LPS)")
+    p.add_argument("--apex", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="apex point, world mm (LPS); with no points the ventricle is located")
     p.add_argument("--base", nargs=3, type=float, metavar=("X", "Y", "Z"), help="centre of the mitral plane, world mm")
     p.add_argument("--annulus", nargs=3, type=float, action="append", default=[], metavar=("X", "Y", "Z"),
                    help="a point of the mitral annulus, world mm (repeatable, 3 or more): the cavity is closed at "
@@ -244,9 +245,12 @@ def _points(args):
         base = marks["base"] if base is None else base
         landmarks += list(marks["landmarks"])
         annulus = annulus or list(marks["annulus"])
-    if apex is None or (base is None and not annulus):
+    if apex is None and base is None and not annulus:
+        apex = base = annulus = None  # none: the ventricle is located
+    elif apex is None or (base is None and not annulus):
         raise CliError("give the apex and the base (--apex X Y Z --base X Y Z) or the apex and 3 or more points of "
-                       "the mitral annulus (--annulus X Y Z, repeated), or --points with those labels")
+                       "the mitral annulus (--annulus X Y Z, repeated), or --points with those labels, or no "
+                       "points to locate the ventricle")
     return apex, base, (np.array(landmarks) if landmarks else None), (np.array(annulus) if annulus else None)
 
 

@@ -121,8 +121,11 @@ def _study(entry, folder: Path) -> Study:
     annulus = _point_list(entry.get("annulus"), "annulus")
     if annulus and len(annulus) < 3:
         raise ValueError(f"annulus needs 3 or more points, got {len(annulus)}")
-    if points is None and (apex is None or (base is None and not annulus)):
-        raise ValueError("give apex and base (x y z, mm) or apex and annulus, or points (a markups file)")
+    if points is None and (base is not None or annulus) and apex is None:
+        raise ValueError("give apex and base (x y z, mm) or apex and annulus, or points (a markups file), or none "
+                         "(the ventricle is located)")
+    if points is None and apex is not None and base is None and not annulus:
+        raise ValueError("give apex and base (x y z, mm) or apex and annulus, not the apex alone")
     spacing = None if entry.get("spacing") in (None, "") else _numbers(entry["spacing"], 3, "spacing")
     if spacing is not None and min(spacing) <= 0:
         raise ValueError(f"spacing must be positive, got {spacing}")

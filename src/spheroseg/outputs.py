@@ -92,9 +92,10 @@ def write_frame_files(out: Path, volumes, result, *, mask_suffix: str = ".nii.gz
 
 
 def _outcome(result) -> dict:
-    """``quality`` always (None until results carry it), ``status`` and
+    """``quality`` and ``initialisation`` always (None until results carry
+    them), ``status`` and
     ``message`` when the result has them."""
-    outcome = {"quality": getattr(result, "quality", None)}
+    outcome = {"quality": getattr(result, "quality", None), "initialisation": getattr(result, "initialisation", None)}
     for name in ("status", "message"):
         if hasattr(result, name):
             outcome[name] = getattr(result, name)
@@ -117,6 +118,8 @@ def _placement(result, apex, base, annulus) -> dict:
     """The points given and the plane the cavity was closed at (the base used
     is the model's origin: the annulus's centre when only that was given)."""
     pose = result.surface.pose
+    if apex is None:  # located (results.json's initialisation says so)
+        apex = (getattr(result, "initialisation", None) or {}).get("apex")
     return {"apex": np.asarray(apex, dtype=float), "base": pose.origin if base is None else np.asarray(base, float),
             "annulus": _points(annulus), "long_axis": pose.rotation[:, 0]}
 

@@ -57,6 +57,8 @@ class SegmentationResult:
     status: int = 0
     message: str = STATUS_MESSAGES[0]
     quality: dict | None = None
+    #: how the segmentation was started (:func:`spheroseg.locate.initialise`)
+    initialisation: dict | None = None
 
     @property
     def volume_ml(self) -> float:
@@ -77,6 +79,11 @@ class TrackingResult:
     """Per-frame results of :func:`spheroseg.track`, and the clinical indices."""
 
     frames: list[SegmentationResult]
+
+    @property
+    def initialisation(self) -> dict | None:
+        """How the first frame was started (:func:`spheroseg.locate.initialise`)."""
+        return self.frames[0].initialisation if self.frames else None
 
     @property
     def volumes_ml(self) -> np.ndarray:

@@ -15,6 +15,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from .locate import annotate, initialise
 from .options import MODES
 from .results import Intermediate, SegmentationResult, TrackingResult
 from .surface import Surface
@@ -23,8 +24,9 @@ from .tracker import Tracker
 __all__ = ["segment", "track", "SegmentationResult", "TrackingResult", "Intermediate", "MODES"]
 
 
-def segment(volume, apex, base=None, *, annulus=None, landmarks=None, init: Surface | None = None,
-            iter_callback: Callable[[Intermediate], None] | None = None, **options) -> SegmentationResult:
+def segment(volume, apex=None, base=None, *, annulus=None, landmarks=None, init: Surface | None = None,
+            iter_callback: Callable[[Intermediate], None] | None = None, check: bool = True,
+            **options) -> SegmentationResult:
     """Segment the left-ventricular cavity from an apex and a base point
     (or the mitral annulus).
 
@@ -36,7 +38,8 @@ def segment(volume, apex, base=None, *, annulus=None, landmarks=None, init: Surf
         World points (mm, ITK physical space): the endocardial apex and the
         centre of the mitral plane.  The cavity is closed at the plane
         through ``base`` perpendicular to the apex-base axis, unless
-        ``annulus`` is given (then ``base`` may be None).
+        ``annulus`` is given (then ``base`` may be None).  Neither: the
+        ventricle is found first (:func:`spheroseg.locate`).
     annulus : array (k, 3), optional
         ``k >= 3`` world points (mm) of the mitral annulus: the cavity is
         closed at their least-squares plane, whose normal is the long axis;
@@ -52,6 +55,10 @@ def segment(volume, apex, base=None, *, annulus=None, landmarks=None, init: Surf
         Called as ``iter_callback(intermediate)`` after every iteration with
         an :class:`Intermediate` (surface, iteration, level, motion); raising
         ``StopIteration`` ends the run (``status`` 2), as in scipy.
+    check : bool
+        Check given points against the located ventricle
+        (:func:`spheroseg.locate.check_points`): a gross disagreement makes
+        ``quality["poor"]`` with a warning naming the point.
     **options
         Keyword options of :class:`spheroseg.SegmentOptions`: ``system``,
         ``patches`` (8 x 8), ``mode`` (``"intensity"``), ``step`` (1 mm),
@@ -64,8 +71,10 @@ def segment(volume, apex, base=None, *, annulus=None, landmarks=None, init: Surf
     Returns
     -------
     SegmentationResult
-        ``surface``, ``volume_ml``, ``mask(volume)``, ``mesh()``, and why it
-        stopped (``status``, ``message``).
+        ``surface``, ``volume_ml``, ``mask(volume)``, ``mesh()``, why it
+        stopped (``status``, ``message``) and how it started
+        (``initialisation``: ``method`` ``"located"`` or ``"given"``, the
+        points, what was located).
 
     Notes
     -----
@@ -127,12 +136,15 @@ def segment(volume, apex, base=None, *, annulus=None, landmarks=None, init: Surf
     >>> bool(abs(res.volume_ml - ph.truth_volume_ml) < 0.15 * ph.truth_volume_ml)
     True
     """
-    return Tracker(volume, apex, base, annulus=annulus, landmarks=landmarks, init=init, **options).run(iter_callback)
+    apex, base, initialisation, located = initialise(volume, apex, base, annulus=annulus, init=init, check=check)
+    result = Tracker(volume, apex, base, annulus=annulus, landmarks=landmarks, init=init, **options).run(iter_callback)
+    annotate(result, initialisation, located)
+    return result
 
 
 def track(
     volumes: Sequence,
-    apex,
+    apex=None,
     base=None,
     *,
     annulus=None,
@@ -142,6 +154,7 @@ def track(
     landmarks=None,
     init: Surface | None = None,
     iter_callback: Callable[[Intermediate], None] | None = None,
+    check: bool = True,
     **options,
 ) -> TrackingResult:
     """Segment every frame of a 3D+t sequence.
@@ -161,8 +174,9 @@ def track(
     Parameters
     ----------
     volumes : sequence of Volume
-    apex, base, annulus, landmarks, init, iter_callback, **options
-        As :func:`segment`.
+    apex, base, annulus, landmarks, init, iter_callback, check, **options
+        As :func:`segment`; the ventricle is located (or the points
+        checked) in the first frame.
     iterations_per_frame : int
         Cap on iterations of every frame after the first.
     follow_base : bool
@@ -181,6 +195,7 @@ def track(
         raise ValueError(f"a sequence needs at least 2 frames, got {len(volumes)}")
     if not (isinstance(iterations_per_frame, (int, np.integer)) and iterations_per_frame >= 1):
         raise ValueError(f"iterations_per_frame must be a positive integer, got {iterations_per_frame!r}")
+    apex, base, initialisation, located = initialise(volumes[0], apex, base, annulus=annulus, init=init, check=check)
     tracker = Tracker(volumes[0], apex, base, annulus=annulus, landmarks=landmarks, init=init, **options)
     frames = []
     for volume in volumes:
@@ -189,6 +204,7 @@ def track(
                                        follow_base=follow_base))
         else:
             frames.append(tracker.run(iter_callback))
+            annotate(frames[0], initialisation, located)
         if progress is not None:
             progress(len(frames), len(volumes))
     return TrackingResult(frames)

@@ -96,7 +96,7 @@ def _load(on_compile) -> KernelLoad:
             on_compile()
         helper = _start_helper()
     image, volume, apex, base = _synthetic_case()
-    result = segment(volume, apex=apex, base=base, max_iterations=2)
+    result = segment(volume, apex=apex, base=base, max_iterations=2, check=False)
     if helper is not None:
         try:
             helper.wait(timeout=600)  # its kernels are in the cache now (had it failed, they compile below)

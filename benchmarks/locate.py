@@ -1,0 +1,112 @@
+"""Finding the ventricle without clicks (issue 29): located apex and base
+against the truth, segmentation from them, the time it takes, CETUS.
+
+    python benchmarks/locate.py [--cases 16]
+
+Cases: seeded random phantoms (2 mm voxels), each with its own tilt
+(0-25 degrees), long axis (60-100 mm), radius (0.26-0.38 of it), phase (ED,
+or ES: radius 0.7 as large, wall 13.5 mm instead of 9) and image formation
+(the 16 of the formation sweep in turn).  For each: ``locate`` (time, apex
+and base errors, confidence), then ``segment(volume)`` with no points (Dice
+against the true mask, volume error, whether it was flagged poor).  CETUS
+Patient 7 (0.9 mm assumed): located against the clicked points, and the
+volumes without points against the clicked ones.
+
+Writes docs/locate.json and regenerates docs/benchmarks.md.
+"""
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import machine, write_json  # noqa: E402
+from report import write_markdown  # noqa: E402
+
+from spheroseg import NoVentricleError, Volume, locate, segment  # noqa: E402
+from spheroseg.metrics import dice  # noqa: E402
+from spheroseg.phantom import FORMATIONS, make_phantom  # noqa: E402
+
+CETUS = Path(__file__).resolve().parents[2] / "shared" / "data" / "cetus"
+
+
+def phantom_cases(n: int, seed: int = 29) -> list[dict]:
+    rng = np.random.default_rng(seed)
+    names = list(FORMATIONS)
+    rows = []
+    for k in range(n):
+        tilt, length = rng.uniform(0, 25), rng.uniform(60, 100)
+        radius = length * rng.uniform(0.26, 0.38)
+        phase = "ES" if k % 2 else "ED"
+        wall = 9.0
+        if phase == "ES":
+            radius, wall = 0.7 * radius, 13.5
+        name = names[k % len(names)]
+        ph = make_phantom(seed=int(rng.integers(10_000)), spacing=2.0, tilt_deg=tilt, length=length, radius=radius,
+                          wall=wall, formation=FORMATIONS[name])
+        row = {"formation": name, "phase": phase, "tilt_deg": tilt, "truth_ml": ph.truth_volume_ml}
+        try:
+            t0 = time.perf_counter()
+            found = locate(ph.volume)
+            row["locate_s"] = time.perf_counter() - t0
+        except NoVentricleError as error:
+            row.update(refused=str(error))
+            rows.append(row)
+            print(row, flush=True)
+            continue
+        row.update(apex_mm=float(np.linalg.norm(found.apex - ph.apex)),
+                   base_mm=float(np.linalg.norm(found.base - ph.base)), confidence=found.confidence,
+                   reason=found.reason)
+        result = segment(ph.volume)
+        row.update(dice=float(dice(result.mask(ph.volume), ph.truth_mask)),
+                   volume_error_pct=100 * (result.volume_ml / ph.truth_volume_ml - 1), poor=result.quality["poor"])
+        rows.append(row)
+        print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+    return rows
+
+
+def cetus() -> dict | None:
+    points_file = CETUS / "Patient7_points.json"
+    if not points_file.is_file():
+        return None
+    points = json.loads(points_file.read_text())
+    spacing = points["assumed_spacing_mm"]
+    out = {}
+    for phase in ("ED", "ES"):
+        p = points[phase]
+        volume = Volume(np.load(CETUS / p["file"]), spacing=(spacing,) * 3, no_data_value=0)
+        apex, base = (np.array(p[k][::-1], float) * spacing for k in ("apex_index", "base_index"))
+        clicked = segment(volume, apex, base, check=False).volume_ml
+        row = {"clicked_ml": clicked}
+        try:
+            found = locate(volume)
+            row.update(apex_mm=float(np.linalg.norm(found.apex - apex)),
+                       base_mm=float(np.linalg.norm(found.base - base)), confidence=found.confidence,
+                       reason=found.reason, located_ml=segment(volume).volume_ml)
+        except NoVentricleError as error:
+            row["refused"] = str(error)
+        checked = segment(volume, apex, base)
+        row["clicks_flagged"] = checked.quality["warnings"]
+        out[phase] = row
+        print(phase, row, flush=True)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", type=int, default=16)
+    args = ap.parse_args()
+    segment(make_phantom(seed=0, spacing=3.0).volume)  # compile the kernels outside the timings
+    data = {"command": f"python benchmarks/locate.py --cases {args.cases}", "machine": machine(),
+            "cases": phantom_cases(args.cases), "cetus_patient7": cetus()}
+    write_json("locate.json", data)
+    print("wrote", write_markdown())
+
+
+if __name__ == "__main__":
+    main()

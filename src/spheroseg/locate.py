@@ -1,0 +1,536 @@
+"""The left ventricle found without clicks, and clicks checked against it.
+
+An apical acquisition looks down the ventricle from the probe: the cavity is
+a dark (blood) pool whose apex is nearest the probe, closed at the far end by
+the mitral annulus, beyond which the atrium is dark again.  :func:`locate`
+finds that pool on a coarse copy of the image (about 3 mm voxels, which also
+averages the speckle out):
+
+1. blood is what is darker than Otsu's threshold of the smoothed grey levels
+   inside the sector, once each shell of depth from the probe is brought to
+   one level of its brighter quartile (time-gain compensation leaves the
+   grey level drifting with depth);
+2. its connected pools (after an opening of one coarse voxel, which cuts thin
+   bridges) are the candidates; the left ventricle is the one of plausible
+   size (the part before its waist, :data:`VOLUME_RANGE_ML`) scored by its
+   size and its closeness to the sector's axis (the apical view centres the
+   left ventricle; the right ventricle lies to one side and is smaller);
+3. the long axis is the pool's principal axis, turned towards the probe;
+4. along that axis the pool's cross-section grows from the apex to the base
+   and narrows at the mitral orifice before the atrium widens it again: the
+   base is the narrowest section (the waist) beyond the widest one, or the
+   pool's far end when the atrium is not joined to it (a closed valve, an
+   atrium out of the sector);
+5. the apex is the pool's first section along the axis from the probe side.
+
+``confidence`` combines how well blood and tissue separate, how clear the
+waist is and how plausible the size and length are.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["Located", "NoVentricleError", "locate", "check_points", "initialise", "annotate", "VOLUME_RANGE_ML"]
+
+#: cavity volumes (mL, the part before the waist) a left ventricle can have
+VOLUME_RANGE_ML = (20.0, 450.0)
+#: coarse pool volumes (mL) of the usual ventricles, 40-350 mL: the pool
+#: measures 0.8-0.9 of the cavity (the opening and the blurred wall)
+SIZE_RANGE_ML = (30.0, 380.0)
+#: apex-to-base lengths (mm) a left ventricle can have
+LENGTH_RANGE_MM = (35.0, 140.0)
+
+
+#: Otsu's classes of one Gaussian grey-level distribution are 2.7 deviations
+#: apart: an image whose classes are not farther apart has no blood pool
+SEPARATION_MIN = 2.8
+#: a dark region whose surroundings are not this much brighter (in the
+#: classes' deviations) is a dark patch of tissue, not a cavity
+WALL_MIN = 1.0
+
+#: thickness (mm) of the shells of depth whose grey levels are levelled
+DEPTH_SHELL_MM = 6.0
+
+#: an apical view looks down the long axis: at most this angle (degrees)
+#: between the long axis and the sector's centre line (25 is a tilted view)
+AXIS_MAX_DEG = 45.0
+
+#: what a low score means, for ``Located.reason``
+_REASONS = {
+    "separation": "blood and tissue barely differ in grey level",
+    "waist": "no narrowing where the cavity meets the atrium (the base is a guess)",
+    "size": "the cavity's size is unusual",
+    "length": "the long axis has an unusual length",
+    "wall": "the cavity's wall is barely brighter than its blood",
+    "taper": "the cavity ends bluntly towards the probe (haze or the sector's edge hides the apex?)",
+}
+
+
+class NoVentricleError(ValueError):
+    """No dark pool in the image looks like a left ventricle."""
+
+
+@dataclass(frozen=True)
+class Located:
+    """Where :func:`locate` found the left ventricle (world mm, LPS).
+
+    Attributes
+    ----------
+    apex : (3,) array
+        The endocardial apex.
+    base : (3,) array
+        The centre of the mitral plane.
+    normal : (3,) array
+        Unit normal of the mitral plane, from the base towards the apex.
+    confidence : float
+        In [0, 1]: the product of the scores in ``scores``.
+    reason : str
+        Why the confidence is low ('' when it is not).
+    volume_ml : float
+        Volume of the dark pool between apex and base (coarse, mL).
+    scores : dict
+        ``separation`` (blood against tissue), ``waist`` (how clearly the
+        pool narrows at the base), ``size`` and ``length`` (plausibility),
+        each in [0, 1].
+    """
+
+    apex: np.ndarray
+    base: np.ndarray
+    normal: np.ndarray
+    confidence: float
+    reason: str = ""
+    volume_ml: float = float("nan")
+    scores: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        """Plain JSON values."""
+        return {"apex": [float(x) for x in self.apex], "base": [float(x) for x in self.base],
+                "normal": [float(x) for x in self.normal], "confidence": float(self.confidence),
+                "reason": self.reason, "volume_ml": float(self.volume_ml),
+                "scores": {k: float(v) for k, v in self.scores.items()}}
+
+
+def _block_mean(array: np.ndarray, missing: np.ndarray, factor) -> np.ndarray:
+    """Means over blocks of ``factor`` samples (NaN where half of one has no data)."""
+    factor = np.asarray(factor, int)
+    shape = np.array(array.shape) // factor
+    if np.any(shape < 4):
+        raise NoVentricleError(f"no left ventricle found: the image ({array.shape}) is too small to hold one")
+    cut = tuple(slice(0, n * f) for n, f in zip(shape, factor))
+    blocks = tuple(x for n, f in zip(shape, factor) for x in (n, f))
+    ok = (~missing[cut]).reshape(blocks)
+    total = np.where(ok, array[cut].reshape(blocks), 0).sum((1, 3, 5))
+    count = ok.sum((1, 3, 5))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0.5 * factor.prod(), total / count, np.nan)
+
+
+def _missing(volume) -> np.ndarray:
+    array = np.asarray(volume.array)
+    missing = volume.no_data_mask if volume.no_data_mask is not None else np.zeros(array.shape, bool)
+    return missing | ~np.isfinite(array)
+
+
+def _coarse(volume, spacing: float):
+    """The image on a Cartesian grid of about ``spacing`` mm, speckle averaged:
+    ``(grey levels [k, j, i] with NaN off the data, index -> world function,
+    voxel size (x, y, z) mm, probe point, whether it is known, depth direction)``."""
+    from .beamspace import BeamVolume
+
+    if isinstance(volume, BeamVolume):
+        # averaged along each beam to about the coarse voxel, then read at the
+        # coarse grid's points: the beams are already that far apart laterally
+        geometry = volume.geometry
+        f_r = max(1, int(round(spacing / geometry.radius_sample_size)))
+        beams = _block_mean(np.asarray(volume.array, np.float32), _missing(volume), (f_r, 1, 1))
+        grid = geometry.cartesian_grid(spacing)
+        # the grid's axes are the probe's: its points in the probe frame are a product of three ranges
+        start = (grid.origin - geometry.apex) @ geometry.rotation
+        x, y, z = (start[d] + np.arange(n) * grid.spacing[d] for d, n in enumerate(grid.shape[::-1]))
+        probe_points = np.stack(np.broadcast_arrays(x, y[:, None], z[:, None, None]), -1)  # [k, j, i, xyz]
+        beam_index = (geometry.probe_to_spherical(probe_points) - geometry.index_offset) / geometry.separations
+        beam_index[..., 0] = (beam_index[..., 0] - (f_r - 1) / 2) / f_r
+        outside = ~np.all(np.isfinite(beam_index) & (beam_index >= 0) & (beam_index <= np.array(beams.shape) - 1), -1)
+        beam_index[outside] = 0
+        grey = ndimage.map_coordinates(beams, np.moveaxis(beam_index, -1, 0), order=1)
+        grey[outside] = np.nan
+        origin, direction, step = grid.origin, grid.direction, grid.spacing
+        probe, depth = geometry.apex, geometry.rotation[:, 2]
+        probe_known = True
+    else:
+        probe_known = True
+        factor = np.maximum(1, np.rint(spacing / volume.spacing[::-1])).astype(int)  # [z, y, x]
+        grey = _block_mean(np.asarray(volume.array, np.float32), _missing(volume), factor)
+        step = volume.spacing * factor[::-1]
+        origin = volume.index_to_world((factor[::-1] - 1) / 2.0)
+        direction, depth = volume.direction, volume.direction[:, 2]
+        # an apical sector (data missing around it) has its probe over the shallowest data
+        probe = None
+        if volume.no_data_mask is not None and volume.no_data_mask.any():
+            rows = np.flatnonzero(np.isfinite(grey).any((1, 2)))
+            if rows.size:
+                jj, ii = np.nonzero(np.isfinite(grey[rows[0]]))
+                probe = origin + direction @ (np.array([ii.mean(), jj.mean(), -0.5]) * step)
+        if probe is None:  # no sector: the project's convention, the probe over the top face's centre
+            probe = origin + direction @ (np.array([(grey.shape[2] - 1) / 2, (grey.shape[1] - 1) / 2, -0.5]) * step)
+            probe_known = False
+
+    def to_world(index_zyx):
+        return origin + (np.asarray(index_zyx, float)[..., ::-1] * step) @ np.asarray(direction).T
+
+    return (grey, to_world, np.asarray(step, float), np.asarray(probe, float), probe_known,
+            np.asarray(depth, float) / np.linalg.norm(depth))
+
+
+def _otsu(values: np.ndarray) -> tuple[float, float, float]:
+    """Otsu's threshold of ``values`` and how far apart its two classes are:
+    the difference of their means over their pooled standard deviation
+    (about 2.7 for one Gaussian class split in two), and that deviation."""
+    hist, edges = np.histogram(values, bins=128)
+    p = hist / hist.sum()
+    centres = (edges[:-1] + edges[1:]) / 2
+    w0 = np.cumsum(p)
+    m0 = np.cumsum(p * centres)
+    mean = m0[-1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        between = (mean * w0 - m0) ** 2 / (w0 * (1 - w0))
+    k = int(np.argmax(np.nan_to_num(between[:-1])))
+    threshold = float(edges[k + 1])
+    dark, bright = values[values < threshold], values[values >= threshold]
+    spread = np.sqrt(0.5 * (dark.var() + bright.var()))
+    return threshold, float((bright.mean() - dark.mean()) / spread) if spread > 0 else 0.0, float(spread)
+
+
+def locate(volume, *, spacing: float = 3.0) -> Located:
+    """Find the left ventricle of an apical 3D echo volume.
+
+    Parameters
+    ----------
+    volume : Volume or BeamVolume
+        Apical acquisition (probe at the sector's apex, blood dark).
+    spacing : float
+        Voxel size (mm) of the coarse copy the search runs on.
+
+    Returns
+    -------
+    Located
+        Apex, base, the mitral plane's normal, ``confidence`` and ``reason``.
+
+    Raises
+    ------
+    NoVentricleError
+        When no dark pool of a ventricle's size is in the image.
+    """
+    if not (np.isfinite(spacing) and spacing > 0):
+        raise ValueError(f"spacing must be a positive number of mm, got {spacing!r}")
+    grey, to_world, step, probe, probe_known, depth = _coarse(volume, spacing)
+    data = np.isfinite(grey)
+    if data.sum() < 64:
+        raise NoVentricleError("no left ventricle found: the image has too little data")
+    voxel_ml = float(np.prod(step)) / 1000.0
+    # smoothed over the data only (normalised convolution), the sector edge kept out
+    sigma = 3.0 / step[::-1]
+    weight = ndimage.gaussian_filter(data.astype(np.float32), sigma)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        smooth = ndimage.gaussian_filter(np.where(data, grey, 0).astype(np.float32), sigma) / weight
+    inside = data & (weight > 0.5)
+    # time-gain compensation leaves the grey level drifting with depth: each
+    # shell of depth is brought to one level of its brighter (tissue) quartile
+    cells = np.argwhere(inside)
+    distance = np.linalg.norm(to_world(cells) - probe, axis=1)
+    shell = (distance // DEPTH_SHELL_MM).astype(int)
+    raw = smooth[inside]
+    levels = np.full(shell.max() + 1, np.nan)
+    for k in np.unique(shell):
+        here = raw[shell == k]
+        if here.size >= 20:
+            levels[k] = np.percentile(here, 75)
+    known = np.flatnonzero(np.isfinite(levels))
+    if known.size == 0:
+        raise NoVentricleError("no left ventricle found: the image has too little data")
+    centres = (np.arange(levels.size) + 0.5) * DEPTH_SHELL_MM
+    drift = np.interp(centres, centres[known], levels[known]) - np.median(levels[known])
+    values = raw - np.interp(distance, centres, drift)
+    smooth = smooth.copy()
+    smooth[inside] = values
+    if values.size < 64 or not np.ptp(values) > 0:
+        raise NoVentricleError("no left ventricle found: the image is constant")
+    threshold, separation, spread = _otsu(values)
+    if separation < SEPARATION_MIN:
+        raise NoVentricleError(f"no left ventricle found: no region of the image is darker than the rest as blood "
+                               f"is (dark and bright classes {separation:.1f} deviations apart, fewer than "
+                               f"{SEPARATION_MIN})")
+    dark = inside & (smooth < threshold)
+    best, largest = None, 0.0
+    # a wider opening cuts wider bridges (a ventricle joined to the atrium
+    # through an open valve, or to clutter out of the sector)
+    for opening in (1, 2, 3):
+        labels, n = ndimage.label(ndimage.binary_opening(dark, iterations=opening))
+        if n == 0:
+            continue
+        sizes = ndimage.sum_labels(np.ones_like(labels), labels, np.arange(1, n + 1)) * voxel_ml
+        largest = max(largest, float(sizes.max()))
+        for label in np.flatnonzero(sizes >= VOLUME_RANGE_ML[0]) + 1:
+            mask = labels == label
+            candidate = _pool(mask, to_world, probe, probe_known, depth, voxel_ml, float(step.max()))
+            if candidate is None:
+                continue
+            # a cavity is walled by tissue brighter than its blood
+            shell = ndimage.binary_dilation(mask, iterations=2) & ~mask & inside
+            wall = (smooth[shell].mean() - smooth[mask].mean()) / spread if shell.any() else 0.0
+            candidate["scores"]["wall"] = float(np.clip((wall - WALL_MIN) / 1.0, 0, 1))
+            candidate["score"] *= candidate["scores"]["wall"]
+            if best is None or candidate["score"] > best["score"]:
+                best = candidate
+        if best is not None and best["score"] > 0:
+            break
+    if best is None or best["score"] <= 0:
+        raise NoVentricleError(f"no left ventricle found: no dark region of {VOLUME_RANGE_ML[0]:.0f}-"
+                               f"{VOLUME_RANGE_ML[1]:.0f} mL, walled by brighter tissue, along the sector (the "
+                               f"largest dark region is {largest:.0f} mL)")
+    local = threshold + np.interp(np.linalg.norm(best["apex"] - probe), centres, drift)
+    apex = _endocardial_apex(volume, best["apex"], best["normal"], local)
+    scores = {"separation": float(np.clip(separation - SEPARATION_MIN, 0, 1)), **best["scores"]}
+    confidence = float(np.prod(list(scores.values())))
+    # the scores that brought it down (the lowest, when each alone is fair)
+    low = [name for name, value in scores.items() if value < 0.75] or [min(scores, key=scores.get)]
+    reason = "; ".join(_REASONS[name] for name in low) if confidence < 0.5 else ""
+    normal = (apex - best["base"]) / np.linalg.norm(apex - best["base"])
+    return Located(apex=apex, base=best["base"], normal=normal, confidence=confidence, reason=reason,
+                   volume_ml=best["volume_ml"], scores=scores)
+
+
+def _pool(mask: np.ndarray, to_world, probe, probe_known: bool, depth, voxel_ml, slab) -> dict | None:
+    """The apex, base and scores of one dark pool (None if it is no ventricle).
+
+    With the probe known, the apex is the end towards it (and a pool lying
+    across the sector is no ventricle in an apical view); otherwise the end
+    whose side of the waist holds more blood (a ventricle holds two to three
+    times its atrium)."""
+    points = to_world(np.argwhere(mask))
+    centre = points.mean(0)
+    _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
+    axis = vt[0] if vt[0] @ (probe - centre) >= 0 else -vt[0]
+    if probe_known and abs(axis @ depth) < np.cos(np.radians(AXIS_MAX_DEG)):
+        return None  # not an apical view of this pool
+    found = [_along(points, centre, axis, voxel_ml, slab)]
+    if not probe_known:
+        found.append(_along(points, centre, -axis, voxel_ml, slab))
+        found = [max(found, key=lambda f: (f is not None, f is not None and f["scores"]["waist"] == 1.0,
+                                            f is not None and -f["taper"]))]
+    best = found[0]
+    if best is None:
+        return None
+    # the apical view centres the left ventricle: off the sector axis counts against a pool
+    middle = best["middle"] - probe
+    off_axis = np.linalg.norm(middle - (middle @ depth) * depth)
+    best["score"] = best["volume_ml"] * np.exp(-((off_axis / 30.0) ** 2)) * best["scores"]["length"]
+    return best
+
+
+def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict | None:
+    """Apex, base and scores of a pool whose apex lies along ``axis``."""
+    t = (points - centre) @ axis
+    edges = np.arange(t.min() - bin_mm / 2, t.max() + bin_mm, bin_mm)
+    area = np.histogram(t, edges)[0] * voxel_ml * 1000.0 / bin_mm  # mm^2 of section
+    heights = (edges[:-1] + edges[1:]) / 2
+    # from the apex side (largest t) towards the base
+    heights, area = heights[::-1], ndimage.uniform_filter1d(area[::-1], 3)
+    present = np.flatnonzero(area > 0.05 * area.max())
+    first, last = present[0], present[-1]
+    # the waist: the section narrowest against the widest on either side of it
+    # (a ventricle's own sections only narrow towards the apex)
+    waist, depth_of_waist = last, 0.0
+    for k in range(first + 1, last):
+        if heights[first] - heights[k] < LENGTH_RANGE_MM[0]:
+            continue
+        dip = 1 - area[k] / min(area[first:k].max(), area[k:last + 1].max())
+        if dip > depth_of_waist:
+            waist, depth_of_waist = k, dip
+    stepped = False
+    if depth_of_waist < 0.1:
+        waist, depth_of_waist = last, 0.0
+        # no waist: a step down into a narrower atrium (or the pool's end)
+        widest = first + int(np.argmax(area[first:last + 1]))
+        reach = int(round(10.0 / bin_mm))
+        for k in range(max(widest, first + 2), last - reach):
+            if heights[first] - heights[k] < LENGTH_RANGE_MM[0] or area[k + reach] < 0.3 * area[widest]:
+                continue
+            drop = 1 - area[k + 2] / area[k - 2]
+            if drop > max(depth_of_waist, 0.15):
+                waist, depth_of_waist, stepped = k, drop, True
+    apex_t, base_t = heights[first] - bin_mm / 2, heights[waist]
+    length = apex_t - base_t
+    lv = t >= base_t
+    volume_ml = float(lv.sum() * voxel_ml)
+    lo, hi = VOLUME_RANGE_ML
+    if not (lo <= volume_ml <= hi):
+        return None
+    # whole layers of voxels on either side (a thinner slab of a slightly
+    # tilted grid is a strip off to one side)
+    p = points[np.abs(t - base_t) <= slab].mean(0)
+    base = p + axis * (base_t - (p - centre) @ axis)
+    p = points[t >= apex_t - 2 * slab].mean(0)
+    apex = p + axis * (apex_t - (p - centre) @ axis)
+    # an apex tapers: 10 mm from it the section is a quarter to a third of
+    # the widest (2 x 10 / length for an ellipsoid); a blunt end is a cavity
+    # cut off by haze or the sector's edge
+    widest = area[first:waist + 1].max()
+    taper = float(np.interp(apex_t - 10.0, heights[::-1], area[::-1]) / widest)
+    l_lo, l_hi = LENGTH_RANGE_MM
+    scores = {
+        "waist": 0.4 if stepped or waist == last else float(np.clip(depth_of_waist / 0.2, 0, 1)),
+        "size": 1.0 if SIZE_RANGE_ML[0] <= volume_ml <= SIZE_RANGE_ML[1] else 0.5,
+        "length": float(l_lo <= length <= l_hi),
+        "taper": float(np.clip((0.65 - taper) / 0.2, 0, 1)),
+    }
+    return {"apex": apex, "base": base, "normal": axis, "volume_ml": volume_ml, "scores": scores,
+            "middle": points[lv].mean(0), "taper": taper}
+
+
+def _endocardial_apex(volume, apex, axis, threshold: float, *, reach: float = 12.0, disc: float = 3.0) -> np.ndarray:
+    """Where the grey level along ``axis`` first rises above ``threshold``
+    beyond the cavity, within ``reach`` mm of the coarse ``apex`` either way.
+
+    The coarse pool's tip is rounded off by the opening and the 3 mm voxels;
+    the full-resolution image along the axis (averaged over a disc of radius
+    ``disc`` mm across it, and over 2 mm along it, for the speckle) finds the
+    wall itself.
+    """
+    e2 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e2 /= np.linalg.norm(e2)
+    e3 = np.cross(axis, e2)
+    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    offsets = np.concatenate([[[0.0, 0.0, 0.0]], disc * (np.cos(angles)[:, None] * e2 + np.sin(angles)[:, None] * e3)])
+    heights = np.arange(-reach, reach + 0.25, 0.5)
+    points = apex + heights[:, None, None] * axis + offsets[None]
+    values = volume.sample(points)
+    ok = np.isfinite(values)
+    with np.errstate(invalid="ignore"):
+        profile = np.where(ok, values, 0).sum(1) / ok.sum(1)
+    if not np.isfinite(profile).all():
+        return apex
+    profile = ndimage.gaussian_filter1d(profile, 2.0)
+    inside = np.flatnonzero(profile < threshold)
+    if inside.size == 0:
+        return apex
+    # from the deepest blood sample at or before the coarse apex outwards to the first tissue
+    start = inside[inside <= len(heights) // 2]
+    if start.size == 0:
+        return apex
+    beyond = np.flatnonzero(profile[start[-1]:] >= threshold)
+    if beyond.size == 0:
+        return apex
+    k = start[-1] + beyond[0]
+    # interpolate the crossing between samples k - 1 and k
+    a, b = profile[k - 1], profile[k]
+    height = heights[k - 1] + 0.5 * (threshold - a) / (b - a)
+    return apex + height * axis
+
+
+def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) -> list[str]:
+    """Warnings about clicked points that disagree grossly with ``located``.
+
+    Four errors are looked for: apex and base swapped (the clicked long axis
+    points away from the located one), the base off the located mitral plane
+    (measured along its normal: into the atrium, or short of the plane
+    towards the apex), the apex beyond that plane (in the atrium) and the
+    apex far from the located one (2.5 ``tolerance_mm``: haze over the apex
+    can hide the located apex by more than a centimetre).
+
+    Parameters
+    ----------
+    located : Located
+        What :func:`locate` found; nothing is said when its confidence is
+        under 0.5.
+    apex, base : (3,) world mm
+        The points given.
+    tolerance_mm : float
+        How far (mm) the base may lie from the located mitral plane before it
+        is called wrong.
+
+    Returns
+    -------
+    list of str
+        One warning per point that looks wrong, naming where the located one
+        is; empty when the points agree (or ``located`` is not confident).
+    """
+    if not located.confidence >= 0.5:
+        return []
+    apex, base = np.asarray(apex, float), np.asarray(base, float)
+    here = lambda p: "(" + ", ".join(f"{x:.1f}" for x in p) + ")"  # noqa: E731
+    axis = apex - base
+    if axis @ located.normal < 0:
+        return [f"the apex and the base look swapped: the ventricle's apex was found at {here(located.apex)} and "
+                f"its base at {here(located.base)}"]
+    warnings = []
+    offset = float((base - located.base) @ located.normal)
+    if abs(offset) > tolerance_mm:
+        where = ("short of the mitral plane, towards the apex" if offset > 0
+                 else "beyond the mitral plane, in the atrium")
+        warnings.append(f"the base looks wrong: {abs(offset):.0f} mm {where}; the mitral plane's centre was found "
+                        f"at {here(located.base)}")
+    if (apex - located.base) @ located.normal < 0:
+        warnings.append(f"the apex looks wrong: it lies beyond the mitral plane, in the atrium; the apex was found at "
+                        f"{here(located.apex)}")
+    else:
+        miss = float(np.linalg.norm(apex - located.apex))
+        if miss > 2.5 * tolerance_mm:
+            warnings.append(f"the apex looks wrong: {miss:.0f} mm from the apex found at {here(located.apex)}")
+    return warnings
+
+
+def initialise(volume, apex, base, *, annulus=None, init=None, check: bool = True):
+    """The points a segmentation starts from, and how they were had.
+
+    With no points (and no ``annulus`` or ``init``) the ventricle is located;
+    otherwise the points given are used and, if ``check``, located as well to
+    check them (:func:`check_points`).
+
+    Returns
+    -------
+    apex, base : arrays or the inputs
+    initialisation : dict
+        ``method`` (``"located"`` or ``"given"``), ``apex``, ``base``, and
+        ``located`` (:meth:`Located.as_dict`) when it was located.
+    located : Located or None
+    """
+    if apex is None and base is None and annulus is None and init is None:
+        found = locate(volume)
+        return found.apex, found.base, {"method": "located", "apex": found.apex.tolist(),
+                                        "base": found.base.tolist(), "located": found.as_dict()}, found
+    if apex is None:
+        raise ValueError("give the apex with the base (or annulus), or neither to locate the ventricle")
+    initialisation = {"method": "given", "apex": np.asarray(apex, float).tolist(),
+                      "base": None if base is None else np.asarray(base, float).tolist()}
+    found = None
+    if check and init is None:
+        try:
+            found = locate(volume)
+            initialisation["located"] = found.as_dict()
+        except NoVentricleError as error:
+            initialisation["located"] = str(error)
+    return apex, base, initialisation, found
+
+
+def annotate(result, initialisation: dict, located: Located | None) -> None:
+    """Record ``initialisation`` on ``result`` and add to its quality report
+    what the location says: a low confidence when the points were located,
+    the click checks when they were given."""
+    result.initialisation = initialisation
+    if located is None or result.quality is None:
+        return
+    if initialisation["method"] == "located":
+        warnings = [] if located.confidence >= 0.5 else [
+            f"the ventricle was found with low confidence ({located.confidence:.2f}: {located.reason}); "
+            "give the apex and base"]
+    else:
+        base = result.surface.pose.origin if initialisation["base"] is None else initialisation["base"]
+        warnings = check_points(located, initialisation["apex"], base)
+    if warnings:
+        result.quality["warnings"] = list(result.quality["warnings"]) + warnings
+        result.quality["poor"] = True

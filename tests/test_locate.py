@@ -1,0 +1,161 @@
+"""Locating the ventricle without clicks, and checking clicks against it."""
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from spheroseg import Located, NoVentricleError, Volume, locate, save_volume, segment
+from spheroseg.locate import check_points
+from spheroseg.phantom import FORMATIONS, make_phantom
+
+
+def _errors(found, phantom):
+    return np.linalg.norm(found.apex - phantom.apex), np.linalg.norm(found.base - phantom.base)
+
+
+@pytest.mark.parametrize("seed, formation, tilt, length, radius, wall, image", [
+    (11, None, 18.0, 62.0, 18.0, 9.0, {}),                        # small (about 40 mL), tilted
+    (12, None, 7.0, 100.0, 36.0, 9.0, dict(dropout=True)),         # large (about 250 mL), end-diastole
+    (13, None, 23.0, 80.0, 19.0, 13.5, {}),                        # end-systole: narrow cavity, thick wall
+    (14, None, 0.0, 85.0, 28.0, 9.0, dict(contrast=0.35)),         # a poor window
+])
+def test_random_phantoms_are_located_within_the_targets(seed, formation, tilt, length, radius, wall, image):
+    phantom = make_phantom(seed=seed, spacing=2.0, tilt_deg=tilt, length=length, radius=radius, wall=wall,
+                           formation=None if formation is None else FORMATIONS[formation], **image)
+    found = locate(phantom.volume)
+    apex_error, base_error = _errors(found, phantom)
+    assert isinstance(found, Located)
+    assert apex_error < 6.0 and base_error < 6.0, (apex_error, base_error)
+    axis = (phantom.apex - phantom.base) / np.linalg.norm(phantom.apex - phantom.base)
+    assert found.normal @ axis > np.cos(np.radians(8))
+    assert found.confidence >= 0.5 and found.reason == ""
+
+
+def test_a_beam_space_volume_is_located_in_its_own_geometry():
+    # a tilted scene imaged in beam space (the formation's own speckle and PSF)
+    phantom = make_phantom(seed=5, spacing=2.0, tilt_deg=20.0, formation=FORMATIONS["dr_40"], beam_space=True)
+    found = locate(phantom.beam_volume)
+    apex_error, base_error = _errors(found, phantom)
+    assert apex_error < 6.0 and base_error < 6.0, (apex_error, base_error)
+
+
+def test_the_left_ventricle_is_chosen_over_a_dark_blob_beside_it():
+    # the phantom has a right ventricle and an atrium; a larger dark blob (an
+    # enlarged right ventricle) beside the septum must not be taken instead
+    phantom = make_phantom(seed=3, spacing=2.0)
+    array = phantom.volume.array.copy()
+    k, j, i = np.meshgrid(*(np.arange(n) * 2.0 for n in array.shape), indexing="ij")
+    side = phantom.base + np.array([0.0, 1.0, 0.0]) * 48.0 + (phantom.apex - phantom.base) * 0.45
+    blob = ((i - side[0]) / 12.0) ** 2 + ((j - side[1]) / 10.0) ** 2 + ((k - side[2]) / 35.0) ** 2 <= 1
+    assert 4 / 3 * np.pi * 12 * 10 * 35 / 1000 > 15  # mL: an RV's size
+    array[blob & (array > 0)] = np.median(array[phantom.truth_mask])
+    found = locate(Volume(array, spacing=(2.0,) * 3, no_data_value=0))
+    apex_error, base_error = _errors(found, phantom)
+    assert apex_error < 6.0 and base_error < 6.0, (apex_error, base_error)
+
+
+def test_tissue_without_a_cavity_is_refused():
+    rng = np.random.default_rng(0)
+    texture = ndimage.gaussian_filter(rng.standard_normal((70, 60, 60)), 2.0)
+    array = np.clip(150 + 20 * texture / texture.std() + rng.normal(0, 20, texture.shape), 1, 255)
+    with pytest.raises(NoVentricleError, match="no left ventricle found"):
+        locate(Volume(array.astype(np.uint8), spacing=(1.5,) * 3))
+
+
+def test_a_phantom_whose_blood_is_as_bright_as_the_wall_is_refused():
+    default = FORMATIONS["default"]
+    formation = dataclasses.replace(default, blood_db=default.blood_db + default.contrast_db, contrast_db=0.0)
+    phantom = make_phantom(seed=2, spacing=2.0, formation=formation)
+    with pytest.raises(NoVentricleError, match="no left ventricle found"):
+        locate(phantom.volume)
+
+
+@pytest.fixture(scope="module")
+def p157():
+    """The reliability note's phantom of 157 mL."""
+    return make_phantom(seed=1, spacing=1.5)
+
+
+def _clicks(phantom):
+    a, b = phantom.apex, phantom.base
+    axis = (a - b) / np.linalg.norm(a - b)
+    return {"base 30 mm into the atrium": (a, b - 30 * axis, "atrium"),
+            "base 30 mm short": (a, b + 30 * axis, "short of the mitral plane"),
+            "apex and base swapped": (b, a, "swapped"),
+            "base 20 mm into the atrium": (a, b - 20 * axis, "atrium"),
+            "base 20 mm short": (a, b + 20 * axis, "short of the mitral plane")}
+
+
+def test_the_four_click_errors_are_flagged_and_the_correct_clicks_are_not(p157):
+    correct = segment(p157.volume, p157.apex, p157.base)
+    assert correct.quality["poor"] is False and correct.initialisation["method"] == "given"
+    for name, (apex, base, words) in _clicks(p157).items():
+        result = segment(p157.volume, apex, base)
+        assert result.quality["poor"], name
+        assert any(words in w for w in result.quality["warnings"]), (name, result.quality["warnings"])
+
+
+def test_the_warning_names_the_point_and_where_the_located_one_is(p157):
+    found = locate(p157.volume)
+    apex, base, _ = _clicks(p157)["base 30 mm into the atrium"]
+    (warning,) = check_points(found, apex, base)
+    assert warning.startswith("the base looks wrong") and "found at (61.5," in warning
+    (warning,) = check_points(found, p157.apex + [30.0, 0, 0], p157.base)
+    assert warning.startswith("the apex looks wrong")
+    warnings = check_points(found, p157.base + [0, 0, 8.0], p157.base + [0, 0, 40.0])
+    assert any("the apex looks wrong: it lies beyond the mitral plane, in the atrium" in w for w in warnings)
+    # a located pose without confidence checks nothing
+    unsure = dataclasses.replace(found, confidence=0.3, reason="low")
+    assert check_points(unsure, apex, base) == []
+
+
+@pytest.mark.parametrize("seed, tilt, image", [(21, 15.0, dict(clutter=True)), (22, 25.0, {}), (23, 5.0, {})])
+def test_correct_clicks_are_not_flagged_on_other_phantoms(seed, tilt, image):
+    phantom = make_phantom(seed=seed, spacing=2.0, tilt_deg=tilt, **image)
+    assert check_points(locate(phantom.volume), phantom.apex, phantom.base) == []
+
+
+def test_segment_without_points_locates_first(p157):
+    result = segment(p157.volume)
+    start = result.initialisation
+    assert start["method"] == "located" and start["located"]["confidence"] >= 0.5
+    assert np.linalg.norm(np.array(start["apex"]) - p157.apex) < 6.0
+    assert abs(result.volume_ml - p157.truth_volume_ml) < 0.1 * p157.truth_volume_ml
+
+
+def test_cli_segment_without_points_records_the_located_points(tmp_path, p157):
+    image = tmp_path / "p1.mha"
+    save_volume(image, p157.volume)
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1] / "src") + os.pathsep
+               + os.environ.get("PYTHONPATH", ""))
+    out = tmp_path / "out"
+    run = subprocess.run([sys.executable, "-m", "spheroseg", "segment", str(image), "--out", str(out), "--no-report"],
+                         capture_output=True, text=True, env=env)
+    assert run.returncode == 0, run.stderr
+    assert {"mask.mha", "mesh.vtk", "surface.json", "results.json"} <= {p.name for p in out.iterdir()}
+    results = json.loads((out / "results.json").read_text())
+    assert results["initialisation"]["method"] == "located"
+    assert np.linalg.norm(np.array(results["apex"]) - p157.apex) < 6.0
+    assert np.linalg.norm(np.array(results["base"]) - p157.base) < 6.0
+    assert abs(results["volume_ml"] - p157.truth_volume_ml) < 0.1 * p157.truth_volume_ml
+
+
+def test_track_without_points_locates_in_the_first_frame():
+    from spheroseg import track
+    from spheroseg.phantom import make_sequence
+
+    sequence = make_sequence(n_frames=2, seed=4, spacing=2.0)
+    result = track(sequence.volumes)
+    assert result.initialisation["method"] == "located"
+    first = sequence.frames[0]
+    assert np.linalg.norm(np.array(result.initialisation["base"]) - first.base) < 6.0
+    # (two frames are end-diastole and end-systole: the second is the tracker's, not locate's, to follow)
+    assert abs(result.volumes_ml[0] / sequence.truth_volumes_ml[0] - 1) < 0.1
+    assert result.frames[1].initialisation is None
