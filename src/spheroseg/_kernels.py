@@ -44,7 +44,6 @@ Only the prolate spheroidal system (the default) has a surface kernel.
 from __future__ import annotations
 
 import math
-import threading
 
 import numpy as np
 
@@ -55,16 +54,10 @@ except ImportError:  # pragma: no cover
 
 from .volume import INDEX_TOLERANCE as _EDGE
 
-__all__ = ["AVAILABLE", "PARALLEL_LOCK", "prolate_surface", "sample_along", "samples_at", "cavity_sums", "gather",
+__all__ = ["AVAILABLE", "prolate_surface", "sample_along", "samples_at", "cavity_sums", "gather",
            "scatter", "normal_displacement", "csr_product", "descend"]
 
 AVAILABLE = njit is not None
-#: held by a caller of a parallel kernel (here and the mask rasteriser's):
-#: numba releases the GIL in a parallel region, and its fallback threading
-#: layer (workqueue, where neither TBB nor an OpenMP runtime is installed)
-#: aborts the process when two Python threads enter one at once, as the
-#: viewer's worker and its HTTP thread (a mask on save) could
-PARALLEL_LOCK = threading.Lock()
 _ZERO = np.zeros(3)
 
 

@@ -54,7 +54,8 @@ import sys
 import numpy as np
 from numba import njit, prange
 
-from ._kernels import PARALLEL_LOCK
+from ._runtime import PARALLEL_LOCK
+from ._runtime import compilations as _compilations
 
 __all__ = ["cavity_mask", "face_connected_zeros", "cached", "compilations"]
 
@@ -585,6 +586,4 @@ def cached() -> bool:
 def compilations() -> int:
     """Kernels of this module numba compiled in this process (missed its
     cache), its cache probe aside."""
-    from .warmup import compilations as count
-
-    return count(sys.modules[__name__]) - _probe_misses()
+    return _compilations(sys.modules[__name__]) - _probe_misses()

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from .beamspace import CONVENTIONS, BeamGeometry, BeamVolume
-from .volume import ImageGrid, Volume, outside_sector
+from .raster import outside_sector
+from .volume import ImageGrid, Volume
 
 __all__ = ["load", "load_sequence", "load_frames", "save_mask", "save_volume", "read_markups", "write_markups", "image_format",
            "IMAGE_SUFFIXES", "MASK_SUFFIXES", "BEAM_SUFFIXES", "BEAM_KEYS", "BEAM_OPTIONAL_KEYS", "beam_header",

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .backends import kernel_thread_count, kernel_threads
+from ._runtime import kernel_thread_count, kernel_threads
 from .coords import Pose, annulus_plane
 from .dataterms import DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, band_offsets, nanmedian
 from .descent import Descent

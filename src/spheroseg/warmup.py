@@ -29,6 +29,8 @@ from typing import Callable
 
 import numpy as np
 
+from ._runtime import compilations, usable_cores
+
 __all__ = ["load_kernels", "load_raster_kernels", "load_step_kernels", "KernelLoad", "compilations"]
 
 
@@ -36,17 +38,6 @@ class KernelLoad(dict):
     """``{"seconds": wall time of the loading, "compiled": whether numba
     compiled (rather than loaded) any kernel, "helper": whether a second
     process compiled some}``."""
-
-
-def compilations(module) -> int:
-    """Kernels of ``module`` that numba compiled in this process, i.e. that
-    missed its on-disk cache (``Dispatcher.stats.cache_misses``)."""
-    count = 0
-    for value in vars(module).values():
-        misses = getattr(getattr(value, "stats", None), "cache_misses", None)
-        if misses:
-            count += sum(misses.values()) if isinstance(misses, dict) else len(misses)
-    return count
 
 
 def load_kernels(*, on_compile: Callable[[], None] | None = None) -> KernelLoad:
@@ -111,13 +102,13 @@ def load_raster_kernels(image=None, volume=None, surface=None) -> None:
     """Compile or load the rasteriser's kernels: the cavity mask of
     ``surface`` on ``volume``'s grid and the sector padding of ``image``
     (by default those of the synthetic case and its initial surface)."""
+    from .raster import outside_sector, surface_mask
     from .surface import Surface
-    from .volume import outside_sector
 
     if surface is None:
         image, volume, apex, base = _synthetic_case()
         surface = Surface.from_apex_base(apex, base)
-    surface.mask(volume.grid)
+    surface_mask(surface, volume.grid)
     outside_sector(image)
 
 
@@ -152,8 +143,6 @@ def _start_helper():
     """A second process that compiles the step's and the rasteriser's
     kernels into numba's cache, when this process may run on two cores or
     more (else None)."""
-    from .backends import usable_cores
-
     if usable_cores() < 2 or not sys.executable or getattr(sys, "frozen", False):  # (a frozen app is no Python)
         return None
     try:  # the same interpreter and environment (NUMBA_CACHE_DIR): the same cache
