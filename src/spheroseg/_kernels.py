@@ -252,10 +252,9 @@ def sample_along(image, strides, upper, to_index, image_origin, world, normal, r
     each sample ``v`` (log compression undone)."""
     if offsets.shape[0] == 1:
         # the surface's own samples, every iteration: a parallel loop whose
-        # body has no inner loop runs on SIMD lanes (4096 points in 25 us
-        # instead of 53 on 2 threads; a loop an offset, the sums carried in
-        # the outputs, costs more in launches than it saves on the few
-        # hundred rows of the global means' shell)
+        # body has no inner loop runs on SIMD lanes (a loop an offset, the
+        # sums carried in the outputs, would cost more in launches than it
+        # saves on the few hundred rows of the global means' shell)
         offset = offsets[0]
         for r in prange(rows.shape[0]):
             q = rows[r]
@@ -362,10 +361,9 @@ FIXED_MEANS, GLOBAL_MEANS, LOCAL_MEANS = 0, 1, 2
 #: with no image data around the surface (the local means)
 AT_CAP, CONVERGED, NO_BAND_DATA = 0, 1, 2
 
-# The loop's own arithmetic is written as plain loops: with numba's np.dot,
-# @, nanmedian, array expressions and slice assignments (their shape
-# checks' messages) the loop and the kernels it calls took 12.7 s to
-# compile, with plain loops 7.1.  Its sums are not BLAS's nor numpy's
+# The loop's own arithmetic is written as plain loops: numba's np.dot, @,
+# nanmedian, array expressions and slice assignments (their shape checks'
+# messages) nearly double the loop's compilation.  Its sums are not BLAS's nor numpy's
 # pairwise ones: a level in the loop equals its iterations to rounding.
 
 

@@ -227,7 +227,7 @@ class CompiledBackend(NumpyBackend):
 
     def product(self, matrix, x) -> np.ndarray:
         """``matrix @ x`` for a CSR matrix and a vector, as scipy computes it
-        (without scipy.sparse's per-call dispatch, about 5 us)."""
+        (without scipy.sparse's per-call dispatch)."""
         out = np.empty(matrix.shape[0])
         self.kernels.csr_product(matrix.indptr, matrix.indices, matrix.data, np.ascontiguousarray(x, dtype=float), out)
         return out
@@ -235,10 +235,10 @@ class CompiledBackend(NumpyBackend):
     def _sampling(self, volume):
         """The kernels that sample ``volume`` (Cartesian or beam space) and
         the arrays they read (kept for the last volume: an iteration asks up
-        to three times, and the read-only views cost 3 us each time)."""
+        to three times, and would build the read-only views each time)."""
         if volume is not self._sampled:
             kernels = self.beam_kernels if isinstance(volume, BeamVolume) else self.kernels
-            # (a plain tuple: numba unpacks it in descend, not a named one)
+            # (a plain tuple: the kernels take it unpacked)
             self._sampled, self._sampling_arrays = volume, (kernels, tuple(volume.sampling_view()))
         return self._sampling_arrays
 

@@ -62,7 +62,7 @@ def add_rows(inverse: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> np.n
     u = inverse @ rows.T
     core = np.eye(len(rows)) + weights[:, None] * (rows @ u)
     # the low-rank update in place (BLAS wants Fortran order, which the
-    # symmetric inverse's transpose has): 60 us instead of 170 at 259 x 259
+    # symmetric inverse's transpose has), without a copy of the product
     out = blas.dgemm(-1.0, u, np.linalg.solve(core, weights[:, None] * u.T), beta=1.0,
                      c=inverse.T.copy(order="F"), overwrite_c=True)
     return out.T
@@ -160,7 +160,7 @@ class Descent:
             # by at most a step
             lm = self.landmarks
             res = (lm.v0 - lm.basis @ self.p) * lm.h0
-            res = np.minimum(np.maximum(res, -self.step), self.step) / lm.h0  # np.clip costs 3 us more
+            res = np.minimum(np.maximum(res, -self.step), self.step) / lm.h0  # (np.clip checks more)
             rhs += self._landmark_pull @ res
         dp = self.system_inverse @ rhs
         self.p = self.p + dp

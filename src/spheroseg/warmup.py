@@ -1,22 +1,21 @@
 """Load the compiled kernels before anything is timed.
 
-numba compiles spheroseg's kernels on their first call on a machine (some
-18 s of compilation) and caches them on disk; every later process loads them
-from that cache (a few hundred ms, most of it importing numba) and computes
-the grid-only matrices of each resolution once.  :func:`load_kernels` pays
+numba compiles spheroseg's kernels on their first call on a machine and
+caches them on disk; every later process loads them from that cache (most
+of it importing numba) and computes the grid-only matrices of each
+resolution once.  :func:`load_kernels` pays
 all of this up front on a tiny synthetic image, so that the timings a
 command prints are those of the work itself, and tells whether the kernels
 had to be compiled.
 
 numba compiles one kernel at a time in a process.  On a first run with two
 cores or more, a second process compiles the kernels of a descent's step
-that sample no image and evaluate no surface (some 3 s), then the
-rasteriser's (the mask and the sector padding, some 8 s), while this one
-compiles the rest of the segmentation's (some 12 s: the surface, the
-samples and the compiled level loop).  This one loads the step's kernels
-from the cache when it reaches them, and waits for the rasteriser's: a
-first run's loading takes about 13 s on 2 cores, against 26 in one process
-on one core.
+that sample no image and evaluate no surface, then the rasteriser's (the
+mask and the sector padding), while this one compiles the rest of the
+segmentation's (the surface, the samples and the compiled level loop).
+This one loads the step's kernels from the cache when it reaches them, and
+waits for the rasteriser's: a first run's loading takes about half as long
+on 2 cores as in one process on one core (``docs/benchmarks.md``).
 """
 
 from __future__ import annotations
