@@ -303,25 +303,25 @@ class CompiledBackend(NumpyBackend):
     def descends(self, volume) -> bool:
         return not isinstance(volume, BeamVolume)  # (descend samples with the Cartesian kernels)
 
-    def descend(self, p, reference, volume, *, prior: tuple, term: tuple, settings: np.ndarray,
+    def descend(self, p, reference, volume, *, prior: tuple, term: tuple, state: np.ndarray,
                 previous: np.ndarray, tol: float, max_iterations: int) -> tuple[int, Observation, np.ndarray]:
         """Run a level of the descent in one compiled call
         (:func:`spheroseg._kernels.descend`, whose arguments these are),
-        updating ``p``, ``settings`` and ``previous`` in place.
+        updating ``p``, ``state`` and ``previous`` in place.
 
         Returns its status, the last observation and the force's means
         ``(3, n)`` (``c_in``, the band means' ``c_out``, the force's ``c_out``)."""
         m, d, b = self.model, self.discretisation, self._buffers
         if self._surface is None:  # what depends on the grid and pose only, and the buffers
             csr = tuple((a.indptr, a.indices, a.data) for a in (d.constraints, d.constraints_t))
-            self._surface = (*csr, m.grid.shape, d.order, *d.tables, d.band_tables[0].shape[1], *d.band_tables,
-                             d.trig, m.system.focal_length, m.pose.rotation, m.pose.origin, m.weights, d.area,
-                             MIN_COS, self._all_rows, d.band_rows, d.band_weights, d.mass_inverse)
-            self._observed = tuple(b[k] for k in ("f", "h0", "cos", "area", "world", "normal", "u", "inside",
-                                                  "outside"))
+            self._surface = self.kernels.LoopSurface(
+                *csr, m.grid.shape, d.order, *d.tables, d.band_tables[0].shape[1], *d.band_tables, d.trig,
+                m.system.focal_length, m.pose.rotation, m.pose.origin, m.weights, d.area, MIN_COS, self._all_rows,
+                d.band_rows, d.band_weights, d.mass_inverse)
+            self._observed = self.kernels.LoopObservation(**b)
         means = np.empty((3, m.n_samples))
         with PARALLEL_LOCK:
-            status = self.kernels.descend(p, reference, max_iterations, tol, settings, prior, self._surface,
+            status = self.kernels.descend(p, reference, max_iterations, tol, state, prior, self._surface,
                                           self._sampling(volume)[1], term, self._observed, means, previous)
         return status, Observation(**b), means
 
