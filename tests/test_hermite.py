@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from spheroseg.hermite import HermiteGrid, basis_norms, hermite_basis
+from spheroseg.hermite import HermiteGrid, basis_norms, global_basis, hermite_basis, patch_dofs
 
 
 def test_basis_interpolates_nodes():
@@ -207,3 +207,28 @@ def test_evaluate_grid_is_evaluate_on_the_grid(rng, grid):
     np.testing.assert_allclose(grid.evaluate_grid(c, v1, other), grid.evaluate(c, *np.meshgrid(v1, other)),
                                rtol=1e-13, atol=1e-13)
     np.testing.assert_array_equal(grid.evaluate_grid(c, list(v1), v2), grid.evaluate_grid(c, v1, v2))
+
+
+@pytest.mark.parametrize("derivative", [1, 2])
+def test_global_basis_is_the_derivative_in_v(derivative):
+    # a patch 0.7 wide: the slope dofs multiply width psi^1, each derivative in v divides by the width
+    width, t, eps = 0.7, np.linspace(0.05, 0.95, 11), 1e-6
+    fd = (global_basis(t + eps / width, width, derivative - 1) - global_basis(t - eps / width, width, derivative - 1))
+    np.testing.assert_allclose(global_basis(t, width, derivative), fd / (2 * eps), atol=1e-6)
+    # at the nodes: values and slopes (in v) of 1 where their dof is
+    np.testing.assert_allclose(global_basis(np.array([0.0, 1.0]), width, 1), [[0, 0], [1, 0], [0, 0], [0, 1]],
+                               atol=1e-12)
+
+
+def test_patch_dofs_lay_out_each_patch_as_evaluate_reads_it():
+    grid = HermiteGrid(5, 3, (0.0, 2.0))
+    c = np.random.default_rng(3).standard_normal(grid.shape)
+    dofs = patch_dofs(grid.n1, grid.n2)
+    w1, w2 = 2 * np.pi / grid.n1, 2.0 / grid.n2
+    for i2, i1 in ((0, 0), (2, 4), (1, 2)):  # (2, 4): the periodic patch
+        t1, t2 = np.array([0.3, 0.8]), np.array([0.6, 0.1])
+        patch = c.ravel()[dofs[i2, i1]]  # [2 a1 + e1, 2 a2 + e2]
+        f = np.einsum("jp,jm,mp->p", global_basis(t1, w1), patch, global_basis(t2, w2))
+        np.testing.assert_allclose(f, grid.evaluate(c, (i1 + t1) * w1, (i2 + t2) * w2), atol=1e-12)
+    assert not dofs.flags.writeable
+

@@ -7,7 +7,8 @@ from scipy.spatial.transform import Rotation
 
 import spheroseg
 from spheroseg._raster import (FRESH_ZEROS_BYTES, SLOPE_MARGIN, SLOPE_SAMPLES, fresh_zeros, gradient_bound,
-                               patch_slopes, status)
+                               hermite_at, patch_slopes, status)
+from spheroseg.hermite import global_basis
 from spheroseg.phantom import make_phantom
 from spheroseg.surface import ImageGrid, Surface
 from spheroseg.volume import outside_sector
@@ -366,3 +367,11 @@ def test_the_gradient_bound_takes_the_slopes_of_the_patches_the_ball_reaches():
         assert bound(v1) > steep
     for v1 in ((n1 - 1) * width - 0.2, 0.2, 3.5 * width):
         assert bound(v1) < 0.1 * steep
+
+
+@pytest.mark.parametrize("derivative", [0, 1])
+def test_the_compiled_basis_is_the_numpy_one(derivative):
+    for t in (0.0, 0.3, 0.75, 1.0):
+        np.testing.assert_allclose(hermite_at(t, 0.4, derivative), global_basis(np.array(t), 0.4, derivative),
+                                   rtol=1e-14, atol=1e-15)
+

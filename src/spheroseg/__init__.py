@@ -7,7 +7,7 @@ with an explicit bicubic Hermite surface in prolate spheroidal coordinates.
 >>> res.volume_ml, res.mask(vol), res.mesh()             # doctest: +SKIP
 """
 
-__version__ = "0.1.0"
+from ._version import __version__
 
 from .beamspace import BeamGeometry, BeamVolume, scan_convert, to_beam_space
 from .coords import Cylindrical, Pose, ProlateSpheroidal, Spherical

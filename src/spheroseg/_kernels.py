@@ -44,7 +44,7 @@ Only the prolate spheroidal system (the default) has a surface kernel.
 from __future__ import annotations
 
 import math
-import threading
+from typing import NamedTuple
 
 import numpy as np
 
@@ -55,16 +55,10 @@ except ImportError:  # pragma: no cover
 
 from .volume import INDEX_TOLERANCE as _EDGE
 
-__all__ = ["AVAILABLE", "PARALLEL_LOCK", "prolate_surface", "sample_along", "samples_at", "cavity_sums", "gather",
+__all__ = ["AVAILABLE", "prolate_surface", "sample_along", "samples_at", "cavity_sums", "gather",
            "scatter", "normal_displacement", "csr_product", "descend"]
 
 AVAILABLE = njit is not None
-#: held by a caller of a parallel kernel (here and the mask rasteriser's):
-#: numba releases the GIL in a parallel region, and its fallback threading
-#: layer (workqueue, where neither TBB nor an OpenMP runtime is installed)
-#: aborts the process when two Python threads enter one at once, as the
-#: viewer's worker and its HTTP thread (a mask on save) could
-PARALLEL_LOCK = threading.Lock()
 _ZERO = np.zeros(3)
 
 
@@ -259,10 +253,9 @@ def sample_along(image, strides, upper, to_index, image_origin, world, normal, r
     each sample ``v`` (log compression undone)."""
     if offsets.shape[0] == 1:
         # the surface's own samples, every iteration: a parallel loop whose
-        # body has no inner loop runs on SIMD lanes (4096 points in 25 us
-        # instead of 53 on 2 threads; a loop an offset, the sums carried in
-        # the outputs, costs more in launches than it saves on the few
-        # hundred rows of the global means' shell)
+        # body has no inner loop runs on SIMD lanes (a loop an offset, the
+        # sums carried in the outputs, would cost more in launches than it
+        # saves on the few hundred rows of the global means' shell)
         offset = offsets[0]
         for r in prange(rows.shape[0]):
             q = rows[r]
@@ -365,14 +358,98 @@ def normal_displacement(u, c_in, c_out, scale, clip, h0, cos, h0_floor, min_cos,
 
 #: the data terms whose force :func:`descend` computes itself
 FIXED_MEANS, GLOBAL_MEANS, LOCAL_MEANS = 0, 1, 2
+
+
+class LoopSurface(NamedTuple):
+    """What :func:`descend` reads of the model, fixed for a grid and pose:
+    the constraints ``A`` and ``A^T`` as CSR ``(indptr, indices, data)``,
+    the coefficients' shape, the quadrature order and basis tables (of the
+    sample points and of the band rows), ``(cos theta, sin theta, cos mu,
+    sin mu)`` at the samples, the focal length, the pose, the quadrature
+    weights and the domain's area, the least cosine of the ``v0``
+    conversion, all rows and the band rows with their weights, and
+    ``M^-1``."""
+
+    constraints: tuple
+    constraints_t: tuple
+    grid_shape: tuple
+    order: int
+    tables_1: np.ndarray
+    tables_2: np.ndarray
+    band_order: int
+    band_tables_1: np.ndarray
+    band_tables_2: np.ndarray
+    trig: tuple
+    focal_length: float
+    rotation: np.ndarray
+    origin: np.ndarray
+    weights: np.ndarray
+    area: float
+    min_cos: float
+    all_rows: np.ndarray
+    band_rows: np.ndarray
+    band_weights: np.ndarray
+    mass_inverse: np.ndarray
+
+
+class LoopPrior(NamedTuple):
+    """The least-squares problem's other rows: ``a T`` as CSR, the system's
+    (symmetric) inverse, the landmark rows ``L``, their ``v0`` and ``h0``,
+    and ``L^T Omega``."""
+
+    smoothing: tuple
+    inverse: np.ndarray
+    landmark_rows: np.ndarray
+    landmark_v0: np.ndarray
+    landmark_h0: np.ndarray
+    landmark_pull: np.ndarray
+
+
+class LoopTerm(NamedTuple):
+    """The data term as :func:`descend` computes it: its ``kind``
+    (:data:`FIXED_MEANS`, :data:`GLOBAL_MEANS`, :data:`LOCAL_MEANS`), the
+    fixed means at every sample and their scale, the least scale, the
+    cavity fractions, the shell's and the bands' offsets (mm)."""
+
+    kind: int
+    fixed_in: np.ndarray
+    fixed_out: np.ndarray
+    fixed_scale: float
+    min_scale: float
+    fractions: np.ndarray
+    shell_offsets: np.ndarray
+    band_offsets: np.ndarray
+
+
+class LoopObservation(NamedTuple):
+    """The arrays an observation fills, as :class:`spheroseg.backends.Observation`."""
+
+    f: np.ndarray
+    h0: np.ndarray
+    cos: np.ndarray
+    area: np.ndarray
+    world: np.ndarray
+    normal: np.ndarray
+    u: np.ndarray
+    inside: np.ndarray
+    outside: np.ndarray
+
+
+#: the descent's state, read and written by :func:`descend` (one record):
+#: the step and the level's first one (mm), the scale-factor floor (< 0:
+#: not set yet), whether the step adapts (0 or 1), the previous motion's
+#: weighted sum of squares (< 0: none), the last RMS motion (mm), the
+#: iterations run, the global means measured last and the force's scale
+LOOP_STATE = np.dtype([("step", float), ("initial_step", float), ("h0_floor", float), ("adaptive", float),
+                       ("previous_squared", float), ("motion", float), ("iterations", float), ("c_in", float),
+                       ("c_out", float), ("scale", float)])
 #: how :func:`descend` ended: at its iteration cap, below the tolerance, or
 #: with no image data around the surface (the local means)
 AT_CAP, CONVERGED, NO_BAND_DATA = 0, 1, 2
 
-# The loop's own arithmetic is written as plain loops: with numba's np.dot,
-# @, nanmedian, array expressions and slice assignments (their shape
-# checks' messages) the loop and the kernels it calls took 12.7 s to
-# compile, with plain loops 7.1.  Its sums are not BLAS's nor numpy's
+# The loop's own arithmetic is written as plain loops: numba's np.dot, @,
+# nanmedian, array expressions and slice assignments (their shape checks'
+# messages) nearly double the loop's compilation.  Its sums are not BLAS's nor numpy's
 # pairwise ones: a level in the loop equals its iterations to rounding.
 
 
@@ -466,8 +543,7 @@ def _band_means(inside, outside, surface, out_c_in, out_c_out):
     """:meth:`spheroseg.dataterms.LocalMeans.band_means`: the band means
     (a missing one replaced by its band's mean) projected on the Hermite
     space, at every sample point; False when a band has no finite mean."""
-    (constraints, constraints_t, grid_shape, order, tables_1, tables_2, band_order, band_tables_1, band_tables_2,
-     _, _, _, _, _, _, _, _, band_rows, band_weights, mass_inverse) = surface
+    band_weights, mass_inverse = surface.band_weights, surface.mass_inverse
     nb, n_parameters = inside.shape[0], mass_inverse.shape[0]
     fields = np.empty((2, nb))
     for k in range(2):
@@ -481,57 +557,68 @@ def _band_means(inside, outside, surface, out_c_in, out_c_out):
             return False
         for r in range(nb):
             fields[k, r] = band_weights[r] * (band[r] if math.isfinite(band[r]) else total / finite)
-    coefficients = np.empty((2,) + grid_shape)
-    scatter(fields, band_order, band_tables_1, band_tables_2, coefficients)
+    coefficients = np.empty((2,) + surface.grid_shape)
+    scatter(fields, surface.band_order, surface.band_tables_1, surface.band_tables_2, coefficients)
     rhs, smooth = np.empty(n_parameters), np.empty(n_parameters)
     for k in range(2):  # M^-1 B_b^T W_b m, then its coefficients
-        _product(constraints_t, coefficients[k].ravel(), rhs)
+        _product(surface.constraints_t, coefficients[k].ravel(), rhs)
         _symmetric_product(mass_inverse, rhs, smooth)
-        _product(constraints, smooth, coefficients[k].ravel())
+        _product(surface.constraints, smooth, coefficients[k].ravel())
     means = np.empty((2, out_c_in.shape[0]))
-    gather(coefficients, order, tables_1, tables_2, means)
+    gather(coefficients, surface.order, surface.tables_1, surface.tables_2, means)
     for q in range(means.shape[1]):
         out_c_in[q], out_c_out[q] = means[0, q], means[1, q]
     return True
 
 
-def descend(p, reference, max_iterations, tol, settings, prior, surface, image, term, obs, means, previous):
+def descend(p, reference, max_iterations, tol, state, prior, surface, image, term, obs, means, previous):
     """A whole level of the descent in one call: the data term's force and
     :meth:`spheroseg.descent.Descent.iterate`, repeated until the RMS motion
     falls below ``tol`` (mm) or ``max_iterations`` have run.
 
-    From Python an iteration is a dozen kernel calls and their numpy glue,
-    some hundred microseconds, where its arithmetic is a few (2 x 2
-    patches) to a hundred (8 x 8).  The reference is that method with the
-    data terms of :mod:`spheroseg.dataterms`, whose steps this takes in
+    From Python an iteration is a dozen kernel calls and their numpy glue;
+    here it is their arithmetic alone.  The reference is that method with
+    the data terms of :mod:`spheroseg.dataterms`, whose steps this takes in
     their order; the tests require equal iterations and parameters equal
     to rounding.
 
-    ``p`` (updated in place): the parameters; ``reference``: the prior's
-    shape.  ``settings`` (read and updated: the descent's state)
-    ``[step, initial step, scale-factor floor (< 0: not set), adaptive step
-    (0 or 1), the previous motion's weighted sum of squares (< 0: none),
-    the RMS motion (mm), iterations run, the global means c_in, c_out, the
-    force's scale]``; ``previous``: the previous motion at the sample
-    points.  ``prior``: ``(a T as CSR, the system's inverse (symmetric),
-    L, the landmarks' v0, h0, L^T Omega)``.  ``surface``: ``(A, A^T as CSR,
-    grid shape, order, tables, band order, band tables, trig, focal length,
-    rotation, origin, weights, domain area, least cosine, all rows, band
-    rows, band weights, M^-1)``.  ``image``:
-    :meth:`spheroseg.Volume.sampling_view`.  ``term``: ``(kind, fixed c_in,
-    fixed c_out, fixed scale, least scale, cavity fractions, shell offsets,
-    band offsets)``.  ``obs``: the observation's arrays ``(f, h0, cos,
-    area, world, normal, u, inside, outside)``; ``means`` ``(3, n)``: the
-    force's ``c_in``, the band means' ``c_out``, the force's ``c_out``:
-    all left as the last iteration saw them.
+    Parameters
+    ----------
+    p : array
+        The parameters (updated in place).
+    reference : array
+        The prior's shape.
+    state : array of :data:`LOOP_STATE`, one record
+        The descent's state, read and updated.
+    prior : LoopPrior
+    surface : LoopSurface
+    image : tuple
+        :meth:`spheroseg.Volume.sampling_view`.
+    term : LoopTerm
+    obs : LoopObservation
+        Filled with the last observation.
+    means : array (3, n)
+        The force's ``c_in``, the band means' ``c_out``, the force's
+        ``c_out``, as the last iteration saw them.
+    previous : array (n,)
+        The previous motion at the sample points (read and updated).
 
-    Returns :data:`CONVERGED`, :data:`AT_CAP` or :data:`NO_BAND_DATA`.
+    Returns
+    -------
+    int
+        :data:`CONVERGED`, :data:`AT_CAP` or :data:`NO_BAND_DATA`.
     """
-    smoothing, inverse, lm_basis, lm_v0, lm_h0, lm_pull = prior
-    (constraints, constraints_t, grid_shape, order, tables_1, tables_2, _, _, _, trig, focal_length, rotation,
-     origin, weights, area, min_cos, all_rows, band_rows, _, _) = surface
-    kind, fixed_in, fixed_out, fixed_scale, min_scale, fractions, shell_offsets, band_offsets = term
-    f, h0, cos, area_element, world, normal, u, inside, outside = obs
+    s = state[0]
+    constraints, constraints_t, grid_shape, order = surface.constraints, surface.constraints_t, surface.grid_shape, \
+        surface.order
+    tables_1, tables_2, trig, focal_length = surface.tables_1, surface.tables_2, surface.trig, surface.focal_length
+    rotation, origin, weights, area = surface.rotation, surface.origin, surface.weights, surface.area
+    min_cos, all_rows, band_rows = surface.min_cos, surface.all_rows, surface.band_rows
+    lm_basis, lm_v0, lm_h0, lm_pull = prior.landmark_rows, prior.landmark_v0, prior.landmark_h0, prior.landmark_pull
+    kind, min_scale, fractions = term.kind, term.min_scale, term.fractions
+    shell_offsets, band_offsets = term.shell_offsets, term.band_offsets
+    f, h0, cos, area_element, world, normal, u = obs.f, obs.h0, obs.cos, obs.area, obs.world, obs.normal, obs.u
+    inside, outside = obs.inside, obs.outside
     c_in, band_out, c_out = means[0], means[1], means[2]
     n, n_parameters, n_landmarks = f.shape[0], p.shape[0], lm_v0.shape[0]
     coefficients = np.empty((1,) + grid_shape)  # the surface's, then the step's
@@ -552,7 +639,7 @@ def descend(p, reference, max_iterations, tol, settings, prior, surface, image, 
             measured_in, measured_out = _global_means(image, f, area_element, world, normal, trig, focal_length,
                                                       rotation, origin, weights, band_rows, fractions, shell_offsets,
                                                       scratch)
-            settings[7], settings[8] = measured_in, measured_out
+            s.c_in, s.c_out = measured_in, measured_out
             measured_out = max(measured_out, measured_in)  # blood dark: no force on the wrong polarity
             for q in range(n):
                 c_in[q], c_out[q] = measured_in, measured_out
@@ -569,20 +656,20 @@ def descend(p, reference, max_iterations, tol, settings, prior, surface, image, 
             scale = max(_median(contrast, scratch[1]) ** 2, min_scale)
         else:
             for q in range(n):
-                c_in[q], c_out[q] = fixed_in[q], fixed_out[q]
-            scale = fixed_scale
-        settings[9] = scale
+                c_in[q], c_out[q] = term.fixed_in[q], term.fixed_out[q]
+            scale = term.fixed_scale
+        s.scale = scale
         # the step (Descent.iterate)
-        if settings[2] < 0:  # fixed per level, on its first observation
-            settings[2] = 0.3 * _median(h0, scratch[1])
-        step = settings[0]
-        normal_displacement(u, c_in, c_out, scale, 1.0, h0, cos, settings[2], min_cos, step, weights,
+        if s.h0_floor < 0:  # fixed per level, on its first observation
+            s.h0_floor = 0.3 * _median(h0, scratch[1])
+        step = s.step
+        normal_displacement(u, c_in, c_out, scale, 1.0, h0, cos, s.h0_floor, min_cos, step, weights,
                             displacement[0])
         scatter(displacement, order, tables_1, tables_2, coefficients)
         _product(constraints_t, coefficients[0].ravel(), rhs)
         for i in range(n_parameters):
             dp[i] = reference[i] - p[i]
-        _product(smoothing, dp, projected)
+        _product(prior.smoothing, dp, projected)
         for i in range(n_parameters):
             rhs[i] += projected[i]
         for k in range(n_landmarks):  # towards each landmark by at most a step
@@ -590,7 +677,7 @@ def descend(p, reference, max_iterations, tol, settings, prior, surface, image, 
             residual = min(max(residual, -step), step) / lm_h0[k]
             for i in range(n_parameters):
                 rhs[i] += lm_pull[i, k] * residual
-        _symmetric_product(inverse, rhs, dp)
+        _symmetric_product(prior.inverse, rhs, dp)
         for i in range(n_parameters):
             p[i] += dp[i]
         _product(constraints, dp, coefficients[0].ravel())
@@ -601,17 +688,17 @@ def descend(p, reference, max_iterations, tol, settings, prior, surface, image, 
             moved[q] *= h0[q]
             squared += weights[q] * moved[q] * moved[q]
             dot += weights[q] * moved[q] * previous[q]
-        if settings[3]:  # Descent._adapt_step
-            if settings[4] >= 0:
-                norms = math.sqrt(squared * settings[4])
+        if s.adaptive:  # Descent._adapt_step
+            if s.previous_squared >= 0:
+                norms = math.sqrt(squared * s.previous_squared)
                 if norms > 0 and dot < -0.5 * norms:
-                    settings[0] = max(0.5 * step, settings[1] / 8)
+                    s.step = max(0.5 * step, s.initial_step / 8)
             for q in range(n):
                 previous[q] = moved[q]
-            settings[4] = squared
-        settings[5] = math.sqrt(squared / area)
-        settings[6] += 1
-        if settings[5] < tol:
+            s.previous_squared = squared
+        s.motion = math.sqrt(squared / area)
+        s.iterations += 1
+        if s.motion < tol:
             return CONVERGED
     return AT_CAP
 

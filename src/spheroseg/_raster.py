@@ -54,7 +54,9 @@ import sys
 import numpy as np
 from numba import njit, prange
 
-from ._kernels import PARALLEL_LOCK
+from ._runtime import PARALLEL_LOCK
+from ._runtime import compilations as _compilations
+from .hermite import global_basis, patch_dofs
 
 __all__ = ["cavity_mask", "face_connected_zeros", "cached", "compilations"]
 
@@ -88,13 +90,10 @@ def fresh_zeros(shape, dtype) -> np.ndarray:
     numpy advises Linux to back arrays of 4 MiB or more with transparent
     huge pages, and a huge page is zeroed whole when first written: 2 MiB
     for one voxel of the cavity.  An anonymous map's pages are zeros mapped
-    4 KiB at a time as they are written.  In a new process on the
-    benchmarks' 2-core virtual machine, at 256^3: the cavity mask 31-69 ms with
-    ``np.zeros``, 20-32 ms with these; the sector padding 21-40 and 12-15
-    ms.  A page never written costs a fault when first read: saving that
-    mask took 5 ms more.  (Arrays the kernels read, such as the voxels,
-    keep numpy's pages: copying the voxels to float32 was slower in 4 KiB
-    pages.)
+    4 KiB at a time as they are written (``docs/benchmarks.md``).  A page
+    never written costs a fault when first read.  (Arrays the kernels read,
+    such as the voxels, keep numpy's pages: copying the voxels to float32
+    was slower in 4 KiB pages.)
     """
     dtype = np.dtype(dtype)
     size = int(np.prod(shape)) * dtype.itemsize
@@ -104,8 +103,9 @@ def fresh_zeros(shape, dtype) -> np.ndarray:
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _hermite(t, width, derivative):
-    """Cubic Hermite basis (value and slope dofs in global units) at ``t``."""
+def hermite_at(t, width, derivative):
+    """:func:`spheroseg.hermite.global_basis` at one point (``derivative``
+    0 or 1), compiled."""
     if derivative == 0:
         return (1 - 3 * t * t + 2 * t * t * t, width * (t * (t - 1) * (t - 1)), t * t * (3 - 2 * t),
                 width * (t * t * (t - 1)))
@@ -212,8 +212,8 @@ def _surface(x2, x3, v2, coef, lo, hi):
     u2 = (v2 - lo) * (n2 / (hi - lo))
     i1 = min(max(int(math.floor(u1)), 0), n1 - 1)
     i2 = min(max(int(math.floor(u2)), 0), n2 - 1)
-    b1 = _hermite(u1 - i1, 2 * math.pi / n1, 0)
-    b2 = _hermite(u2 - i2, (hi - lo) / n2, 0)
+    b1 = hermite_at(u1 - i1, 2 * math.pi / n1, 0)
+    b2 = hermite_at(u2 - i2, (hi - lo) / n2, 0)
     f = 0.0
     for a1 in range(2):
         node1 = i1 + a1 if i1 + a1 < n1 else 0
@@ -377,24 +377,10 @@ def patch_slopes(coefficients, lo, hi, samples):
     kernel would add a second to the first run's compilation.)"""
     n2, n1 = coefficients.shape[0] - 1, coefficients.shape[1]
     t = np.arange(samples + 1) / samples
-    # as _hermite: [sample, 2 node + dof], the value and slope dofs in global units
-    def basis(width):
-        value = np.stack([1 - 3 * t**2 + 2 * t**3, width * t * (t - 1) ** 2, t**2 * (3 - 2 * t),
-                          width * t**2 * (t - 1)], axis=-1)
-        slope = np.stack([6 * t * (t - 1) / width, (3 * t - 1) * (t - 1), 6 * t * (1 - t) / width,
-                          t * (3 * t - 2)], axis=-1)
-        return value, slope
-
-    b1, d1 = basis(2 * np.pi / n1)
-    b2, d2 = basis((hi - lo) / n2)
-    # each patch's 16 dofs [i2, i1, 2 a2 + e2, 2 a1 + e1] (the last column wraps to node 0)
-    columns = (np.arange(n1), np.roll(np.arange(n1), -1))
-    dofs = np.empty((n2, n1, 4, 4))
-    for a2 in range(2):
-        for e2 in range(2):
-            for a1 in range(2):
-                for e1 in range(2):
-                    dofs[:, :, 2 * a2 + e2, 2 * a1 + e1] = coefficients[a2:a2 + n2][:, columns[a1], e1 + 2 * e2]
+    (b1, d1), (b2, d2) = ((global_basis(t, width, 0).T, global_basis(t, width, 1).T)  # [sample, 2 node + dof]
+                          for width in (2 * np.pi / n1, (hi - lo) / n2))
+    # each patch's 16 dofs [i2, i1, 2 a2 + e2, 2 a1 + e1]
+    dofs = np.asarray(coefficients, dtype=float).ravel()[patch_dofs(n1, n2)].swapaxes(2, 3)
     df1 = b2 @ dofs @ d1.T  # [i2, i1, sample along v2, sample along v1]
     df2 = d2 @ dofs @ b1.T
     return np.stack([np.abs(df1).max(axis=(2, 3)), np.abs(df2).max(axis=(2, 3))], axis=-1)
@@ -577,7 +563,7 @@ def _probe_misses() -> int:
 
 def cached() -> bool:
     """Whether numba's cache holds this module's kernels for its current
-    source: a kernel of its own loaded rather than compiled (1.5 ms)."""
+    source: a kernel of its own loaded rather than compiled."""
     _cache_probe()
     return _probe_misses() == 0
 
@@ -585,6 +571,4 @@ def cached() -> bool:
 def compilations() -> int:
     """Kernels of this module numba compiled in this process (missed its
     cache), its cache probe aside."""
-    from .warmup import compilations as count
-
-    return count(sys.modules[__name__]) - _probe_misses()
+    return _compilations(sys.modules[__name__]) - _probe_misses()

@@ -38,7 +38,7 @@ def cache_directory() -> Path:
 
 
 def _file_name(name: str, key: tuple, sources: tuple) -> str:
-    from . import __version__
+    from ._version import __version__
 
     stamps = []
     for source in sources:

@@ -28,14 +28,13 @@ The methods, for a model of ``n`` sample points and parameters ``p``:
 
 from __future__ import annotations
 
-import os
-import time
-from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable, Iterator
+from typing import Callable
 
 import numpy as np
 
+from ._runtime import (PARALLEL_LOCK, compiled_available, idle_cores, kernel_thread_count, kernel_threads,
+                       usable_cores)
 from .beamspace import BeamVolume
 from .coords import ProlateSpheroidal
 from .energy import Geometry, SampledSurface, normal_speed
@@ -50,11 +49,6 @@ MIN_COS = 0.3
 # +-1 mm changed no result on the phantoms or CETUS Patient 7 (the projection
 # already averages 64 points per patch) and cost two thirds of the samples
 _SURFACE_OFFSETS = np.array([0.0])
-# a segmentation or a frame reads the machine's load when the last reading
-# is older than this (s): a back-to-back series (a cohort, a sequence) reads
-# it ten times a second, not every 5 ms
-LOAD_MAX_AGE = 0.1
-_LOAD_SAMPLE = (-np.inf, 1)  # (time.monotonic(), idle cores) of the last reading
 
 
 @dataclass
@@ -213,7 +207,7 @@ class CompiledBackend(NumpyBackend):
         m, d, b = self.model, self.discretisation, self._buffers
         coefficients = self.product(d.constraints, p).reshape(m.grid.shape)
         kernels, image = self._sampling(volume)
-        with self.kernels.PARALLEL_LOCK:
+        with PARALLEL_LOCK:
             self.kernels.prolate_surface(coefficients, d.order, *d.tables, *d.trig, m.system.focal_length,
                                          m.pose.rotation, m.pose.origin, b["f"], b["h0"], b["cos"], b["area"],
                                          b["world"], b["normal"])
@@ -233,7 +227,7 @@ class CompiledBackend(NumpyBackend):
 
     def product(self, matrix, x) -> np.ndarray:
         """``matrix @ x`` for a CSR matrix and a vector, as scipy computes it
-        (without scipy.sparse's per-call dispatch, about 5 us)."""
+        (without scipy.sparse's per-call dispatch)."""
         out = np.empty(matrix.shape[0])
         self.kernels.csr_product(matrix.indptr, matrix.indices, matrix.data, np.ascontiguousarray(x, dtype=float), out)
         return out
@@ -241,10 +235,10 @@ class CompiledBackend(NumpyBackend):
     def _sampling(self, volume):
         """The kernels that sample ``volume`` (Cartesian or beam space) and
         the arrays they read (kept for the last volume: an iteration asks up
-        to three times, and the read-only views cost 3 us each time)."""
+        to three times, and would build the read-only views each time)."""
         if volume is not self._sampled:
             kernels = self.beam_kernels if isinstance(volume, BeamVolume) else self.kernels
-            # (a plain tuple: numba unpacks it in descend, not a named one)
+            # (a plain tuple: the kernels take it unpacked)
             self._sampled, self._sampling_arrays = volume, (kernels, tuple(volume.sampling_view()))
         return self._sampling_arrays
 
@@ -261,7 +255,7 @@ class CompiledBackend(NumpyBackend):
     def mean_along(self, volume, obs: Observation, offsets, rows, *, exponent: float = 0.0):
         mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
         kernels, image = self._sampling(volume)
-        with self.kernels.PARALLEL_LOCK:
+        with PARALLEL_LOCK:
             kernels.sample_along(*image, obs.world, obs.normal, rows, offsets, exponent, mean, count)
         return mean, count
 
@@ -269,7 +263,7 @@ class CompiledBackend(NumpyBackend):
         m, d = self.model, self.discretisation
         total, weight = np.empty(len(rows)), np.empty(len(rows))
         kernels, image = self._sampling(volume)
-        with self.kernels.PARALLEL_LOCK:
+        with PARALLEL_LOCK:
             kernels.cavity_sums(*image, obs.f, *d.trig, m.system.focal_length, m.pose.rotation, m.pose.origin, rows,
                                 fractions, total, weight)
         return total, weight
@@ -281,7 +275,7 @@ class CompiledBackend(NumpyBackend):
         else:  # a product a field (the band means' two): scipy's dispatch of a sparse product costs more
             coefficients = np.stack([self.product(d.constraints, field) for field in p.T]).reshape((-1,) + m.grid.shape)
         out = np.empty((len(coefficients), m.n_samples))
-        with self.kernels.PARALLEL_LOCK:
+        with PARALLEL_LOCK:
             self.kernels.gather(coefficients, d.order, *d.tables, out)
         return out[0] if p.ndim == 1 else out
 
@@ -309,34 +303,27 @@ class CompiledBackend(NumpyBackend):
     def descends(self, volume) -> bool:
         return not isinstance(volume, BeamVolume)  # (descend samples with the Cartesian kernels)
 
-    def descend(self, p, reference, volume, *, prior: tuple, term: tuple, settings: np.ndarray,
+    def descend(self, p, reference, volume, *, prior: tuple, term: tuple, state: np.ndarray,
                 previous: np.ndarray, tol: float, max_iterations: int) -> tuple[int, Observation, np.ndarray]:
         """Run a level of the descent in one compiled call
         (:func:`spheroseg._kernels.descend`, whose arguments these are),
-        updating ``p``, ``settings`` and ``previous`` in place.
+        updating ``p``, ``state`` and ``previous`` in place.
 
         Returns its status, the last observation and the force's means
         ``(3, n)`` (``c_in``, the band means' ``c_out``, the force's ``c_out``)."""
         m, d, b = self.model, self.discretisation, self._buffers
         if self._surface is None:  # what depends on the grid and pose only, and the buffers
             csr = tuple((a.indptr, a.indices, a.data) for a in (d.constraints, d.constraints_t))
-            self._surface = (*csr, m.grid.shape, d.order, *d.tables, d.band_tables[0].shape[1], *d.band_tables,
-                             d.trig, m.system.focal_length, m.pose.rotation, m.pose.origin, m.weights, d.area,
-                             MIN_COS, self._all_rows, d.band_rows, d.band_weights, d.mass_inverse)
-            self._observed = tuple(b[k] for k in ("f", "h0", "cos", "area", "world", "normal", "u", "inside",
-                                                  "outside"))
+            self._surface = self.kernels.LoopSurface(
+                *csr, m.grid.shape, d.order, *d.tables, d.band_tables[0].shape[1], *d.band_tables, d.trig,
+                m.system.focal_length, m.pose.rotation, m.pose.origin, m.weights, d.area, MIN_COS, self._all_rows,
+                d.band_rows, d.band_weights, d.mass_inverse)
+            self._observed = self.kernels.LoopObservation(**b)
         means = np.empty((3, m.n_samples))
-        with self.kernels.PARALLEL_LOCK:
-            status = self.kernels.descend(p, reference, max_iterations, tol, settings, prior, self._surface,
+        with PARALLEL_LOCK:
+            status = self.kernels.descend(p, reference, max_iterations, tol, state, prior, self._surface,
                                           self._sampling(volume)[1], term, self._observed, means, previous)
         return status, Observation(**b), means
-
-
-def compiled_available() -> bool:
-    """Whether the compiled kernels can run (numba is installed)."""
-    from importlib.util import find_spec
-
-    return find_spec("numba") is not None
 
 
 def select_backend(model: SampledSurface, *, compiled: bool = True) -> NumpyBackend:
@@ -345,106 +332,3 @@ def select_backend(model: SampledSurface, *, compiled: bool = True) -> NumpyBack
     if compiled and isinstance(model.system, ProlateSpheroidal) and compiled_available():
         return CompiledBackend(model)
     return NumpyBackend(model)
-
-
-def usable_cores() -> int:
-    """Cores this process may run on (its affinity; elsewhere than Linux, the machine's)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not on Linux
-        return os.cpu_count() or 1
-
-
-def idle_cores(*, max_age: float = 0.0) -> int:
-    """Cores this process may run on that no other process is using now
-    (at least 1).
-
-    The cores of its affinity less the tasks of other processes that are
-    running or ready to run at this instant: on Linux the runnable count of
-    ``/proc/loadavg`` less this process's own running threads; elsewhere the
-    1-minute load average less one (this process).  A sample of an instant:
-    a busy process is runnable at almost every one.
-
-    ``max_age`` (s): the last sample when it is at most that old.  Taking
-    one costs 0.1 ms where this process's threads are still running after
-    a parallel step (they are read one by one), 2 % of a segmentation."""
-    global _LOAD_SAMPLE
-    sampled, count = _LOAD_SAMPLE
-    now = time.monotonic()
-    if now - sampled > max_age:
-        count = _sample_idle_cores()
-        _LOAD_SAMPLE = (now, count)  # one assignment: atomic for the viewer's threads
-    return count
-
-
-def _sample_idle_cores() -> int:
-    cores = usable_cores()
-    try:
-        with open("/proc/loadavg") as f:
-            runnable = int(f.read().split()[3].split("/")[0])
-        # this thread is one of them: alone, no other (reading this process's
-        # threads costs 70 us, the count 10)
-        others = 0 if runnable <= 1 else runnable - _own_running_threads()
-    except (OSError, ValueError, IndexError):  # pragma: no cover - not on Linux
-        try:
-            others = round(os.getloadavg()[0]) - 1
-        except (AttributeError, OSError):
-            others = 0
-    return max(1, min(cores, cores - others))
-
-
-def _own_running_threads() -> int:
-    """Threads of this process running or ready to run (at least this one)."""
-    running = 0
-    for task in os.listdir("/proc/self/task"):
-        try:
-            with open(f"/proc/self/task/{task}/stat") as f:
-                stat = f.read()
-        except OSError:  # the thread ended meanwhile
-            continue
-        running += stat[stat.rindex(")") + 2] == "R"  # the state follows the command's name
-    return max(running, 1)
-
-
-def kernel_thread_count(threads: int | None) -> int | None:
-    """The compiled kernels' thread count for a segmentation or a frame.
-
-    ``threads`` when given; otherwise numba's count, reduced to the
-    :func:`idle_cores` (a reading at most ``LOAD_MAX_AGE`` s old): a
-    parallel region waits for its slowest thread, and a thread that shares
-    its core with another process's work made whole segmentations 2 to 90
-    times slower than on one thread (measured beside one busy process on 2
-    cores).  None without numba."""
-    if threads is not None:
-        return threads
-    try:
-        import numba
-    except ImportError:  # pragma: no cover - numba is a dependency
-        return None
-    count = numba.get_num_threads()
-    return count if count == 1 else min(count, idle_cores(max_age=LOAD_MAX_AGE))
-
-
-@contextmanager
-def kernel_threads(threads: int | None) -> Iterator[None]:
-    """Run the compiled kernels inside on ``threads`` threads, then restore
-    numba's count (also on an exception); None, or without numba, changes
-    nothing.  numba's count belongs to the calling Python thread, so two
-    threads (the viewer's worker and its HTTP thread) do not change each
-    other's.  A count above ``NUMBA_NUM_THREADS`` is capped at it."""
-    try:
-        import numba
-    except ImportError:
-        numba = None
-    if threads is None or numba is None:
-        yield
-        return
-    previous, wanted = numba.get_num_threads(), min(int(threads), numba.config.NUMBA_NUM_THREADS)
-    if wanted == previous:  # nested (a run's iterations): nothing to set
-        yield
-        return
-    numba.set_num_threads(wanted)
-    try:
-        yield
-    finally:
-        numba.set_num_threads(previous)

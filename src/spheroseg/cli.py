@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
+from ._version import __version__
 from .options import MODES, SYSTEMS, SegmentOptions
 
 EXIT_ERROR = 2
@@ -326,7 +326,8 @@ def _load_kernels_saying():
 def _load_timed(source, args, seconds: dict):
     """``load``, the kernels, then the padding search, each timed apart."""
     from .io import load
-    from .volume import Volume, outside_sector
+    from .raster import outside_sector
+    from .volume import Volume
 
     t0 = time.perf_counter()
     auto = isinstance(args.no_data, str)

@@ -62,7 +62,7 @@ def add_rows(inverse: np.ndarray, rows: np.ndarray, weights: np.ndarray) -> np.n
     u = inverse @ rows.T
     core = np.eye(len(rows)) + weights[:, None] * (rows @ u)
     # the low-rank update in place (BLAS wants Fortran order, which the
-    # symmetric inverse's transpose has): 60 us instead of 170 at 259 x 259
+    # symmetric inverse's transpose has), without a copy of the product
     out = blas.dgemm(-1.0, u, np.linalg.solve(core, weights[:, None] * u.T), beta=1.0,
                      c=inverse.T.copy(order="F"), overwrite_c=True)
     return out.T
@@ -126,7 +126,7 @@ class Descent:
             self.omega = np.asarray(weights, float) * _LANDMARK_AREA * d.area
             self._landmark_pull = self.landmarks.basis.T * self.omega  # L^T Omega
             self.system_inverse = add_rows(self.system_inverse, self.landmarks.basis, self.omega)
-        # the same for the compiled loop (Descent.run)
+        # the same for the compiled loop (Descent.run): _kernels.LoopPrior's fields
         lm, empty, n = self.landmarks, np.empty(0), len(self.p)
         self._loop_prior = ((self._smoothing.indptr, self._smoothing.indices, self._smoothing.data),
                             self.system_inverse,
@@ -160,7 +160,7 @@ class Descent:
             # by at most a step
             lm = self.landmarks
             res = (lm.v0 - lm.basis @ self.p) * lm.h0
-            res = np.minimum(np.maximum(res, -self.step), self.step) / lm.h0  # np.clip costs 3 us more
+            res = np.minimum(np.maximum(res, -self.step), self.step) / lm.h0  # (np.clip checks more)
             rhs += self._landmark_pull @ res
         dp = self.system_inverse @ rhs
         self.p = self.p + dp
@@ -190,28 +190,33 @@ class Descent:
             means = tuple(np.broadcast_to(np.asarray(c, float), n).copy() for c in fixed[:2])
         else:
             fixed, means = (0.0, 0.0, 0.0), (self._no_means, self._no_means)
-        term = ({"fixed": _kernels.FIXED_MEANS, "global": _kernels.GLOBAL_MEANS, "local": _kernels.LOCAL_MEANS}[kind],
-                *means, float(fixed[2]), data_term.min_scale, CAVITY_FRACTIONS, data_term.shell_offsets,
-                data_term.band_offsets if kind == "local" else _NO_OFFSETS)
+        term = _kernels.LoopTerm(
+            {"fixed": _kernels.FIXED_MEANS, "global": _kernels.GLOBAL_MEANS, "local": _kernels.LOCAL_MEANS}[kind],
+            *means, float(fixed[2]), data_term.min_scale, CAVITY_FRACTIONS, data_term.shell_offsets,
+            data_term.band_offsets if kind == "local" else _NO_OFFSETS)
         previous = np.zeros(n) if self._previous_motion is None else self._previous_motion[0].copy()
-        settings = np.array([self.step, self._initial_step, -1.0 if self.h0_floor is None else self.h0_floor,
-                             float(self.adaptive_step), -1.0 if self._previous_motion is None else
-                             self._previous_motion[1], np.nan, 0.0, np.nan, np.nan, np.nan])
+        state = np.zeros(1, dtype=_kernels.LOOP_STATE)
+        s = state[0]
+        s["step"], s["initial_step"], s["adaptive"] = self.step, self._initial_step, float(self.adaptive_step)
+        s["h0_floor"] = -1.0 if self.h0_floor is None else self.h0_floor
+        s["previous_squared"] = -1.0 if self._previous_motion is None else self._previous_motion[1]
+        s["motion"] = s["c_in"] = s["c_out"] = s["scale"] = np.nan
         p = self.p.copy()
-        status, obs, means = self.backend.descend(p, self.reference, volume, prior=self._loop_prior, term=term,
-                                                  settings=settings, previous=previous, tol=tol,
+        status, obs, means = self.backend.descend(p, self.reference, volume, prior=_kernels.LoopPrior(*self._loop_prior),
+                                                  term=term, state=state, previous=previous, tol=tol,
                                                   max_iterations=max_iterations)
-        self.p, self.step = p, float(settings[0])
-        self.h0_floor = float(settings[2]) if settings[2] >= 0 else self.h0_floor
-        if self.adaptive_step and settings[4] >= 0:
-            self._previous_motion = previous, float(settings[4])
+        s = state[0]
+        self.p, self.step = p, float(s["step"])
+        self.h0_floor = float(s["h0_floor"]) if s["h0_floor"] >= 0 else self.h0_floor
+        if self.adaptive_step and s["previous_squared"] >= 0:
+            self._previous_motion = previous, float(s["previous_squared"])
         if status == _kernels.NO_BAND_DATA:
             raise ValueError("no image data around the surface (is it inside the image's sector?)")
         if kind != "local":
             obs.inside = obs.outside = None
-        scale = float(settings[9])
+        scale = float(s["scale"])
         if kind == "global":
-            c_in, c_out = float(settings[7]), float(settings[8])
+            c_in, c_out = float(s["c_in"]), float(s["c_out"])
             data_term.set_means(c_in, c_out)
             force = Force(obs.u, c_in, max(c_out, c_in), scale)
         elif kind == "local":
@@ -219,7 +224,7 @@ class Descent:
             force = Force(obs.u, means[0], means[2], scale)
         else:
             force = Force(obs.u, fixed[0], fixed[1], scale)
-        return LevelRun(int(settings[6]), float(settings[5]), status == _kernels.CONVERGED, obs, force)
+        return LevelRun(int(s["iterations"]), float(s["motion"]), status == _kernels.CONVERGED, obs, force)
 
     def restart(self, step: float) -> None:
         """Begin a new level on this grid from the current surface, as a new

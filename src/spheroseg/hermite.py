@@ -33,7 +33,7 @@ from functools import lru_cache
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["hermite_basis", "HermiteGrid", "basis_norms"]
+__all__ = ["hermite_basis", "global_basis", "patch_dofs", "HermiteGrid", "basis_norms"]
 
 
 def hermite_basis(t: np.ndarray, derivative: int = 0) -> np.ndarray:
@@ -65,10 +65,58 @@ def hermite_basis(t: np.ndarray, derivative: int = 0) -> np.ndarray:
     return out
 
 
+def global_basis(t: np.ndarray, width: float, derivative: int = 0) -> np.ndarray:
+    """The Hermite basis of a patch ``width`` wide, in global units.
+
+    A patch's degrees of freedom are values and slopes with respect to the
+    coordinate ``v = v_node + width t``, so the slope dofs multiply
+    ``width psi_a^1`` and each derivative in ``v`` divides by ``width``::
+
+        phi = (psi_0^0, width psi_0^1, psi_1^0, width psi_1^1) / width^derivative
+
+    Parameters
+    ----------
+    t : array
+        Local coordinate in ``[0, 1]``.
+    width : float
+        The patch's extent in ``v`` (radians for ``v1``, the units of ``v2``).
+    derivative : {0, 1, 2}
+        Order of the derivative with respect to ``v``.
+
+    Returns
+    -------
+    array, shape ``(4,) + t.shape``
+        Ordered ``2 node + dof``, as :func:`hermite_basis`.
+    """
+    b = hermite_basis(t, derivative)
+    scale = np.array([1.0, width, 1.0, width]) / width**derivative
+    return b * scale.reshape((4,) + (1,) * np.ndim(t))
+
+
+@lru_cache(maxsize=16)
+def patch_dofs(n1: int, n2: int) -> np.ndarray:
+    """Where each patch's 16 degrees of freedom lie in the flat coefficients.
+
+    The coefficients are ``(n2 + 1, n1, 4)``: node row along ``v2``, node
+    column along ``v1`` (periodic: the last patch's second column is column
+    0) and dof ``e1 + 2 e2`` (``e`` = 0 value, 1 slope, along ``v1`` and
+    ``v2``).  Returns the read-only integer array ``[i2, i1, 2 a1 + e1,
+    2 a2 + e2]`` of flat indices, ``a1``, ``a2`` the patch's node along each
+    direction, so that on a patch ``f = phi_1^T P phi_2`` with ``P =
+    coefficients.ravel()[patch_dofs(n1, n2)[i2, i1]]`` and ``phi`` the
+    :func:`global_basis` along each direction.
+    """
+    i2, i1, a1, e1, a2, e2 = np.ix_(range(n2), range(n1), range(2), range(2), range(2), range(2))
+    flat = ((i2 + a2) * n1 + (i1 + a1) % n1) * 4 + e1 + 2 * e2
+    out = np.ascontiguousarray(flat.reshape(n2, n1, 4, 4))
+    out.flags.writeable = False
+    return out
+
+
 @lru_cache(maxsize=16)
 def _gauss_legendre(order: int) -> tuple[np.ndarray, np.ndarray]:
-    """Gauss-Legendre points and weights on ``[0, 1]`` (read-only; numpy
-    takes 0.1 ms to compute them, which a volume or a level paid each time)."""
+    """Gauss-Legendre points and weights on ``[0, 1]`` (read-only, computed
+    once an order)."""
     x, w = np.polynomial.legendre.leggauss(order)
     t, w = (x + 1) / 2, w / 2
     t.flags.writeable = w.flags.writeable = False
@@ -179,13 +227,6 @@ class HermiteGrid:
         i2 = np.minimum(np.maximum(np.floor(u2).astype(np.int64), 0), self.n2 - 1)
         return i1, u1 - i1, i2, u2 - i2
 
-    def _factors(self, t, derivative, width):
-        # global-unit basis: value dofs are psi, slope dofs are width * psi;
-        # each derivative in v divides by width
-        b = hermite_basis(t, derivative)
-        scale = np.array([1.0, width, 1.0, width]) / width**derivative
-        return b * scale.reshape((4,) + (1,) * t.ndim)
-
     def _terms(self, v1, v2, d1: int = 0, d2: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """The 16 terms of ``f`` at each point: coefficient indices and basis
         values, ``(16,) + shape`` each (``shape`` the points', ``v1`` and
@@ -201,8 +242,8 @@ class HermiteGrid:
         # the points' axes, broadcast after (a2, a1, e2, e1)
         ndim = max(v1.ndim, v2.ndim)
         shape1, shape2 = ((1,) * (ndim - v.ndim) + v.shape for v in (v1, v2))
-        b1 = self._factors(t1, d1, 2 * np.pi / self.n1).reshape((1, 2, 1, 2) + shape1)
-        b2 = self._factors(t2, d2, (self.v2_range[1] - self.v2_range[0]) / self.n2).reshape((2, 1, 2, 1) + shape2)
+        b1 = global_basis(t1, 2 * np.pi / self.n1, d1).reshape((1, 2, 1, 2) + shape1)
+        b2 = global_basis(t2, (self.v2_range[1] - self.v2_range[0]) / self.n2, d2).reshape((2, 1, 2, 1) + shape2)
         node1 = np.stack([i1, (i1 + 1) % self.n1]).reshape((1, 2) + shape1)
         node2 = np.stack([i2, i2 + 1]).reshape((2, 1) + shape2)
         corner = (node2 * self.n1 + node1) * 4  # [a2, a1, ...]
@@ -267,8 +308,8 @@ class HermiteGrid:
         # keyed by the parameters' bytes: arrays are not hashable
         v1, v2 = np.frombuffer(v1_bytes), np.frombuffer(v2_bytes)
         i1, t1, i2, t2 = self._locate(v1, v2)
-        b1 = self._factors(t1, 0, 2 * np.pi / self.n1)  # [2 a1 + e1, point]
-        b2 = self._factors(t2, 0, (self.v2_range[1] - self.v2_range[0]) / self.n2)
+        b1 = global_basis(t1, 2 * np.pi / self.n1)  # [2 a1 + e1, point]
+        b2 = global_basis(t2, (self.v2_range[1] - self.v2_range[0]) / self.n2)
         m1, m2 = np.zeros((v1.size, self.n1, 2)), np.zeros((v2.size, self.n2 + 1, 2))
         for a in (0, 1):
             m1[np.arange(v1.size), (i1 + a) % self.n1] = b1[2 * a : 2 * a + 2].T
@@ -305,10 +346,7 @@ class HermiteGrid:
         :meth:`patch_tables` (a tenth of the time of the sparse basis)."""
         c = np.asarray(coefficients, dtype=float).reshape(self.shape)
         table1, table2 = self.patch_tables(order)
-        # P[i2, i1, 2 a1 + e1, 2 a2 + e2] = c[i2 + a2, i1 + a1 (periodic), e1 + 2 e2]
-        nodes = np.stack([c, np.roll(c, -1, axis=1)], axis=2)  # [row, i1, a1, e1 + 2 e2]
-        patch = np.stack([nodes[:-1], nodes[1:]], axis=3).reshape(self.n2, self.n1, 2, 2, 2, 2)  # a1, a2, e2, e1
-        patch = patch.transpose(0, 1, 2, 5, 3, 4).reshape(self.n2, self.n1, 4, 4)
+        patch = c.ravel()[patch_dofs(self.n1, self.n2)]  # [i2, i1, 2 a1 + e1, 2 a2 + e2]
         f = table1[0] @ patch @ table2[0].T  # [i2, i1, a, b]
         return f.transpose(0, 3, 1, 2).ravel()
 
@@ -325,8 +363,7 @@ class HermiteGrid:
         lo, hi = self.v2_range
         tables = []
         for width in (2 * np.pi / self.n1, (hi - lo) / self.n2):
-            scale = np.array([1.0, width, 1.0, width])  # as _factors
-            tables.append(np.stack([hermite_basis(t, 0).T * scale, hermite_basis(t, 1).T * scale / width]))
+            tables.append(np.stack([global_basis(t, width, 0).T, global_basis(t, width, 1).T]))
         return _read_only(*tables)
 
     # -- pole constraints -------------------------------------------------

@@ -26,7 +26,8 @@ import numpy as np
 
 from .atomic import write_atomically
 from .beamspace import CONVENTIONS, BeamGeometry, BeamVolume
-from .volume import ImageGrid, Volume, outside_sector
+from .raster import outside_sector
+from .volume import ImageGrid, Volume
 
 __all__ = ["load", "load_sequence", "load_frames", "save_mask", "save_volume", "image_format", "image_files",
            "check_image_size", "beam_header", "beam_geometry_from_header", "ImageFileError", "IMAGE_SUFFIXES",

@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
+from .dataterms import DATA_TERMS, DataTerm
 from .surface import DEFAULT_RADIUS_RATIO
 
 __all__ = ["SegmentOptions", "MODES", "SYSTEMS", "BACKENDS", "LIMITS", "format_point"]
@@ -49,10 +50,11 @@ class SegmentOptions:
     patches : (int, int)
         Hermite patches around (theta) and along (apex to base) the cavity;
         the paper's 8 x 8 by default.
-    mode : {"intensity", "local", "chan-vese", "fast"}
+    mode : {"intensity", "local", "chan-vese", "fast"} or DataTerm subclass
         Data term (:mod:`spheroseg.dataterms`); "intensity", the default,
         runs the local means and then moves the wall to the intensity
-        interface.
+        interface.  A :class:`~spheroseg.dataterms.DataTerm` subclass of
+        one's own (its ``offsets`` and ``statistics``) runs at every level.
     step : float
         Largest normal displacement of the surface per iteration, mm.  The
         default 1 mm is about 4 % of a ventricle's radius: the paper's
@@ -120,7 +122,7 @@ class SegmentOptions:
 
     system: str = "prolate"
     patches: tuple[int, int] = (8, 8)
-    mode: str = "intensity"
+    mode: str | type[DataTerm] = "intensity"
     step: float = 1.0
     adaptive_step: bool = True
     max_iterations: int = 60
@@ -144,8 +146,10 @@ class SegmentOptions:
         if system not in SYSTEMS:
             raise ValueError(f"system must be one of {SYSTEMS}, got {self.system!r}")
         object.__setattr__(self, "system", system)
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if not (self.mode in MODES if isinstance(self.mode, str)
+                else isinstance(self.mode, type) and issubclass(self.mode, DataTerm)):
+            raise ValueError(f"mode must be one of {MODES} or a spheroseg.dataterms.DataTerm subclass, "
+                             f"got {self.mode!r}")
         if self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
         try:
@@ -200,10 +204,17 @@ class SegmentOptions:
         """The option names, in order."""
         return tuple(f.name for f in fields(cls))
 
+    @property
+    def data_term(self) -> type[DataTerm]:
+        """The data term ``mode`` names (or is)."""
+        return DATA_TERMS[self.mode] if isinstance(self.mode, str) else self.mode
+
     def as_parameters(self) -> dict:
         """The options as plain JSON-ready values (what results record)."""
-        out = {name: getattr(self, name) for name in self.names()}  # all scalars: asdict's deep copy cost 25 us
+        out = {name: getattr(self, name) for name in self.names()}  # all scalars: no deep copy
         out["patches"] = list(self.patches)
+        if not isinstance(self.mode, str):  # a term of one's own, by name
+            out["mode"] = f"{self.mode.__module__}.{self.mode.__qualname__}"
         return out
 
     def replace(self, **changes) -> "SegmentOptions":

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import ndimage
 
-from .backends import usable_cores
+from ._runtime import usable_cores
 from .beamspace import BeamGeometry, BeamVolume, scan_convert
 from .echo import ImageFormation, PostProcessing, form_image, postprocess, sector_geometry
 from .volume import ImageGrid, Volume

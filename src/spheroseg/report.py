@@ -7,6 +7,7 @@ import os
 
 import numpy as np
 
+from .raster import surface_mask
 from .surface import Surface
 from .volume import Volume
 
@@ -18,7 +19,7 @@ def report_parts(volume: Volume, surface: Surface, *, mask=None, volumes_ml=None
     """What :func:`report_figure` draws, as plain arrays (small: three
     slices, not the volume), so that another process can draw it."""
     if mask is None:
-        mask = surface.mask(volume.grid)
+        mask = surface_mask(surface, volume.grid)
     points, faces = surface.mesh(48, 24)
     centre = points.mean(0)
     k, j, i = np.clip(np.round(volume.world_to_index(centre)[::-1]).astype(int), 0, np.array(volume.shape) - 1)

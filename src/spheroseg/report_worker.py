@@ -18,7 +18,7 @@ import pickle
 import signal
 import sys
 
-from .backends import idle_cores
+from ._runtime import idle_cores
 from .report import save_parts
 
 __all__ = ["ReportWorker"]

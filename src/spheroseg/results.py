@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .raster import surface_mask
 from .surface import Surface
 
 __all__ = ["SegmentationResult", "TrackingResult", "Intermediate", "STATUS_MESSAGES"]
@@ -67,7 +68,7 @@ class SegmentationResult:
 
     def mask(self, volume) -> np.ndarray:
         """Boolean mask ``[z, y, x]`` of the cavity on ``volume``'s grid."""
-        return self.surface.mask(volume.grid)
+        return surface_mask(self.surface, volume.grid)
 
     def mesh(self, n_v1: int = 64, n_v2: int = 32, *, closed: bool = True):
         """Triangle mesh ``(points [n, 3] world mm, faces [m, 3])``."""

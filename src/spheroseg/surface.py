@@ -300,50 +300,11 @@ class Surface:
         return p.min(0) - margin, p.max(0) + margin
 
     def mask(self, grid: ImageGrid) -> np.ndarray:
-        """Boolean mask ``[z, y, x]`` of voxel centres inside the closed cavity.
+        """Boolean mask ``[z, y, x]`` of voxel centres inside the closed
+        cavity: :func:`spheroseg.raster.surface_mask` of this surface."""
+        from .raster import surface_mask
 
-        Only the voxels in the surface's bounding box are tested, each as
-        :meth:`contains` does (``v2`` in range and ``v0 <= f(v1, v2)``).  The
-        compiled rasteriser (:mod:`spheroseg._raster`) decides whole blocks of
-        voxels from one evaluation where the surface is provably far, and
-        single voxels only near it, so its cost grows with the surface's area
-        in voxels, not with the grid; without numba every voxel of the box is
-        converted.
-        """
-        lo, hi = self.bounding_box()
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        idx = grid.world_to_index(corners)
-        start = np.clip(np.floor(idx.min(0)).astype(int), 0, np.array(grid.shape[::-1]))
-        stop = np.clip(np.ceil(idx.max(0)).astype(int) + 1, 0, np.array(grid.shape[::-1]))
-        if np.any(stop <= start):
-            return np.zeros(grid.shape, dtype=bool)
-        try:
-            from ._kernels import PARALLEL_LOCK
-            from ._raster import cavity_mask
-        except ImportError:  # pragma: no cover - numba is a dependency
-            k, j, i = np.meshgrid(*(np.arange(a, b) for a, b in zip(start[::-1], stop[::-1])), indexing="ij")
-            world = grid.index_to_world(np.stack([i, j, k], axis=-1).reshape(-1, 3))
-            out = np.zeros(grid.shape, dtype=bool)
-            out[start[2] : stop[2], start[1] : stop[1], start[0] : stop[0]] = self.contains(world).reshape(i.shape)
-            return out
-        # local model point of a voxel index: R^T (D diag(spacing) idx + origin - pose origin)
-        rotation_t = self.pose.rotation.T
-        affine = rotation_t @ grid.direction @ np.diag(grid.spacing)
-        offset = rotation_t @ (grid.origin - self.pose.origin)
-        v2_lo, v2_hi = self.grid.v2_range
-        name = self.system.name
-        if name == "cylindrical":
-            param = self.system.height
-            planar = v2_lo == 0 and abs(v2_hi - param) < 1e-12
-        else:
-            param = getattr(self.system, "focal_length", 1.0)
-            planar = v2_lo == 0 and abs(v2_hi - np.pi / 2) < 1e-12
-        with PARALLEL_LOCK:
-            codes, ties = cavity_mask(grid.shape, start, stop, affine, offset, name, param, self.coefficients,
-                                      (v2_lo, v2_hi), planar)
-        if len(ties):
-            codes[tuple(ties.T)] = self.contains(grid.index_to_world(ties[:, ::-1]))
-        return codes.view(bool)  # 0 and 1 only
+        return surface_mask(self, grid)
 
     def mesh(self, n_v1: int = 64, n_v2: int = 32, *, closed: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Triangle mesh of the cavity wall, world mm, outward-facing.

@@ -22,10 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .backends import kernel_thread_count, kernel_threads
+from ._runtime import kernel_thread_count, kernel_threads
 from .coords import Pose, annulus_plane
-from .dataterms import (DATA_TERMS, DataTerm, GlobalMeans, IntensityInterface, LocalMeans, NoSpeckleError, band_offsets,
-                        nanmedian)
+from .dataterms import DataTerm, GlobalMeans, IntensityInterface, LocalMeans, NoSpeckleError, band_offsets, nanmedian
 from .descent import Descent
 from .energy import data_energy
 from .options import SegmentOptions, format_point
@@ -69,7 +68,7 @@ def schedule(options: SegmentOptions, *, coarse_to_fine: bool | None = None) -> 
     patches = [tuple(options.patches)]
     while coarse_to_fine and min(patches[0]) >= 4 and patches[0][0] % 2 == 0 and patches[0][1] % 2 == 0:
         patches.insert(0, (patches[0][0] // 2, patches[0][1] // 2))
-    term = DATA_TERMS[options.mode]
+    term = options.data_term
     coarse = GlobalMeans if issubclass(term, LocalMeans) else term
     finest = len(patches) - 1
     coarse_tol = 2.0 * options.tol if options.coarse_tol is None else options.coarse_tol

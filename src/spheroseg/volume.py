@@ -177,7 +177,7 @@ class Volume:
         shape = world.shape[:-1]
         idx = self.world_to_index(world.reshape(-1, 3))
         within = (idx >= -INDEX_TOLERANCE) & (idx <= self._upper + INDEX_TOLERANCE)
-        valid = within[:, 0] & within[:, 1] & within[:, 2]  # np.all(axis=1) costs three times this
+        valid = within[:, 0] & within[:, 1] & within[:, 2]  # (np.all(axis=1) is slower)
         idx = np.clip(idx, 0, self._upper)
         if order == 0:
             out = self._flat[np.rint(idx).astype(np.int64) @ self._strides].astype(float)
@@ -214,28 +214,8 @@ class Volume:
 
 
 def outside_sector(array: np.ndarray, *, min_fraction: float = 0.01) -> np.ndarray | None:
-    """Voxels of the black padding around a scan-converted echo sector: the
-    exact zeros connected to the faces of the image (6-connectivity).
+    """The black padding around a scan-converted echo sector:
+    :func:`spheroseg.raster.outside_sector`."""
+    from .raster import outside_sector as padding
 
-    Zeros inside the anatomy (a noise-free blood pool) are not connected to
-    the faces and stay data.  Returns ``None`` when that padding is under
-    ``min_fraction`` of the image.
-    """
-    array = np.asarray(array)
-    if array.ndim != 3:
-        raise ValueError(f"expected a 3D array [z, y, x], got {array.ndim}D with shape {array.shape}")
-    n = array.size
-    # (no count of the zeros first: the padding is some of them, so too
-    # few zeros means too little padding; the search costs no more)
-    try:
-        from ._raster import face_connected_zeros
-    except ImportError:  # pragma: no cover - numba is a dependency
-        from scipy import ndimage
-
-        labels, _ = ndimage.label(array == 0)
-        faces = np.concatenate([labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()])
-        mask = np.isin(labels, np.unique(faces[faces > 0]))
-        count = int(np.count_nonzero(mask))
-    else:
-        mask, count = face_connected_zeros(array)
-    return mask if count > 0 and count >= min_fraction * n else None
+    return padding(array, min_fraction=min_fraction)

@@ -1,22 +1,21 @@
 """Load the compiled kernels before anything is timed.
 
-numba compiles spheroseg's kernels on their first call on a machine (some
-18 s of compilation) and caches them on disk; every later process loads them
-from that cache (a few hundred ms, most of it importing numba) and computes
-the grid-only matrices of each resolution once.  :func:`load_kernels` pays
+numba compiles spheroseg's kernels on their first call on a machine and
+caches them on disk; every later process loads them from that cache (most
+of it importing numba) and computes the grid-only matrices of each
+resolution once.  :func:`load_kernels` pays
 all of this up front on a tiny synthetic image, so that the timings a
 command prints are those of the work itself, and tells whether the kernels
 had to be compiled.
 
 numba compiles one kernel at a time in a process.  On a first run with two
 cores or more, a second process compiles the kernels of a descent's step
-that sample no image and evaluate no surface (some 3 s), then the
-rasteriser's (the mask and the sector padding, some 8 s), while this one
-compiles the rest of the segmentation's (some 12 s: the surface, the
-samples and the compiled level loop).  This one loads the step's kernels
-from the cache when it reaches them, and waits for the rasteriser's: a
-first run's loading takes about 13 s on 2 cores, against 26 in one process
-on one core.
+that sample no image and evaluate no surface, then the rasteriser's (the
+mask and the sector padding), while this one compiles the rest of the
+segmentation's (the surface, the samples and the compiled level loop).
+This one loads the step's kernels from the cache when it reaches them, and
+waits for the rasteriser's: a first run's loading takes about half as long
+on 2 cores as in one process on one core (``docs/benchmarks.md``).
 """
 
 from __future__ import annotations
@@ -29,6 +28,8 @@ from typing import Callable
 
 import numpy as np
 
+from ._runtime import compilations, usable_cores
+
 __all__ = ["load_kernels", "load_raster_kernels", "load_step_kernels", "KernelLoad", "compilations"]
 
 
@@ -36,17 +37,6 @@ class KernelLoad(dict):
     """``{"seconds": wall time of the loading, "compiled": whether numba
     compiled (rather than loaded) any kernel, "helper": whether a second
     process compiled some}``."""
-
-
-def compilations(module) -> int:
-    """Kernels of ``module`` that numba compiled in this process, i.e. that
-    missed its on-disk cache (``Dispatcher.stats.cache_misses``)."""
-    count = 0
-    for value in vars(module).values():
-        misses = getattr(getattr(value, "stats", None), "cache_misses", None)
-        if misses:
-            count += sum(misses.values()) if isinstance(misses, dict) else len(misses)
-    return count
 
 
 def load_kernels(*, on_compile: Callable[[], None] | None = None) -> KernelLoad:
@@ -111,13 +101,13 @@ def load_raster_kernels(image=None, volume=None, surface=None) -> None:
     """Compile or load the rasteriser's kernels: the cavity mask of
     ``surface`` on ``volume``'s grid and the sector padding of ``image``
     (by default those of the synthetic case and its initial surface)."""
+    from .raster import outside_sector, surface_mask
     from .surface import Surface
-    from .volume import outside_sector
 
     if surface is None:
         image, volume, apex, base = _synthetic_case()
         surface = Surface.from_apex_base(apex, base)
-    surface.mask(volume.grid)
+    surface_mask(surface, volume.grid)
     outside_sector(image)
 
 
@@ -152,8 +142,6 @@ def _start_helper():
     """A second process that compiles the step's and the rasteriser's
     kernels into numba's cache, when this process may run on two cores or
     more (else None)."""
-    from .backends import usable_cores
-
     if usable_cores() < 2 or not sys.executable or getattr(sys, "frozen", False):  # (a frozen app is no Python)
         return None
     try:  # the same interpreter and environment (NUMBA_CACHE_DIR): the same cache
