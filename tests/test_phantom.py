@@ -307,3 +307,13 @@ def test_tilted_mitral_scene_truth():
     centre, normal = annulus_plane(scene.annulus)
     np.testing.assert_allclose(centre, scene.base, atol=1e-9)
     assert np.degrees(np.arccos(abs(normal[2]))) == pytest.approx(10.0, abs=1e-9)
+
+
+def test_epicardial_truth_mask_has_the_analytic_volume():
+    ph = make_phantom(seed=2, spacing=1.0, speckle=False, epicardium=True)
+    voxels = ph.truth_myocardium_mask.sum() * 1.0 / 1000
+    assert ph.truth_myocardial_volume_ml == pytest.approx(voxels, rel=0.01)
+    assert ph.truth_lv_mass_g == pytest.approx(1.05 * ph.truth_myocardial_volume_ml)
+    # the wall and the cavity do not overlap, and the wall stops at the mitral plane
+    assert not (ph.truth_myocardium_mask & ph.truth_mask).any()
+    assert make_phantom(seed=2, spacing=4.0).truth_myocardium_mask is None

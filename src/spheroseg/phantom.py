@@ -98,6 +98,10 @@ class Phantom:
     params: dict = field(default_factory=dict)
     #: the beam-space image before scan conversion (``make_phantom(beam_space=True)``)
     beam_volume: BeamVolume | None = None
+    #: ``make_phantom(epicardium=True)``: the wall below the mitral plane, its volume and mass (1.05 g/mL)
+    truth_myocardium_mask: np.ndarray | None = None
+    truth_myocardial_volume_ml: float | None = None
+    truth_lv_mass_g: float | None = None
 
 
 @dataclass
@@ -266,6 +270,7 @@ def make_phantom(
     _shape: _Shape | None = None,
     _speckle_seed: int | None = None,
     _base_descent: float = 0.0,
+    epicardium: bool = False,
 ) -> Phantom:
     """Synthetic apical 3D echo volume of a left ventricle.
 
@@ -303,6 +308,9 @@ def make_phantom(
         conversion (:attr:`Phantom.beam_volume`, a
         :class:`spheroseg.beamspace.BeamVolume`; probe at the top centre of
         the Cartesian volume, centre beam along +z, tan convention).
+    epicardium : bool
+        Also give the myocardium's truth (:func:`myocardium_truth`): its
+        mask below the mitral plane, its volume and its mass.
     """
     if spacing <= 0:
         raise ValueError(f"spacing must be positive, got {spacing!r}")
@@ -397,7 +405,28 @@ def make_phantom(
                     **({} if formation is None else dict(formation=formation)),
                     **({} if _base_descent == 0 else dict(base_descent=_base_descent))),
         beam_volume=beam if beam_space else None,
+        **(myocardium_truth(shape_fn, wall, anatomy) if epicardium else {}),
     )
+
+
+def _outer_radius(shape_fn, wall, theta, phi):
+    """The epicardium's distance from the base point (as :func:`_anatomy`)."""
+    return shape_fn(theta, phi) + wall * (0.8 + 0.2 * np.sin(phi))
+
+
+def myocardium_truth(shape_fn, wall: float, anatomy: dict) -> dict:
+    """The myocardium's truth: the mask of :func:`_anatomy`'s wall below
+    the mitral plane (``x1 >= 0``), and its volume
+    ``int int (R_epi^3 - R^3) / 3 sin(phi) dtheta dphi`` (Gauss-Legendre,
+    as the cavity's) and mass at 1.05 g/mL."""
+    x, w = np.polynomial.legendre.leggauss(200)
+    phi = (x + 1) * np.pi / 4
+    theta = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    pp, tt = np.meshgrid(phi, theta, indexing="ij")
+    shell = (_outer_radius(shape_fn, wall, tt, pp) ** 3 - shape_fn(tt, pp) ** 3) / 3 * np.sin(pp)
+    volume = float((w * np.pi / 4) @ shell.mean(1) * 2 * np.pi) / 1000.0
+    mask = anatomy["myocardium"] & (anatomy["local"][..., 0] >= 0)
+    return dict(truth_myocardium_mask=mask, truth_myocardial_volume_ml=volume, truth_lv_mass_g=1.05 * volume)
 
 
 def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33, base_descent: float = 0.0,
