@@ -41,7 +41,7 @@ from .echo import ImageFormation, form_image, sector_geometry
 from .volume import ImageGrid, Volume
 
 __all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES", "FORMATIONS", "sweep_cases",
-           "probe_sector", "MitralScene", "tilted_mitral_scene"]
+           "probe_sector", "MitralScene", "tilted_mitral_scene", "LateRegion", "myocardium_truth"]
 
 #: the phantom families of the benchmarks, as keyword arguments of make_phantom
 FAMILIES = {
@@ -430,7 +430,8 @@ def myocardium_truth(shape_fn, wall: float, anatomy: dict) -> dict:
 
 
 def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33, base_descent: float = 0.0,
-                  formation: ImageFormation | None = None, workers: int | None = None, **kwargs) -> PhantomSequence:
+                  formation: ImageFormation | None = None, workers: int | None = None,
+                  late_region: "LateRegion | None" = None, **kwargs) -> PhantomSequence:
     """A cardiac cycle from end-diastole.
 
     At phase ``s(t) = (1 - cos(2 pi t / n_frames)) / 2`` (0 at end-diastole,
@@ -452,6 +453,9 @@ def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33
         :attr:`Phantom.base` is its true base point.
     formation : ImageFormation, optional
         Image formation of every frame (see :func:`make_phantom`).
+    late_region : LateRegion, optional
+        A region of the wall that moves late or little (regional motion:
+        the truth of segmental volume curves and dyssynchrony).
     workers : int, optional
         Frames made at once, in threads (numpy's array loops release the
         GIL): by default the cores this process may run on.  The frames do
@@ -477,11 +481,65 @@ def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33
         descent = base_descent * s
         shape = _Shape(length - descent, radius * (1 - shortening * s), np.random.default_rng(seed))
         shape.bumps = [(tb, pb, d * (1 + s)) for tb, pb, d in ed_shape.bumps]
+        if late_region is not None:
+            shape = late_region.shape(shape, t=t, n_frames=n_frames, shortening=shortening)
         return make_phantom(seed=seed, length=length, radius=radius, wall=wall * (1 + 0.5 * s), _shape=shape,
                             _speckle_seed=seed * 1000 + t, _base_descent=descent, formation=formation, **kwargs)
 
     with ThreadPoolExecutor(min(n_frames, workers or usable_cores())) as pool:  # 10 frames: 7.2 -> 4.3 s on 2 cores
         return PhantomSequence(list(pool.map(frame, range(n_frames))))
+
+
+@dataclass(frozen=True)
+class LateRegion:
+    """A region of the wall whose motion is late or reduced.
+
+    Around the angle ``theta`` (radians, about the phantom's long axis,
+    from its second frame axis towards its third) within a window
+    ``cos^2(pi/2 (theta - theta_0) / half_width)`` (zero beyond
+    ``half_width``), the cavity's radius follows the phase ``s(t - delay)``
+    (``delay`` a fraction of the cycle) and shortens by ``amplitude`` of
+    the rest's shortening.
+
+    Parameters
+    ----------
+    theta, half_width : float
+        Centre and half-width of the region (radians).
+    delay : float
+        Delay of its motion, fraction of the cycle (0.1: 10 % late).
+    amplitude : float
+        Its shortening relative to the rest (1: the same; 0.5: hypokinetic).
+    """
+
+    theta: float = 0.0
+    half_width: float = np.pi / 3
+    delay: float = 0.1
+    amplitude: float = 1.0
+
+    def window(self, theta) -> np.ndarray:
+        d = np.angle(np.exp(1j * (np.asarray(theta) - self.theta)))
+        return np.where(np.abs(d) < self.half_width, np.cos(np.pi / 2 * d / self.half_width) ** 2, 0.0)
+
+    def shape(self, shape: _Shape, *, t: int, n_frames: int, shortening: float) -> _Shape:
+        """``shape`` (a frame's cavity at phase ``s(t)``) with the region's
+        radius scaled to its own phase and amplitude."""
+        def phase(u):
+            return 0.5 * (1 - np.cos(2 * np.pi * u))
+
+        now = 1 - shortening * phase(t / n_frames)
+        late = 1 - self.amplitude * shortening * phase(t / n_frames - self.delay)
+        return _RegionalShape(shape, self, late / now)
+
+
+class _RegionalShape(_Shape):
+    """A cavity shape whose radius is scaled by ``1 + w(theta) (ratio - 1)``."""
+
+    def __init__(self, shape: _Shape, region: LateRegion, ratio: float):
+        self.__dict__.update(shape.__dict__)
+        self.region, self.ratio = region, float(ratio)
+
+    def __call__(self, theta, phi):
+        return super().__call__(theta, phi) * (1 + self.region.window(theta) * (self.ratio - 1))
 
 
 def sweep_cases(*, families=("speckle", "tilted"), formations=None, seeds=(0,)) -> Iterator[tuple[str, str, dict]]:
