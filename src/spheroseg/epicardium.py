@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .myocardium import SegmentConvention, wall_thickness
+from .myocardium import SegmentConvention, wall_thickness_grid
+from .options import SegmentOptions
 from .quality import wall_report
 from .results import SegmentationResult
 from .surface import Surface
@@ -40,7 +41,7 @@ def _offsets(surface: Surface, thickness_mm: float, v1, v2) -> np.ndarray:
     f = surface.radius(v1, v2)
     x, w = np.polynomial.legendre.leggauss(8)
     t = thickness_mm / surface.system.scale_factors(f, v1, v2)[0]
-    for _ in range(20):
+    for _ in range(6):  # quadratic convergence from within a few per cent
         v0 = f[..., None] + t[..., None] * (x + 1) / 2
         length = (surface.system.scale_factors(v0, v1[..., None], v2[..., None])[0] @ w) * t / 2
         t = t - (length - thickness_mm) / surface.system.scale_factors(f + t, v1, v2)[0]
@@ -81,12 +82,12 @@ def enforce_thickness(endocardium: Surface, epicardium: Surface, *, min_thicknes
     t[..., 0][low] = floor[low]
     epi = endocardium.with_coefficients(grid.constrain(endocardium.coefficients + t))
     lo, hi = grid.v2_range
-    v2, v1 = np.meshgrid(lo + (hi - lo) * np.linspace(0, 1, n), np.linspace(0, 2 * np.pi, n, endpoint=False),
-                         indexing="ij")
-    deficit = min_thickness_mm - wall_thickness(endocardium, epi, v1, v2).min()
+    v1, v2 = np.linspace(0, 2 * np.pi, n, endpoint=False), lo + (hi - lo) * np.linspace(0, 1, n)
+    deficit = min_thickness_mm - wall_thickness_grid(endocardium, epi, v1, v2).min()
     if deficit > 0:
         # a constant in v0 moves the wall out by at least its times the smallest h0 there
-        h0 = endocardium.system.scale_factors(endocardium.radius(v1, v2), v1, v2)[0]
+        f = np.maximum(grid.evaluate_grid(endocardium.coefficients, v1, v2), 0.0)
+        h0 = endocardium.system.scale_factors(f, v1[None, :], v2[:, None])[0]
         lift = np.zeros(t.shape)
         lift[..., 0] = 1.001 * deficit / h0.min()
         epi = epi.with_coefficients(grid.constrain(epi.coefficients + lift))
@@ -115,13 +116,21 @@ def wall_polarity(volume: Volume, endocardium: Surface, epicardium: Surface, *, 
     return float(grey(wall) - grey(shell))
 
 
-def _reflected(volume: Volume) -> Volume:
-    """The volume with its grey levels reflected, ``lo + hi - u``, over its
-    data (its no-data voxels kept as such)."""
-    data = volume.array if volume.no_data_mask is None else volume.array[~volume.no_data_mask]
-    lo, hi = float(data.min()), float(data.max())
-    return Volume(lo + hi - volume.array, spacing=volume.spacing, origin=volume.origin, direction=volume.direction,
-                  no_data_mask=volume.no_data_mask)
+def _reflected(volume: Volume, surface: Surface, *, margin_mm: float) -> Volume:
+    """The part of the volume within ``margin_mm`` of the surface's bounding
+    box, its grey levels reflected (``lo + hi - u``, its extremes)."""
+    lo, hi = surface.bounding_box()
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    index = volume.world_to_index(corners)
+    pad = margin_mm / volume.spacing
+    start = np.clip(np.floor(index.min(0) - pad).astype(int), 0, np.array(volume.shape[::-1]) - 2)
+    stop = np.clip(np.ceil(index.max(0) + pad).astype(int) + 1, start + 2, np.array(volume.shape[::-1]))
+    box = np.s_[start[2]:stop[2], start[1]:stop[1], start[0]:stop[0]]
+    array = volume.array[box]
+    missing = None if volume.no_data_mask is None else volume.no_data_mask[box]
+    # any constant will do (the data terms see differences); no-data voxels stay no-data
+    return Volume(float(array.min()) + float(array.max()) - array, spacing=volume.spacing,
+                  origin=volume.index_to_world(start.astype(float)), direction=volume.direction, no_data_mask=missing)
 
 
 def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: float = 8.0,
@@ -160,9 +169,11 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     if polarity == "auto":
         contrast = wall_polarity(volume, endocardium, start)
         polarity = "dark" if contrast < 0 else "bright"
-    image = _reflected(volume) if polarity == "bright" else volume
     options = {"mode": "local", "band": 4.0, "apex_weight": 0.0,
                "patches": (endocardium.grid.n1, endocardium.grid.n2), **options}
+    # what the descent can reach: the start, the bands and some room to move
+    margin = 2 * SegmentOptions(**options).band_out + thickness_mm
+    image = _reflected(volume, start, margin_mm=margin) if polarity == "bright" else volume
     apex = endocardium.tip()
     result = Tracker(image, apex, endocardium.pose.origin, init=start, **options).run()
     result.surface = enforce_thickness(endocardium, result.surface, min_thickness_mm=min_thickness_mm)
@@ -200,9 +211,8 @@ def add_epicardium(result: SegmentationResult, volume: Volume, *, rv_insertion=N
     epi = segment_epicardium(volume, endo, **options)
     lo, hi = endo.grid.v2_range
     n = 48
-    v2, v1 = np.meshgrid(lo + (hi - lo) * (np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) * 2 * np.pi / n,
-                         indexing="ij")
-    wall = wall_report(wall_thickness(endo, epi.surface, v1, v2),
+    v1, v2 = (np.arange(n) + 0.5) * 2 * np.pi / n, lo + (hi - lo) * (np.arange(n) + 0.5) / n
+    wall = wall_report(wall_thickness_grid(endo, epi.surface, v1, v2),
                        min_thickness_mm=epi.parameters["min_thickness_mm"])
     quality = dict(result.quality or {"warnings": [], "poor": False})
     quality["epicardium"] = wall

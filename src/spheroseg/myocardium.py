@@ -48,7 +48,7 @@ import numpy as np
 from .surface import Surface
 
 __all__ = ["MYOCARDIAL_DENSITY", "SEGMENT_NAMES", "SegmentConvention", "myocardial_volume_ml", "lv_mass_g",
-           "wall_thickness", "cavity_length", "segment_labels", "segment_volumes_ml", "segment_table",
+           "wall_thickness", "wall_thickness_grid", "cavity_length", "segment_labels", "segment_volumes_ml", "segment_table",
            "times_to_minimum", "systolic_dyssynchrony_index"]
 
 #: density of myocardium, g/mL (Lang et al., J Am Soc Echocardiogr 2015)
@@ -158,11 +158,26 @@ def wall_thickness(endocardium: Surface, epicardium: Surface, v1, v2, *, order: 
     """
     _check_pair(endocardium, epicardium)
     v1, v2 = np.broadcast_arrays(np.asarray(v1, dtype=float), np.asarray(v2, dtype=float))
-    lo, hi = endocardium.radius(v1, v2), epicardium.radius(v1, v2)
+    return _arc_length(endocardium.system, endocardium.radius(v1, v2), epicardium.radius(v1, v2), v1, v2, order)
+
+
+def wall_thickness_grid(endocardium: Surface, epicardium: Surface, v1, v2, *, order: int = 8) -> np.ndarray:
+    """:func:`wall_thickness` on the tensor grid of the ``v2`` values (rows)
+    by the ``v1`` values (columns), shape ``(len(v2), len(v1))``, the
+    surfaces evaluated by :meth:`HermiteGrid.evaluate_grid`."""
+    _check_pair(endocardium, epicardium)
+    v1, v2 = np.ravel(v1).astype(float), np.ravel(v2).astype(float)
+    lo = np.maximum(endocardium.grid.evaluate_grid(endocardium.coefficients, v1, v2), 0.0)  # as radius()
+    hi = np.maximum(epicardium.grid.evaluate_grid(epicardium.coefficients, v1, v2), 0.0)
+    return _arc_length(endocardium.system, lo, hi, v1[None, :], v2[:, None], order)
+
+
+def _arc_length(system, lo, hi, v1, v2, order):
+    """``int_lo^hi h0(v0, v1, v2) dv0`` by Gauss-Legendre of ``order`` points."""
     x, w = np.polynomial.legendre.leggauss(order)
     half, mid = (hi - lo) / 2, (hi + lo) / 2
     v0 = mid[..., None] + half[..., None] * x
-    h0 = endocardium.system.scale_factors(v0, v1[..., None], v2[..., None])[0]
+    h0 = system.scale_factors(v0, np.asarray(v1)[..., None], np.asarray(v2)[..., None])[0]
     return (h0 @ w) * half
 
 
@@ -281,9 +296,9 @@ def segment_table(endocardium: Surface, epicardium: Surface | None = None, *,
     lo, hi = endocardium.grid.v2_range
     v1 = (np.arange(n) + 0.5) * (2 * np.pi / n)
     v2 = lo + (np.arange(n) + 0.5) * ((hi - lo) / n)
-    vv2, vv1 = np.meshgrid(v2, v1, indexing="ij")
-    thickness = wall_thickness(endocardium, epicardium, vv1, vv2)
-    _, h1, h2 = endocardium.system.scale_factors(endocardium.radius(vv1, vv2), vv1, vv2)
+    thickness = wall_thickness_grid(endocardium, epicardium, v1, v2)
+    f = np.maximum(endocardium.grid.evaluate_grid(endocardium.coefficients, v1, v2), 0.0)
+    _, h1, h2 = endocardium.system.scale_factors(f, v1[None, :], v2[:, None])
     labels = segment_labels(endocardium.grid_points(v1, v2, local=True), length=length, convention=convention)
     apex_thickness = float(wall_thickness(endocardium, epicardium, 0.0, lo))
     for k, row in enumerate(rows):

@@ -10,7 +10,7 @@ import numpy as np
 from .surface import Surface
 from .volume import Volume
 
-__all__ = ["report_figure", "save_report", "report_parts", "parts_figure", "save_parts"]
+__all__ = ["report_figure", "save_report", "report_parts", "parts_figure", "save_parts", "draw_bullseye"]
 
 
 def report_parts(volume: Volume, surface: Surface, *, mask=None, volumes_ml=None, ed_frame=None, es_frame=None,
@@ -107,3 +107,48 @@ def save_parts(path: str | os.PathLike, parts: dict) -> None:
 def save_report(path: str | os.PathLike, volume: Volume, surface: Surface, **kwargs) -> None:
     """Write :func:`report_figure` as a PNG, atomically."""
     save_parts(path, report_parts(volume, surface, **kwargs))
+
+
+def draw_bullseye(ax, values=None, *, label: str = "", cmap: str = "viridis", numbers: bool = True):
+    """The 17-segment bull's-eye (Cerqueira et al. 2002) on a matplotlib
+    axes: the apex in the centre, the apical, mid and basal rings around it,
+    seen from the apex with the anterior wall at the top and the septum on
+    the left (``psi`` of :mod:`spheroseg.myocardium` anticlockwise from the
+    anterior RV insertion, at 120 degrees on the page).
+
+    Parameters
+    ----------
+    values : array (17,), optional
+        A value per segment, coloured by ``cmap`` (NaN: grey); none: white.
+    label : str
+        The colour bar's label.
+    """
+    from matplotlib import cm, colors
+    from matplotlib.patches import Wedge
+
+    values = None if values is None else np.asarray(values, dtype=float)
+    if values is not None and np.isfinite(values).any():
+        norm = colors.Normalize(np.nanmin(values), np.nanmax(values) + 1e-12)
+        colour = lambda k: cm.get_cmap(cmap)(norm(values[k])) if np.isfinite(values[k]) else "0.8"  # noqa: E731
+    else:
+        norm, colour = None, lambda k: "white"  # noqa: E731
+    # (ring's inner and outer radius, first segment, count, psi where segment 1 of the ring starts)
+    rings = ((3, 4, 1, 6, -60.0), (2, 3, 7, 6, -60.0), (1, 2, 13, 4, -75.0))
+    for inner, outer, first, count, start in rings:
+        width = 360.0 / count
+        for s in range(count):
+            a0 = 120.0 + start + s * width
+            ax.add_patch(Wedge((0, 0), outer, a0, a0 + width, width=outer - inner, facecolor=colour(first - 1 + s),
+                               edgecolor="black", linewidth=1))
+            if numbers:
+                mid, r = np.radians(a0 + width / 2), (inner + outer) / 2
+                ax.text(r * np.cos(mid), r * np.sin(mid), str(first + s), ha="center", va="center", fontsize=8)
+    ax.add_patch(Wedge((0, 0), 1, 0, 360, facecolor=colour(16), edgecolor="black", linewidth=1))
+    if numbers:
+        ax.text(0, 0, "17", ha="center", va="center", fontsize=8)
+    ax.set_xlim(-4.3, 4.3)
+    ax.set_ylim(-4.3, 4.3)
+    ax.set_aspect("equal")
+    ax.axis("off")
+    if norm is not None:
+        ax.figure.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=ax, shrink=0.7, label=label)
