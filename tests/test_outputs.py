@@ -91,3 +91,5 @@ def test_myocardium_outputs_round_trip(tmp_path):
     points, _ = read_mesh(tmp_path / "o" / files["epicardium_mesh.ply"])
     np.testing.assert_allclose(points, result.epicardium.mesh()[0], atol=1e-4)
     assert b"SPACE=LPS" in (tmp_path / "o" / files["epicardium_mesh.vtk"]).read_bytes()[:300]
+    assert files["cmiss_heart"] == ["heart.exnode", "heart.exelem"]
+    assert (tmp_path / "o" / "heart.exelem").read_text().count("Element:") == 64

@@ -86,8 +86,10 @@ def write_myocardium_files(out: Path, volume, result, *, mask_suffix: str = ".ni
     ``myocardium<mask_suffix>``, the epicardium's meshes
     ``epicardium.vtk|.ply`` (world mm, LPS) and ``epicardium.json``;
     returns ``({kind: file name}, the results.json block)``: volume, mass,
-    the convention and the 17-segment table."""
-    from .surface_io import write_mesh, write_surface_json
+    the convention and the 17-segment table.  For a prolate model also the
+    myocardium as CMISS volume elements ``heart.exnode|.exelem``
+    (:func:`spheroseg.surface_io.write_cmiss_heart`)."""
+    from .surface_io import write_cmiss_heart, write_mesh, write_surface_json
 
     epicardium = result.epicardium
     save_mask(out / ("myocardium" + mask_suffix), result.myocardium_mask(volume), volume)
@@ -98,6 +100,9 @@ def write_myocardium_files(out: Path, volume, result, *, mask_suffix: str = ".ni
         files[f"epicardium_mesh{suffix}"] = f"epicardium{suffix}"
     write_surface_json(out / "epicardium.json", epicardium, volume_ml=epicardium.volume_ml())
     files["epicardium_surface"] = "epicardium.json"
+    if epicardium.system.name == "prolate":
+        exnode, exelem = write_cmiss_heart(out / "heart", result.surface, epicardium)
+        files["cmiss_heart"] = [exnode.name, exelem.name]
     block = {"myocardial_volume_ml": result.myocardial_volume_ml, "lv_mass_g": result.lv_mass_g,
              "segment_convention": result.segment_convention.to_dict(), "segments": result.segments}
     return files, block
