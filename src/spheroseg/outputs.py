@@ -222,8 +222,9 @@ def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, 
     lap("mask")
     if report:
         name = Path(source).name if source is not None else "segmentation"
+        wall = result.wall_thickness_mm if getattr(result, "epicardium", None) is not None else None
         drawing = _start_report(out / "report.png", report_worker, _displayable(volume), result.surface, mask=mask,
-                                title=f"{name}: {result.volume_ml:.1f} mL")
+                                title=f"{name}: {result.volume_ml:.1f} mL", wall_thickness_mm=wall)
         lap("report")
     save_mask(out / ("mask" + mask_suffix), mask, volume)
     lap("writes")
