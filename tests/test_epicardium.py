@@ -131,3 +131,15 @@ def test_tracking_result_segment_curves_and_sdi():
     np.testing.assert_allclose(tracked.times_to_minimum, 50.0, atol=1e-6)
     assert tracked.sdi == pytest.approx(0.0, abs=1e-6)
     np.testing.assert_allclose(tracked.masses_g, [1.05 * f.myocardial_volume_ml for f in frames])
+
+
+def test_track_with_myocardium_gives_every_frame_its_wall():
+    from spheroseg import track
+
+    volume, pose = shells_image()
+    other, _ = shells_image(seed=1)
+    tracked = track([volume, other, volume], APEX, BASE, myocardium=True, rv_insertion=0.3)
+    assert all(f.epicardium is not None and f.segment_convention.rv_insertion == 0.3 for f in tracked.frames)
+    truth_g = 1.05 * myocardial_volume_ml(shell(L_ENDO, pose), shell(L_EPI, pose))
+    np.testing.assert_allclose(tracked.masses_g, truth_g, rtol=0.15)
+    assert tracked.segment_volumes_ml.shape == (3, 17)
