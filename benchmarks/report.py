@@ -679,9 +679,12 @@ def _myocardium(data) -> list[str]:
         out.append(f"| {c['family']} | {c['formation']} | {c['dice']:.3f} | {c['mass_error_pct']:+.1f} | "
                    f"{c['cavity_error_pct']:+.1f} | {c['myo_seconds'] / c['endo_seconds']:.2f} | {c['polarity']} | "
                    f"{'yes' if c['poor'] else ''} |")
-    out += ["", "A tracked 10-frame cycle (`track(..., myocardium=True)`, default formation) whose wall has a region "
+    out += ["", f"Command: `{data.get('sequences_command', data['command'])}`. "
+            "A tracked 10-frame cycle (`track(..., myocardium=True)`, default formation) whose wall has a region "
             "10 % of the cycle late (`phantom.LateRegion(theta=1, half_width=pi/3, delay=0.1)`): the mass at ED and "
-            "ES (the truth's differs by the phantom's wall model), the segment whose volume is smallest last, and "
+            "ES (the truth's differs by the phantom's wall model; every frame's epicardium after the first starts from "
+            "the previous frame's wall with its myocardial volume, `epicardium.conserving_start`), the segment whose "
+            "volume is smallest last, and "
             "the SDI (standard deviation of the 16 segments' times to minimum, % of the cycle), against the truth's "
             "cavity voxels labelled by the same definition.", "",
             "| seed | ED-ES mass difference % (truth) | late segment (truth) | SDI % (truth) | EF % (truth) |",

@@ -3,7 +3,9 @@ import pytest
 
 from spheroseg import Volume, segment
 from spheroseg.coords import Pose, ProlateSpheroidal
-from spheroseg.epicardium import add_epicardium, enforce_thickness, initial_epicardium, segment_epicardium
+from spheroseg.epicardium import (
+    add_epicardium, conserving_start, enforce_thickness, initial_epicardium, segment_epicardium,
+)
 from spheroseg.hermite import HermiteGrid
 from spheroseg.myocardium import SEGMENT_NAMES, myocardial_volume_ml, wall_thickness
 from spheroseg.quality import wall_report
@@ -143,3 +145,14 @@ def test_track_with_myocardium_gives_every_frame_its_wall():
     truth_g = 1.05 * myocardial_volume_ml(shell(L_ENDO, pose), shell(L_EPI, pose))
     np.testing.assert_allclose(tracked.masses_g, truth_g, rtol=0.15)
     assert tracked.segment_volumes_ml.shape == (3, 17)
+
+
+def test_conserving_start_keeps_the_myocardial_volume():
+    pose = Pose.from_apex_base(APEX, BASE)
+    endo, epi = shell(L_ENDO, pose), shell(L_EPI, pose)
+    smaller = shell(0.7, pose)
+    start = conserving_start(smaller, endo, epi)
+    np.testing.assert_allclose(myocardial_volume_ml(smaller, start), myocardial_volume_ml(endo, epi), rtol=1e-9)
+    # a smaller cavity with the same wall volume: a thicker wall
+    v1, v2 = np.meshgrid(np.linspace(0, 6, 7), np.linspace(0.2, 1.5, 5))
+    assert np.all(wall_thickness(smaller, start, v1, v2) > wall_thickness(endo, epi, v1, v2))

@@ -31,7 +31,8 @@ from .surface import Surface
 from .tracker import Tracker
 from .volume import Volume
 
-__all__ = ["initial_epicardium", "enforce_thickness", "wall_polarity", "segment_epicardium", "add_epicardium"]
+__all__ = ["initial_epicardium", "conserving_start", "enforce_thickness", "wall_polarity", "segment_epicardium",
+           "add_epicardium"]
 
 
 def _offsets(surface: Surface, thickness_mm: float, v1, v2) -> np.ndarray:
@@ -59,6 +60,32 @@ def initial_epicardium(endocardium: Surface, *, thickness_mm: float) -> Surface:
     t = np.zeros(endocardium.coefficients.shape)
     t[..., 0] = _offsets(endocardium, thickness_mm, v1, v2)
     return endocardium.with_coefficients(grid.constrain(endocardium.coefficients + t))
+
+
+def conserving_start(endocardium: Surface, previous_endocardium: Surface, previous_epicardium: Surface, *,
+                     iterations: int = 40) -> Surface:
+    """The previous frame's wall moved onto this frame's endocardium, its
+    myocardial volume kept (the myocardium is nearly incompressible).
+
+    The previous offset ``t = f_epi - f_endo`` (in ``v0``) is added to this
+    endocardium scaled by the factor ``s`` for which ``V(epi) - V(endo)``
+    equals the previous frame's (bisection on ``s``: the volume grows with
+    it).  The surfaces must share the system and the grid.
+    """
+    offset = previous_epicardium.coefficients - previous_endocardium.coefficients
+    target = previous_epicardium.volume_ml() - previous_endocardium.volume_ml()
+    inner = endocardium.volume_ml()
+
+    def start(s):
+        return endocardium.with_coefficients(endocardium.coefficients + s * offset)
+
+    lo, hi = 0.0, 1.0
+    while start(hi).volume_ml() - inner < target and hi < 64:
+        hi *= 2
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if start(mid).volume_ml() - inner < target else (lo, mid)
+    return start(0.5 * (lo + hi))
 
 
 def enforce_thickness(endocardium: Surface, epicardium: Surface, *, min_thickness_mm: float,
@@ -134,7 +161,8 @@ def _reflected(volume: Volume, surface: Surface, *, margin_mm: float) -> Volume:
 
 
 def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: float = 8.0,
-                       min_thickness_mm: float = 2.0, polarity: str = "auto", **options) -> SegmentationResult:
+                       min_thickness_mm: float = 2.0, polarity: str = "auto", start: Surface | None = None,
+                       **options) -> SegmentationResult:
     """The epicardium of a segmented endocardium.
 
     Parameters
@@ -153,6 +181,10 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
         Whether the myocardium is brighter ("bright") or darker than what
         lies outside it; "auto" measures it at the start
         (:func:`wall_polarity`).
+    start : Surface, optional
+        The start (and the thin-plate prior's reference) instead of the
+        endocardium moved out by ``thickness_mm``: in a sequence,
+        :func:`conserving_start` of the previous frame.
     **options
         :class:`spheroseg.SegmentOptions` of the descent; by default
         ``mode="local"``, ``band=4`` (the inner band stays in the wall),
@@ -165,7 +197,10 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     """
     if polarity not in ("auto", "bright", "dark"):
         raise ValueError(f"polarity must be 'auto', 'bright' or 'dark', got {polarity!r}")
-    start = initial_epicardium(endocardium, thickness_mm=thickness_mm)
+    if start is None:
+        start = initial_epicardium(endocardium, thickness_mm=thickness_mm)
+    elif not isinstance(start, Surface) or start.grid.shape != endocardium.grid.shape:
+        raise ValueError("start must be a Surface on the endocardium's grid")
     if polarity == "auto":
         contrast = wall_polarity(volume, endocardium, start)
         polarity = "dark" if contrast < 0 else "bright"
@@ -183,7 +218,7 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
 
 
 def add_epicardium(result: SegmentationResult, volume: Volume, *, rv_insertion=None,
-                   **options) -> SegmentationResult:
+                   previous: SegmentationResult | None = None, **options) -> SegmentationResult:
     """``result`` (an endocardium) with its epicardium, its segment
     convention and the wall in its quality report.
 
@@ -196,6 +231,10 @@ def add_epicardium(result: SegmentationResult, volume: Volume, *, rv_insertion=N
         insertion in the model's frame, a world point (mm) on it, or a
         :class:`~spheroseg.myocardium.SegmentConvention`; default
         ``theta = 0``.
+    previous : SegmentationResult, optional
+        The previous frame of a sequence, with its epicardium: this frame's
+        starts from its wall with its myocardial volume
+        (:func:`conserving_start`).
     **options
         Of :func:`segment_epicardium`.
     """
@@ -208,6 +247,8 @@ def add_epicardium(result: SegmentationResult, volume: Volume, *, rv_insertion=N
     else:
         convention = SegmentConvention.from_points(result.surface, rv_insertion)
     endo = result.surface
+    if previous is not None and previous.epicardium is not None and "start" not in options:
+        options["start"] = conserving_start(endo, previous.surface, previous.epicardium)
     epi = segment_epicardium(volume, endo, **options)
     lo, hi = endo.grid.v2_range
     n = 48

@@ -188,8 +188,10 @@ def track(
     progress : callable, optional
         ``progress(frames_done, frames)`` after each frame.
     myocardium, rv_insertion, epicardium_options
-        As :func:`segment`, for every frame (the epicardium of each frame
-        from its endocardium).
+        As :func:`segment`, for every frame: the epicardium of each frame
+        after the first starts from the previous frame's wall moved onto
+        its endocardium with the same myocardial volume
+        (:func:`spheroseg.epicardium.conserving_start`).
 
     Returns
     -------
@@ -212,7 +214,8 @@ def track(
         else:
             frames.append(tracker.run(iter_callback))
         if myocardium:
-            add_epicardium(frames[-1], volume, rv_insertion=rv_insertion, **(epicardium_options or {}))
+            add_epicardium(frames[-1], volume, rv_insertion=rv_insertion, previous=frames[-2] if len(frames) > 1
+                           else None, **(epicardium_options or {}))
         if progress is not None:
             progress(len(frames), len(volumes))
     return TrackingResult(frames)
