@@ -72,3 +72,24 @@ def test_tracking_outputs_round_trip(tmp_path):
         mask = sitk.GetArrayFromImage(sitk.ReadImage(str(path))).astype(bool)
         np.testing.assert_array_equal(mask, result.frames[t].mask(seq.volumes[t]))
     assert (tmp_path / "report.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_myocardium_outputs_round_trip(tmp_path):
+    from spheroseg.surface_io import read_mesh
+
+    ph = make_phantom(seed=5, spacing=2.5)
+    result = segment(ph.volume, ph.apex, ph.base, myocardium=True)
+    on_disk = write_segmentation_outputs(tmp_path / "o", ph.volume, result, apex=ph.apex, base=ph.base,
+                                         mask_suffix=".mha", report=False)
+    files, block = on_disk["files"], on_disk["myocardium"]
+    mask = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "o" / files["myocardium_mask"]))).astype(bool)
+    np.testing.assert_array_equal(mask, result.myocardium_mask(ph.volume))
+    assert block["lv_mass_g"] == pytest.approx(result.lv_mass_g, rel=1e-12)
+    assert [row["segment"] for row in block["segments"]] == list(range(1, 18))
+    epicardium = read_surface_json(tmp_path / "o" / files["epicardium_surface"])
+    np.testing.assert_allclose(epicardium.coefficients, result.epicardium.coefficients, rtol=1e-12)
+    points, _ = read_mesh(tmp_path / "o" / files["epicardium_mesh.ply"])
+    np.testing.assert_allclose(points, result.epicardium.mesh()[0], atol=1e-4)
+    assert b"SPACE=LPS" in (tmp_path / "o" / files["epicardium_mesh.vtk"]).read_bytes()[:300]
+    assert files["cmiss_heart"] == ["heart.exnode", "heart.exelem"]
+    assert (tmp_path / "o" / "heart.exelem").read_text().count("Element:") == 64

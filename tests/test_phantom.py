@@ -354,3 +354,28 @@ def test_papillary_phantom_volume_within_3_percent():
     r = segment(ph.volume, ph.apex, ph.base)
     assert abs(r.volume_ml / ph.truth_volume_ml - 1) < 0.03
     assert dice(r.mask(ph.volume), ph.truth_mask) > 0.95
+
+
+def test_epicardial_truth_mask_has_the_analytic_volume():
+    ph = make_phantom(seed=2, spacing=1.0, speckle=False, epicardium=True)
+    voxels = ph.truth_myocardium_mask.sum() * 1.0 / 1000
+    assert ph.truth_myocardial_volume_ml == pytest.approx(voxels, rel=0.01)
+    assert ph.truth_lv_mass_g == pytest.approx(1.05 * ph.truth_myocardial_volume_ml)
+    # the wall and the cavity do not overlap, and the wall stops at the mitral plane
+    assert not (ph.truth_myocardium_mask & ph.truth_mask).any()
+    assert make_phantom(seed=2, spacing=4.0).truth_myocardium_mask is None
+
+
+def test_late_region_moves_its_wall_later():
+    from spheroseg.phantom import LateRegion
+
+    plain = make_sequence(n_frames=4, seed=1, spacing=3.0, speckle=False)
+    on_time = make_sequence(n_frames=4, seed=1, spacing=3.0, speckle=False, late_region=LateRegion(delay=0.0))
+    late = make_sequence(n_frames=4, seed=1, spacing=3.0, speckle=False, late_region=LateRegion(delay=0.25))
+    np.testing.assert_allclose(on_time.truth_volumes_ml, plain.truth_volumes_ml, rtol=1e-12)
+    # a quarter of a cycle late, the region is half-way in at end-diastole and half-way out at end-systole
+    assert late.truth_volumes_ml[0] < plain.truth_volumes_ml[0] / 1.02
+    assert late.truth_volumes_ml[2] > plain.truth_volumes_ml[2] * 1.02
+    # and the voxels agree with the analytic volume
+    voxels = late.frames[2].truth_mask.sum() * 27.0 / 1000
+    assert voxels == pytest.approx(late.truth_volumes_ml[2], rel=0.05)

@@ -78,3 +78,34 @@ def test_cmiss_needs_prolate(tmp_path):
     s = Surface.from_apex_base([0, 0, 80.0], [0, 0, 0], system="spherical")
     with pytest.raises(ValueError, match="prolate"):
         write_cmiss(tmp_path / "x", s)
+
+
+def test_cmiss_heart_volume_elements_match_zinc(tmp_path, surface, rng):
+    """Zinc reads the two-layer volume mesh and gives lambda linear between
+    the endocardium (xi3 = 0) and the epicardium (xi3 = 1)."""
+    from spheroseg.surface_io import write_cmiss_heart
+
+    zinc = pytest.importorskip("cmlibs.zinc.context")
+    c = surface.coefficients.copy()
+    c[..., 0] += 0.15 + 0.05 * np.cos(surface.grid.node_v1)[None, :] * (np.arange(len(c)) > 0)[:, None]
+    epicardium = surface.with_coefficients(surface.grid.constrain(c))
+    write_cmiss_heart(tmp_path / "heart", surface, epicardium)
+    context = zinc.Context("heart")
+    region = context.getDefaultRegion()
+    assert region.readFile(str(tmp_path / "heart.exnode")) == 1
+    assert region.readFile(str(tmp_path / "heart.exelem")) == 1
+    fm = region.getFieldmodule()
+    coordinates = fm.findFieldByName("coordinates")
+    mesh, cache = fm.findMeshByDimension(3), fm.createFieldcache()
+    assert mesh.getSize() == surface.grid.n1 * surface.grid.n2
+    n1, n2 = surface.grid.n1, surface.grid.n2
+    h1, h2 = 2 * np.pi / n1, (np.pi / 2) / n2
+    for th, m, x3 in zip(rng.uniform(0, 2 * np.pi, 100), rng.uniform(0, np.pi / 2, 100), rng.uniform(0, 1, 100)):
+        j, r = min(int(th / h1), n1 - 1), min(int(m / h2), n2 - 1)
+        cache.setMeshLocation(mesh.findElementByIdentifier(r * n1 + j + 1), [th / h1 - j, m / h2 - r, x3])
+        ok, (lam, mu, theta) = coordinates.evaluateReal(cache, 3)
+        assert ok == 1
+        expected = (1 - x3) * surface.evaluate(th, m) + x3 * epicardium.evaluate(th, m)
+        np.testing.assert_allclose([lam, mu, theta], [expected, m, th], atol=1e-9)
+    with pytest.raises(ValueError, match="share"):
+        write_cmiss_heart(tmp_path / "x", surface, epicardium.refine())

@@ -21,7 +21,7 @@ from ._version import __version__
 from .io import save_mask, write_atomically
 
 __all__ = ["write_segmentation_outputs", "write_tracking_outputs", "write_surface_files", "write_frame_files",
-           "write_json", "versions", "default_mask_suffix"]
+           "write_json", "versions", "default_mask_suffix", "write_myocardium_files"]
 
 _UNITS = {"points": "mm, LPS (ITK physical space)", "volume": "mL"}
 
@@ -79,6 +79,33 @@ def write_surface_files(out: Path, stem: str, surface_name: str, result, *, stl:
         exnode, exelem = write_cmiss(out / Path(surface_name).stem, result.surface)
         files["cmiss"] = [exnode.name, exelem.name]
     return files
+
+
+def write_myocardium_files(out: Path, volume, result, *, mask_suffix: str = ".nii.gz") -> tuple[dict, dict]:
+    """The myocardium of a result with an epicardium: its mask
+    ``myocardium<mask_suffix>``, the epicardium's meshes
+    ``epicardium.vtk|.ply`` (world mm, LPS) and ``epicardium.json``;
+    returns ``({kind: file name}, the results.json block)``: volume, mass,
+    the convention and the 17-segment table.  For a prolate model also the
+    myocardium as CMISS volume elements ``heart.exnode|.exelem``
+    (:func:`spheroseg.surface_io.write_cmiss_heart`)."""
+    from .surface_io import write_cmiss_heart, write_mesh, write_surface_json
+
+    epicardium = result.epicardium
+    save_mask(out / ("myocardium" + mask_suffix), result.myocardium_mask(volume), volume)
+    files = {"myocardium_mask": "myocardium" + mask_suffix}
+    points, faces = epicardium.mesh()
+    for suffix in (".vtk", ".ply"):
+        write_mesh(out / f"epicardium{suffix}", points, faces)
+        files[f"epicardium_mesh{suffix}"] = f"epicardium{suffix}"
+    write_surface_json(out / "epicardium.json", epicardium, volume_ml=epicardium.volume_ml())
+    files["epicardium_surface"] = "epicardium.json"
+    if epicardium.system.name == "prolate":
+        exnode, exelem = write_cmiss_heart(out / "heart", result.surface, epicardium)
+        files["cmiss_heart"] = [exnode.name, exelem.name]
+    block = {"myocardial_volume_ml": result.myocardial_volume_ml, "lv_mass_g": result.lv_mass_g,
+             "segment_convention": result.segment_convention.to_dict(), "segments": result.segments}
+    return files, block
 
 
 def write_frame_files(out: Path, volumes, result, *, mask_suffix: str = ".nii.gz", stl: bool = False) -> None:
@@ -198,12 +225,17 @@ def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, 
     lap("mask")
     if report:
         name = Path(source).name if source is not None else "segmentation"
+        wall = result.wall_thickness_mm if getattr(result, "epicardium", None) is not None else None
         drawing = _start_report(out / "report.png", report_worker, _displayable(volume), result.surface, mask=mask,
-                                title=f"{name}: {result.volume_ml:.1f} mL")
+                                title=f"{name}: {result.volume_ml:.1f} mL", wall_thickness_mm=wall)
         lap("report")
     save_mask(out / ("mask" + mask_suffix), mask, volume)
     lap("writes")
     files = {"mask": "mask" + mask_suffix, **write_surface_files(out, "mesh", "surface.json", result, stl=stl)}
+    myocardium = {}
+    if getattr(result, "epicardium", None) is not None:
+        myocardium_files, myocardium = write_myocardium_files(out, volume, result, mask_suffix=mask_suffix)
+        files.update(myocardium_files)
     lap("meshes")
     if report:
         drawing()
@@ -215,7 +247,7 @@ def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, 
         "c_in": result.c_in, "c_out": result.c_out, "seconds": timings,
         **_placement(result, apex, base, annulus), "landmarks": _points(landmarks),
         "parameters": result.parameters, "units": dict(_UNITS), "files": files, "versions": versions(),
-        **(extra or {}),
+        **({"myocardium": myocardium} if myocardium else {}), **(extra or {}),
     }
     return write_json(out / "results.json", results)
 

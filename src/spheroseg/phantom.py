@@ -41,8 +41,7 @@ from .echo import ImageFormation, PostProcessing, form_image, postprocess, secto
 from .volume import ImageGrid, Volume
 
 __all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES", "FORMATIONS", "POSTPROCESSINGS",
-           "sweep_cases",
-           "probe_sector", "MitralScene", "tilted_mitral_scene"]
+           "sweep_cases", "probe_sector", "MitralScene", "tilted_mitral_scene", "LateRegion", "myocardium_truth"]
 
 #: the phantom families of the benchmarks, as keyword arguments of make_phantom
 FAMILIES = {
@@ -114,6 +113,10 @@ class Phantom:
     params: dict = field(default_factory=dict)
     #: the beam-space image before scan conversion (``make_phantom(beam_space=True)``)
     beam_volume: BeamVolume | None = None
+    #: ``make_phantom(epicardium=True)``: the wall below the mitral plane, its volume and mass (1.05 g/mL)
+    truth_myocardium_mask: np.ndarray | None = None
+    truth_myocardial_volume_ml: float | None = None
+    truth_lv_mass_g: float | None = None
 
 
 @dataclass
@@ -340,6 +343,7 @@ def make_phantom(
     _shape: _Shape | None = None,
     _speckle_seed: int | None = None,
     _base_descent: float = 0.0,
+    epicardium: bool = False,
 ) -> Phantom:
     """Synthetic apical 3D echo volume of a left ventricle.
 
@@ -389,6 +393,9 @@ def make_phantom(
         Depth (mm) of a trabecular rim inside the compact wall (0: none).
         Muscles and trabeculae are cavity (the CETUS and ASE convention):
         the truth follows the compact wall, unchanged by them.
+    epicardium : bool
+        Also give the myocardium's truth (:func:`myocardium_truth`): its
+        mask below the mitral plane, its volume and its mass.
     """
     if spacing <= 0:
         raise ValueError(f"spacing must be positive, got {spacing!r}")
@@ -500,11 +507,33 @@ def make_phantom(
                     **({} if _base_descent == 0 else dict(base_descent=_base_descent)),
                     **({k: v for k, v in inner_options.items() if v})),
         beam_volume=beam if beam_space else None,
+        **(myocardium_truth(shape_fn, wall, anatomy) if epicardium else {}),
     )
 
 
+def _outer_radius(shape_fn, wall, theta, phi):
+    """The epicardium's distance from the base point (as :func:`_anatomy`)."""
+    return shape_fn(theta, phi) + wall * (0.8 + 0.2 * np.sin(phi))
+
+
+def myocardium_truth(shape_fn, wall: float, anatomy: dict) -> dict:
+    """The myocardium's truth: the mask of :func:`_anatomy`'s wall below
+    the mitral plane (``x1 >= 0``), and its volume
+    ``int int (R_epi^3 - R^3) / 3 sin(phi) dtheta dphi`` (Gauss-Legendre,
+    as the cavity's) and mass at 1.05 g/mL."""
+    x, w = np.polynomial.legendre.leggauss(200)
+    phi = (x + 1) * np.pi / 4
+    theta = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    pp, tt = np.meshgrid(phi, theta, indexing="ij")
+    shell = (_outer_radius(shape_fn, wall, tt, pp) ** 3 - shape_fn(tt, pp) ** 3) / 3 * np.sin(pp)
+    volume = float((w * np.pi / 4) @ shell.mean(1) * 2 * np.pi) / 1000.0
+    mask = anatomy["myocardium"] & (anatomy["local"][..., 0] >= 0)
+    return dict(truth_myocardium_mask=mask, truth_myocardial_volume_ml=volume, truth_lv_mass_g=1.05 * volume)
+
+
 def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33, base_descent: float = 0.0,
-                  formation: ImageFormation | None = None, workers: int | None = None, **kwargs) -> PhantomSequence:
+                  formation: ImageFormation | None = None, workers: int | None = None,
+                  late_region: "LateRegion | None" = None, **kwargs) -> PhantomSequence:
     """A cardiac cycle from end-diastole.
 
     At phase ``s(t) = (1 - cos(2 pi t / n_frames)) / 2`` (0 at end-diastole,
@@ -526,6 +555,9 @@ def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33
         :attr:`Phantom.base` is its true base point.
     formation : ImageFormation, optional
         Image formation of every frame (see :func:`make_phantom`).
+    late_region : LateRegion, optional
+        A region of the wall that moves late or little (regional motion:
+        the truth of segmental volume curves and dyssynchrony).
     workers : int, optional
         Frames made at once, in threads (numpy's array loops release the
         GIL): by default the cores this process may run on.  The frames do
@@ -551,11 +583,65 @@ def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33
         descent = base_descent * s
         shape = _Shape(length - descent, radius * (1 - shortening * s), np.random.default_rng(seed))
         shape.bumps = [(tb, pb, d * (1 + s)) for tb, pb, d in ed_shape.bumps]
+        if late_region is not None:
+            shape = late_region.shape(shape, t=t, n_frames=n_frames, shortening=shortening)
         return make_phantom(seed=seed, length=length, radius=radius, wall=wall * (1 + 0.5 * s), _shape=shape,
                             _speckle_seed=seed * 1000 + t, _base_descent=descent, formation=formation, **kwargs)
 
     with ThreadPoolExecutor(min(n_frames, workers or usable_cores())) as pool:  # 10 frames: 7.2 -> 4.3 s on 2 cores
         return PhantomSequence(list(pool.map(frame, range(n_frames))))
+
+
+@dataclass(frozen=True)
+class LateRegion:
+    """A region of the wall whose motion is late or reduced.
+
+    Around the angle ``theta`` (radians, about the phantom's long axis,
+    from its second frame axis towards its third) within a window
+    ``cos^2(pi/2 (theta - theta_0) / half_width)`` (zero beyond
+    ``half_width``), the cavity's radius follows the phase ``s(t - delay)``
+    (``delay`` a fraction of the cycle) and shortens by ``amplitude`` of
+    the rest's shortening.
+
+    Parameters
+    ----------
+    theta, half_width : float
+        Centre and half-width of the region (radians).
+    delay : float
+        Delay of its motion, fraction of the cycle (0.1: 10 % late).
+    amplitude : float
+        Its shortening relative to the rest (1: the same; 0.5: hypokinetic).
+    """
+
+    theta: float = 0.0
+    half_width: float = np.pi / 3
+    delay: float = 0.1
+    amplitude: float = 1.0
+
+    def window(self, theta) -> np.ndarray:
+        d = np.angle(np.exp(1j * (np.asarray(theta) - self.theta)))
+        return np.where(np.abs(d) < self.half_width, np.cos(np.pi / 2 * d / self.half_width) ** 2, 0.0)
+
+    def shape(self, shape: _Shape, *, t: int, n_frames: int, shortening: float) -> _Shape:
+        """``shape`` (a frame's cavity at phase ``s(t)``) with the region's
+        radius scaled to its own phase and amplitude."""
+        def phase(u):
+            return 0.5 * (1 - np.cos(2 * np.pi * u))
+
+        now = 1 - shortening * phase(t / n_frames)
+        late = 1 - self.amplitude * shortening * phase(t / n_frames - self.delay)
+        return _RegionalShape(shape, self, late / now)
+
+
+class _RegionalShape(_Shape):
+    """A cavity shape whose radius is scaled by ``1 + w(theta) (ratio - 1)``."""
+
+    def __init__(self, shape: _Shape, region: LateRegion, ratio: float):
+        self.__dict__.update(shape.__dict__)
+        self.region, self.ratio = region, float(ratio)
+
+    def __call__(self, theta, phi):
+        return super().__call__(theta, phi) * (1 + self.region.window(theta) * (self.ratio - 1))
 
 
 def sweep_cases(*, families=("speckle", "tilted"), formations=None, seeds=(0,)) -> Iterator[tuple[str, str, dict]]:

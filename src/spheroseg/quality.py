@@ -49,7 +49,7 @@ import numpy as np
 
 from .dataterms import nanmedian
 
-__all__ = ["quality_report", "quality_warning", "wall_bulge", "axis_distances", "landmark_residuals"]
+__all__ = ["quality_report", "quality_warning", "wall_bulge", "axis_distances", "landmark_residuals", "wall_report"]
 
 #: the bounds of a plausible result
 LIMITS = {"contrast": 0.5, "low_contrast_fraction": 0.3, "no_data_fraction": 0.1, "apex_shift_mm": 10.0,
@@ -134,6 +134,30 @@ def quality_report(*, contrast: float, low_contrast_fraction: float, no_data_fra
             "no_data_fraction": float(no_data_fraction), "converged": bool(converged),
             "apex_shift_mm": float(apex_shift_mm), "volume_ratio": float(volume_ratio), "bulge": float(bulge),
             "landmark_residuals_mm": residuals, "warnings": warnings, "poor": bool(warnings)}
+
+
+#: the bounds of a plausible wall (mm): more of it than this fraction at the
+#: smallest thickness allowed is a collapse; a 95th percentile above this a
+#: wall thicker than severe hypertrophy (17 mm and more; Lang et al. 2015)
+WALL_LIMITS = {"floor_fraction": 0.1, "p95_mm": 25.0}
+
+
+def wall_report(thickness_mm, *, min_thickness_mm: float) -> dict:
+    """How plausible a myocardium is, from its wall thickness (mm) sampled
+    over the endocardium: the 5th, 50th and 95th percentiles, the fraction
+    within 0.5 mm of ``min_thickness_mm`` (where the epicardium fell onto
+    its floor), ``warnings`` and ``poor``."""
+    t = np.asarray(thickness_mm, dtype=float).ravel()
+    p5, p50, p95 = (float(v) for v in np.percentile(t, [5, 50, 95]))
+    floor = float(np.mean(t <= min_thickness_mm + 0.5))
+    warnings = []
+    if floor > WALL_LIMITS["floor_fraction"]:
+        warnings.append(f"the wall collapsed to its smallest thickness ({min_thickness_mm:.1f} mm) over "
+                        f"{100 * floor:.0f} % of it")
+    if p95 > WALL_LIMITS["p95_mm"]:
+        warnings.append(f"the wall is implausibly thick (95th percentile {p95:.0f} mm): the epicardium went astray")
+    return {"thickness_p5_mm": p5, "thickness_median_mm": p50, "thickness_p95_mm": p95, "floor_fraction": floor,
+            "warnings": warnings, "poor": bool(warnings)}
 
 
 def quality_warning(frames) -> str | None:

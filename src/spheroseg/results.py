@@ -7,6 +7,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .raster import surface_mask
+from .myocardium import (
+    SegmentConvention, lv_mass_g, myocardial_volume_ml, segment_table, systolic_dyssynchrony_index, times_to_minimum,
+)
 from .surface import Surface
 
 __all__ = ["SegmentationResult", "TrackingResult", "Intermediate", "STATUS_MESSAGES"]
@@ -45,7 +48,14 @@ class SegmentationResult:
         How far the result can be trusted (:mod:`spheroseg.quality`):
         ``contrast``, ``low_contrast_fraction``, ``no_data_fraction``,
         ``converged``, ``apex_shift_mm``, ``volume_ratio``, ``warnings`` and
-        ``poor``.
+        ``poor``; with an epicardium also ``epicardium``
+        (:func:`spheroseg.quality.wall_report`).
+    epicardium : Surface or None
+        The epicardium (``segment(..., myocardium=True)``): same system,
+        pose and grid as ``surface``, outside it.
+    segment_convention : SegmentConvention
+        Where segment 1 of the 17-segment model starts
+        (:mod:`spheroseg.myocardium`).
     """
 
     surface: Surface
@@ -60,11 +70,46 @@ class SegmentationResult:
     quality: dict | None = None
     #: how the segmentation was started (:func:`spheroseg.locate.initialise`)
     initialisation: dict | None = None
+    epicardium: Surface | None = None
+    segment_convention: SegmentConvention = field(default_factory=SegmentConvention)
 
     @property
     def volume_ml(self) -> float:
         """Volume of the cavity, closed at the base plane (mL)."""
         return self.surface.volume_ml()
+
+    def _need_epicardium(self) -> Surface:
+        if self.epicardium is None:
+            raise ValueError("this result has no epicardium: segment with myocardium=True")
+        return self.epicardium
+
+    def myocardium_mask(self, volume) -> np.ndarray:
+        """Boolean mask ``[z, y, x]`` of the myocardium (between the
+        surfaces, below the mitral plane) on ``volume``'s grid."""
+        return self._need_epicardium().mask(volume.grid) & ~self.surface.mask(volume.grid)
+
+    @property
+    def myocardial_volume_ml(self) -> float:
+        """Volume of the myocardium below the mitral plane (mL)."""
+        return myocardial_volume_ml(self.surface, self._need_epicardium())
+
+    @property
+    def lv_mass_g(self) -> float:
+        """LV mass (g): the myocardial volume at 1.05 g/mL."""
+        return lv_mass_g(self.myocardial_volume_ml)
+
+    @property
+    def segments(self) -> list[dict]:
+        """The 17-segment table (:func:`spheroseg.myocardium.segment_table`):
+        per segment ``segment``, ``name``, ``cavity_ml`` and, with an
+        epicardium, ``myocardium_ml`` and ``wall_thickness_mm``."""
+        return segment_table(self.surface, self.epicardium, convention=self.segment_convention)
+
+    @property
+    def wall_thickness_mm(self) -> np.ndarray:
+        """Mean wall thickness of each of the 17 segments (mm, along ``v0``)."""
+        self._need_epicardium()
+        return np.array([row["wall_thickness_mm"] for row in self.segments])
 
     def mask(self, volume) -> np.ndarray:
         """Boolean mask ``[z, y, x]`` of the cavity on ``volume``'s grid."""
@@ -112,6 +157,32 @@ class TrackingResult:
     def ef(self) -> float:
         """Ejection fraction in percent, ``100 (EDV - ESV) / EDV``."""
         return 100.0 * (self.edv_ml - self.esv_ml) / self.edv_ml
+
+    @property
+    def segment_volumes_ml(self) -> np.ndarray:
+        """Cavity volume (mL) of each of the 17 segments at every frame,
+        ``[frame, segment - 1]``, each frame cut by its own levels and base
+        plane (segment 17, beyond the cavity, holds none)."""
+        return np.array([[row["cavity_ml"] for row in segment_table(f.surface, convention=f.segment_convention)]
+                         for f in self.frames])
+
+    @property
+    def times_to_minimum(self) -> np.ndarray:
+        """Time of each of the 16 cavity segments' minimum volume, % of the
+        cycle (the frames being one cycle from frame 0;
+        :func:`spheroseg.myocardium.times_to_minimum`)."""
+        return times_to_minimum(self.segment_volumes_ml[:, :16])
+
+    @property
+    def sdi(self) -> float:
+        """Systolic dyssynchrony index, % of the cycle (Kapetanakis et al.
+        2005): the standard deviation of :attr:`times_to_minimum`."""
+        return systolic_dyssynchrony_index(self.segment_volumes_ml)
+
+    @property
+    def masses_g(self) -> np.ndarray:
+        """LV mass (g) at every frame (``track(..., myocardium=True)``)."""
+        return np.array([f.lv_mass_g for f in self.frames])
 
     @property
     def quality(self) -> dict:

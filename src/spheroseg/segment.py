@@ -16,6 +16,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .locate import annotate, initialise
+from .epicardium import add_epicardium
 from .options import MODES
 from .results import Intermediate, SegmentationResult, TrackingResult
 from .surface import Surface
@@ -26,6 +27,7 @@ __all__ = ["segment", "track", "SegmentationResult", "TrackingResult", "Intermed
 
 def segment(volume, apex=None, base=None, *, annulus=None, landmarks=None, init: Surface | None = None,
             iter_callback: Callable[[Intermediate], None] | None = None, check: bool = True,
+            myocardium: bool = False, rv_insertion=None, epicardium_options: dict | None = None,
             **options) -> SegmentationResult:
     """Segment the left-ventricular cavity from an apex and a base point
     (or the mitral annulus).
@@ -67,6 +69,17 @@ def segment(volume, apex=None, base=None, *, annulus=None, landmarks=None, init:
         ``band``, ``band_out``, ``interface``, ``nu``,
         ``smoothness``, ``landmark_weight``, ``apex_weight``, ``order``,
         ``radius_ratio``, ``backend``, ``threads``.
+    myocardium : bool
+        Also segment the epicardium after the endocardium
+        (:func:`spheroseg.epicardium.segment_epicardium`): the result then
+        has ``epicardium``, ``myocardium_mask(volume)``,
+        ``myocardial_volume_ml``, ``lv_mass_g``, ``wall_thickness_mm`` and
+        ``segments`` (the 17-segment table, :mod:`spheroseg.myocardium`).
+    rv_insertion : float or (x, y, z), optional
+        Where segment 1 starts: the anterior RV insertion, as ``theta``
+        (radians) in the model's frame or a world point (mm).
+    epicardium_options : dict, optional
+        Keywords of :func:`spheroseg.epicardium.segment_epicardium`.
 
     Returns
     -------
@@ -139,6 +152,8 @@ def segment(volume, apex=None, base=None, *, annulus=None, landmarks=None, init:
     apex, base, initialisation, located = initialise(volume, apex, base, annulus=annulus, init=init, check=check)
     result = Tracker(volume, apex, base, annulus=annulus, landmarks=landmarks, init=init, **options).run(iter_callback)
     annotate(result, initialisation, located)
+    if myocardium:
+        result = add_epicardium(result, volume, rv_insertion=rv_insertion, **(epicardium_options or {}))
     return result
 
 
@@ -155,6 +170,9 @@ def track(
     init: Surface | None = None,
     iter_callback: Callable[[Intermediate], None] | None = None,
     check: bool = True,
+    myocardium: bool = False,
+    rv_insertion=None,
+    epicardium_options: dict | None = None,
     **options,
 ) -> TrackingResult:
     """Segment every frame of a 3D+t sequence.
@@ -184,11 +202,18 @@ def track(
         frame's plane throughout, as round 1 did).
     progress : callable, optional
         ``progress(frames_done, frames)`` after each frame.
+    myocardium, rv_insertion, epicardium_options
+        As :func:`segment`, for every frame: the epicardium of each frame
+        after the first starts from the previous frame's wall moved onto
+        its endocardium with the same myocardial volume
+        (:func:`spheroseg.epicardium.conserving_start`).
 
     Returns
     -------
     TrackingResult
-        ``.frames``, ``.volumes_ml``, ``.edv_ml``, ``.esv_ml``, ``.ef`` (percent).
+        ``.frames``, ``.volumes_ml``, ``.edv_ml``, ``.esv_ml``, ``.ef``
+        (percent); with ``myocardium``, ``.segment_volumes_ml``,
+        ``.times_to_minimum``, ``.sdi`` and ``.masses_g``.
     """
     volumes = list(volumes)
     if len(volumes) < 2:
@@ -205,6 +230,9 @@ def track(
         else:
             frames.append(tracker.run(iter_callback))
             annotate(frames[0], initialisation, located)
+        if myocardium:
+            add_epicardium(frames[-1], volume, rv_insertion=rv_insertion, previous=frames[-2] if len(frames) > 1
+                           else None, **(epicardium_options or {}))
         if progress is not None:
             progress(len(frames), len(volumes))
     return TrackingResult(frames)

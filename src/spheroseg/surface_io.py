@@ -16,7 +16,7 @@ import numpy as np
 from .io import write_atomically
 from .surface import Surface
 
-__all__ = ["read_mesh", "write_mesh", "write_surface_json", "read_surface_json", "write_cmiss"]
+__all__ = ["read_mesh", "write_mesh", "write_surface_json", "read_surface_json", "write_cmiss", "write_cmiss_heart"]
 
 
 def _read_legacy_vtk_polydata(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -134,47 +134,81 @@ def write_cmiss(stem: str | os.PathLike, surface: Surface, *, group: str = "sphe
 
     Returns the two paths written.
     """
+    return _write_cmiss(stem, surface, [surface.coefficients], group)
+
+
+def write_cmiss_heart(stem: str | os.PathLike, endocardium: Surface, epicardium: Surface, *,
+                      group: str = "spheroseg_heart") -> tuple[Path, Path]:
+    """Write the myocardium as CMISS/OpenCMISS volume elements.
+
+    As :func:`write_cmiss`, with a second layer of nodes on the epicardium
+    and 3D elements between the layers (Hunter's prolate spheroidal heart
+    models): ``lambda`` is ``c.Hermite*c.Hermite*l.Lagrange`` over
+    ``xi1 = theta``, ``xi2 = mu``, ``xi3`` from the endocardium (0) to the
+    epicardium (1); ``mu`` and ``theta`` are trilinear Lagrange.  The two
+    surfaces must share the system, the pose and the Hermite grid.
+
+    Returns the two paths written.
+    """
+    same = (endocardium.system == epicardium.system and endocardium.grid.shape == epicardium.grid.shape
+            and tuple(endocardium.grid.v2_range) == tuple(epicardium.grid.v2_range)
+            and np.allclose(endocardium.pose.origin, epicardium.pose.origin)
+            and np.allclose(endocardium.pose.rotation, epicardium.pose.rotation))
+    if not same:
+        raise ValueError("the endocardium and the epicardium must share the coordinate system, the pose and the grid")
+    return _write_cmiss(stem, endocardium, [endocardium.coefficients, epicardium.coefficients], group)
+
+
+def _write_cmiss(stem, surface: Surface, layers: list, group: str) -> tuple[Path, Path]:
+    """The exnode/exelem pair of one layer of nodes (2D elements) or two
+    (3D elements, linear between them) on ``surface``'s grid."""
     from .coords import ProlateSpheroidal
 
     if not isinstance(surface.system, ProlateSpheroidal):
         raise ValueError(f"CMISS export needs prolate spheroidal coordinates, not {surface.system.name}")
     stem = Path(stem)
-    grid, c = surface.grid, surface.coefficients
+    grid = surface.grid
     n1, n2 = grid.n1, grid.n2
     d_theta = 2 * np.pi / n1
     d_mu = (grid.v2_range[1] - grid.v2_range[0]) / n2
     scale = np.array([1.0, d_theta, d_mu, d_theta * d_mu])
-    node_id = lambda r, j: r * (n1 + 1) + j + 1  # noqa: E731
+    per_layer = (n2 + 1) * (n1 + 1)
+    node_id = lambda r, j, k=0: k * per_layer + r * (n1 + 1) + j + 1  # noqa: E731
 
     lines = [f" Group name: {group}\n", _cmiss_header(surface.system.focal_length),
              "   lambda.  Value index= 1, #Derivatives= 3 (d/ds1,d/ds2,d2/ds1ds2)\n",
              "   mu.  Value index= 5, #Derivatives= 0\n",
              "   theta.  Value index= 6, #Derivatives= 0\n"]
-    for r, mu in enumerate(grid.node_v2):
-        for j in range(n1 + 1):
-            lam = c[r, j % n1] * scale
-            lines.append(f" Node: {node_id(r, j)}\n")
-            lines.append("  " + " ".join(f"{v: .16e}" for v in lam) + "\n")
-            lines.append(f"  {mu: .16e}\n  {j * d_theta: .16e}\n")
+    for k, c in enumerate(layers):
+        for r, mu in enumerate(grid.node_v2):
+            for j in range(n1 + 1):
+                lam = c[r, j % n1] * scale
+                lines.append(f" Node: {node_id(r, j, k)}\n")
+                lines.append("  " + " ".join(f"{v: .16e}" for v in lam) + "\n")
+                lines.append(f"  {mu: .16e}\n  {j * d_theta: .16e}\n")
     exnode = "".join(lines)
 
+    dimension = 2 if len(layers) == 1 else 3
+    count = 2**dimension
+    across = "" if dimension == 2 else "*l.Lagrange"
+
     def component(name, basis, values):
-        out = [f"   {name}.  {basis}, no modify, standard node based.\n", "     #Nodes= 4\n"]
-        for k in range(1, 5):
+        out = [f"   {name}.  {basis}, no modify, standard node based.\n", f"     #Nodes= {count}\n"]
+        for k in range(1, count + 1):
             out.append(f"      {k}.  #Values={values}\n")
             out.append("       Value indices: " + " ".join(str(v + 1) for v in range(values)) + "\n")
             out.append("       Scale factor indices: " + " ".join("0" for _ in range(values)) + "\n")
         return "".join(out)
 
-    lines = [f" Group name: {group}\n", " Shape.  Dimension=2\n", " #Scale factor sets= 0\n", " #Nodes= 4\n",
-             _cmiss_header(surface.system.focal_length),
-             component("lambda", "c.Hermite*c.Hermite", 4),
-             component("mu", "l.Lagrange*l.Lagrange", 1),
-             component("theta", "l.Lagrange*l.Lagrange", 1)]
+    lines = [f" Group name: {group}\n", f" Shape.  Dimension={dimension}\n", " #Scale factor sets= 0\n",
+             f" #Nodes= {count}\n", _cmiss_header(surface.system.focal_length),
+             component("lambda", "c.Hermite*c.Hermite" + across, 4),
+             component("mu", "l.Lagrange*l.Lagrange" + across, 1),
+             component("theta", "l.Lagrange*l.Lagrange" + across, 1)]
     element = 1
     for r in range(n2):
         for j in range(n1):
-            nodes = (node_id(r, j), node_id(r, j + 1), node_id(r + 1, j), node_id(r + 1, j + 1))
+            nodes = [node_id(r + a, j + b, k) for k in range(len(layers)) for a in (0, 1) for b in (0, 1)]
             lines.append(f" Element: {element} 0 0\n   Nodes:\n    " + " ".join(map(str, nodes)) + "\n")
             element += 1
     exelem = "".join(lines)

@@ -1,0 +1,270 @@
+"""The epicardium: a second graph surface outside a segmented endocardium.
+
+The epicardium ``v0 = f_epi(v1, v2) = f_endo(v1, v2) + t(v1, v2)`` shares
+the endocardium's coordinate system, pose and Hermite grid, so the
+myocardium is the region ``f_endo < v0 <= f_epi`` below the mitral plane and
+the wall thickness is measured along ``v0`` (:mod:`spheroseg.myocardium`).
+
+It is found by the endocardium's own descent (:class:`spheroseg.Tracker`,
+the least-squares step of eq. 25 with its data terms), started from the
+endocardium moved out by a prior thickness.  The descent's thin-plate prior
+acts on the departure from that start: on ``t`` minus the prior thickness,
+a prior on the thickness and its smoothness.  The data terms expect a dark
+region inside a brighter one; the outer boundary of the myocardium is
+mostly the reverse (bright myocardium against darker tissue, lung and the
+right ventricle's blood), so the grey levels are reflected
+(``lo + hi - u``) when the wall is the brighter side of it, measured at the
+start.  A thickness below ``min_thickness_mm`` is raised to it afterwards
+(:func:`enforce_thickness`): the epicardium never lies inside the
+endocardium.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .myocardium import SegmentConvention, wall_thickness_grid
+from .options import SegmentOptions
+from .quality import wall_report
+from .results import SegmentationResult
+from .surface import Surface
+from .tracker import Tracker
+from .volume import Volume
+
+__all__ = ["initial_epicardium", "conserving_start", "enforce_thickness", "wall_polarity", "segment_epicardium",
+           "add_epicardium"]
+
+
+def _offsets(surface: Surface, thickness_mm: float, v1, v2) -> np.ndarray:
+    """``t`` such that the ``v0`` curve from the surface to ``f + t`` is
+    ``thickness_mm`` long at ``(v1, v2)``: Newton's method on
+    ``int_f^{f+t} h0 dv0 = thickness_mm`` (its derivative is ``h0(f + t)``)."""
+    f = surface.radius(v1, v2)
+    x, w = np.polynomial.legendre.leggauss(8)
+    t = thickness_mm / surface.system.scale_factors(f, v1, v2)[0]
+    for _ in range(6):  # quadratic convergence from within a few per cent
+        v0 = f[..., None] + t[..., None] * (x + 1) / 2
+        length = (surface.system.scale_factors(v0, v1[..., None], v2[..., None])[0] @ w) * t / 2
+        t = t - (length - thickness_mm) / surface.system.scale_factors(f + t, v1, v2)[0]
+    return t
+
+
+def initial_epicardium(endocardium: Surface, *, thickness_mm: float) -> Surface:
+    """The endocardium moved out along ``v0`` so that the wall is
+    ``thickness_mm`` thick at its nodes (:func:`_offsets`; the offset's
+    slopes 0 there)."""
+    if not (np.isfinite(thickness_mm) and thickness_mm > 0):
+        raise ValueError(f"thickness_mm must be a positive number of mm, got {thickness_mm!r}")
+    grid = endocardium.grid
+    v2, v1 = np.meshgrid(grid.node_v2, grid.node_v1, indexing="ij")
+    t = np.zeros(endocardium.coefficients.shape)
+    t[..., 0] = _offsets(endocardium, thickness_mm, v1, v2)
+    return endocardium.with_coefficients(grid.constrain(endocardium.coefficients + t))
+
+
+def conserving_start(endocardium: Surface, previous_endocardium: Surface, previous_epicardium: Surface, *,
+                     iterations: int = 40) -> Surface:
+    """The previous frame's wall moved onto this frame's endocardium, its
+    myocardial volume kept (the myocardium is nearly incompressible).
+
+    The previous offset ``t = f_epi - f_endo`` (in ``v0``) is added to this
+    endocardium scaled by the factor ``s`` for which ``V(epi) - V(endo)``
+    equals the previous frame's (bisection on ``s``: the volume grows with
+    it).  The surfaces must share the system and the grid.
+    """
+    offset = previous_epicardium.coefficients - previous_endocardium.coefficients
+    target = previous_epicardium.volume_ml() - previous_endocardium.volume_ml()
+    inner = endocardium.volume_ml()
+
+    def start(s):
+        return endocardium.with_coefficients(endocardium.coefficients + s * offset)
+
+    lo, hi = 0.0, 1.0
+    while start(hi).volume_ml() - inner < target and hi < 64:
+        hi *= 2
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if start(mid).volume_ml() - inner < target else (lo, mid)
+    return start(0.5 * (lo + hi))
+
+
+def enforce_thickness(endocardium: Surface, epicardium: Surface, *, min_thickness_mm: float,
+                      n: int = 64) -> Surface:
+    """The epicardium with its thickness raised to at least
+    ``min_thickness_mm`` (mm, along ``v0``).
+
+    Nodes whose thickness is below it are set to it with flat slopes
+    (projected back on the pole constraints); where the Hermite
+    interpolation still dips below it between nodes, on an ``n x n`` grid
+    of ``(v1, v2)``, the whole thickness is raised by the deficit there.
+    """
+    if not (np.isfinite(min_thickness_mm) and min_thickness_mm >= 0):
+        raise ValueError(f"min_thickness_mm must be a number of mm >= 0, got {min_thickness_mm!r}")
+    grid = endocardium.grid
+    t = epicardium.coefficients - endocardium.coefficients
+    v2, v1 = np.meshgrid(grid.node_v2, grid.node_v1, indexing="ij")
+    floor = _offsets(endocardium, min_thickness_mm, v1, v2)
+    low = t[..., 0] < floor
+    t[low] = 0.0
+    t[..., 0][low] = floor[low]
+    epi = endocardium.with_coefficients(grid.constrain(endocardium.coefficients + t))
+    lo, hi = grid.v2_range
+    v1, v2 = np.linspace(0, 2 * np.pi, n, endpoint=False), lo + (hi - lo) * np.linspace(0, 1, n)
+    deficit = min_thickness_mm - wall_thickness_grid(endocardium, epi, v1, v2).min()
+    if deficit > 0:
+        # a constant in v0 moves the wall out by at least its times the smallest h0 there
+        f = np.maximum(grid.evaluate_grid(endocardium.coefficients, v1, v2), 0.0)
+        h0 = endocardium.system.scale_factors(f, v1[None, :], v2[:, None])[0]
+        lift = np.zeros(t.shape)
+        lift[..., 0] = 1.001 * deficit / h0.min()
+        epi = epi.with_coefficients(grid.constrain(epi.coefficients + lift))
+    return epi
+
+
+def wall_polarity(volume: Volume, endocardium: Surface, epicardium: Surface, *, shell_mm: float = 8.0,
+                  n: int = 48) -> float:
+    """The median grey level of the wall (between the two surfaces) minus
+    that of a shell ``shell_mm`` thick outside the epicardium, sampled along
+    ``v0`` on an ``n x n`` grid of ``(v1, v2)``; NaN without data."""
+    lo, hi = endocardium.grid.v2_range
+    v2, v1 = np.meshgrid(lo + (hi - lo) * (np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) * 2 * np.pi / n,
+                         indexing="ij")
+    f_in, f_out = endocardium.radius(v1, v2), epicardium.radius(v1, v2)
+    h0 = endocardium.system.scale_factors(f_out, v1, v2)[0]
+    fractions = np.linspace(0.25, 1.0, 4)
+    wall = f_in[..., None] + (f_out - f_in)[..., None] * (fractions - 0.125)
+    shell = f_out[..., None] + (shell_mm / h0)[..., None] * fractions
+
+    def grey(v0):
+        local = endocardium.system.to_cartesian(v0, v1[..., None], v2[..., None])
+        values = volume.sample(endocardium.pose.to_world(local))
+        return np.nanmedian(values) if np.isfinite(values).any() else np.nan
+
+    return float(grey(wall) - grey(shell))
+
+
+def _reflected(volume: Volume, surface: Surface, *, margin_mm: float) -> Volume:
+    """The part of the volume within ``margin_mm`` of the surface's bounding
+    box, its grey levels reflected (``lo + hi - u``, its extremes)."""
+    lo, hi = surface.bounding_box()
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    index = volume.world_to_index(corners)
+    pad = margin_mm / volume.spacing
+    start = np.clip(np.floor(index.min(0) - pad).astype(int), 0, np.array(volume.shape[::-1]) - 2)
+    stop = np.clip(np.ceil(index.max(0) + pad).astype(int) + 1, start + 2, np.array(volume.shape[::-1]))
+    box = np.s_[start[2]:stop[2], start[1]:stop[1], start[0]:stop[0]]
+    array = volume.array[box]
+    missing = None if volume.no_data_mask is None else volume.no_data_mask[box]
+    # any constant will do (the data terms see differences); no-data voxels stay no-data
+    return Volume(float(array.min()) + float(array.max()) - array, spacing=volume.spacing,
+                  origin=volume.index_to_world(start.astype(float)), direction=volume.direction, no_data_mask=missing)
+
+
+def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: float = 8.0,
+                       min_thickness_mm: float = 2.0, polarity: str = "auto", start: Surface | None = None,
+                       **options) -> SegmentationResult:
+    """The epicardium of a segmented endocardium.
+
+    Parameters
+    ----------
+    volume : Volume
+        The image the endocardium was segmented on.
+    endocardium : Surface
+        The endocardium (:attr:`SegmentationResult.surface`).
+    thickness_mm : float
+        Prior wall thickness (mm): the start, and what the thin-plate prior
+        (``smoothness``) pulls the thickness's variations back towards.
+        8 mm is within the normal adult range (6-10 mm; Lang et al. 2015).
+    min_thickness_mm : float
+        Smallest thickness allowed (mm).
+    polarity : {"auto", "bright", "dark"}
+        Whether the myocardium is brighter ("bright") or darker than what
+        lies outside it; "auto" measures it at the start
+        (:func:`wall_polarity`).
+    start : Surface, optional
+        The start (and the thin-plate prior's reference) instead of the
+        endocardium moved out by ``thickness_mm``: in a sequence,
+        :func:`conserving_start` of the previous frame.
+    **options
+        :class:`spheroseg.SegmentOptions` of the descent; by default
+        ``mode="local"``, ``band=4`` (the inner band stays in the wall),
+        ``apex_weight=0`` (the epicardial apex is not clicked).
+
+    Returns
+    -------
+    SegmentationResult
+        Its ``surface`` is the epicardium, on the endocardium's grid.
+    """
+    if polarity not in ("auto", "bright", "dark"):
+        raise ValueError(f"polarity must be 'auto', 'bright' or 'dark', got {polarity!r}")
+    if start is None:
+        start = initial_epicardium(endocardium, thickness_mm=thickness_mm)
+    elif not isinstance(start, Surface) or start.grid.shape != endocardium.grid.shape:
+        raise ValueError("start must be a Surface on the endocardium's grid")
+    if polarity == "auto":
+        contrast = wall_polarity(volume, endocardium, start)
+        polarity = "dark" if contrast < 0 else "bright"
+    options = {"mode": "local", "band": 4.0, "apex_weight": 0.0,
+               "patches": (endocardium.grid.n1, endocardium.grid.n2), **options}
+    # what the descent can reach: the start, the bands and some room to move
+    margin = 2 * SegmentOptions(**options).band_out + thickness_mm
+    image = _reflected(volume, start, margin_mm=margin) if polarity == "bright" else volume
+    apex = endocardium.tip()
+    result = Tracker(image, apex, endocardium.pose.origin, init=start, **options).run()
+    result.surface = enforce_thickness(endocardium, result.surface, min_thickness_mm=min_thickness_mm)
+    result.parameters = {**result.parameters, "thickness_mm": thickness_mm, "min_thickness_mm": min_thickness_mm,
+                         "polarity": polarity}
+    return result
+
+
+def add_epicardium(result: SegmentationResult, volume: Volume, *, rv_insertion=None,
+                   previous: SegmentationResult | None = None, **options) -> SegmentationResult:
+    """``result`` (an endocardium) with its epicardium, its segment
+    convention and the wall in its quality report.
+
+    Parameters
+    ----------
+    result : SegmentationResult
+    volume : Volume
+    rv_insertion : float, (x, y, z) or SegmentConvention, optional
+        Where segment 1 starts: ``theta`` (radians) of the anterior RV
+        insertion in the model's frame, a world point (mm) on it, or a
+        :class:`~spheroseg.myocardium.SegmentConvention`; default
+        ``theta = 0``.
+    previous : SegmentationResult, optional
+        The previous frame of a sequence, with its epicardium: this frame's
+        starts from its wall with its myocardial volume
+        (:func:`conserving_start`).
+    **options
+        Of :func:`segment_epicardium`.
+    """
+    if isinstance(rv_insertion, SegmentConvention):
+        convention = rv_insertion
+    elif rv_insertion is None:
+        convention = SegmentConvention()
+    elif np.ndim(rv_insertion) == 0:
+        convention = SegmentConvention(float(rv_insertion))
+    else:
+        convention = SegmentConvention.from_points(result.surface, rv_insertion)
+    endo = result.surface
+    if previous is not None and previous.epicardium is not None and "start" not in options:
+        options["start"] = conserving_start(endo, previous.surface, previous.epicardium)
+    epi = segment_epicardium(volume, endo, **options)
+    lo, hi = endo.grid.v2_range
+    n = 48
+    v1, v2 = (np.arange(n) + 0.5) * 2 * np.pi / n, lo + (hi - lo) * (np.arange(n) + 0.5) / n
+    wall = wall_report(wall_thickness_grid(endo, epi.surface, v1, v2),
+                       min_thickness_mm=epi.parameters["min_thickness_mm"])
+    quality = dict(result.quality or {"warnings": [], "poor": False})
+    quality["epicardium"] = wall
+    quality["warnings"] = list(quality.get("warnings", [])) + [f"epicardium: {w}" for w in wall["warnings"]]
+    quality["poor"] = bool(quality["warnings"])
+    result.epicardium = epi.surface
+    result.segment_convention = convention
+    result.quality = quality
+    result.seconds += epi.seconds
+    result.parameters = {**result.parameters, "epicardium": {k: v for k, v in epi.parameters.items()
+                                                             if k in ("mode", "band", "smoothness", "thickness_mm",
+                                                                      "min_thickness_mm", "polarity")},
+                         "segment_convention": convention.to_dict()}
+    return result

@@ -1,0 +1,158 @@
+import numpy as np
+import pytest
+
+from spheroseg import Volume, segment
+from spheroseg.coords import Pose, ProlateSpheroidal
+from spheroseg.epicardium import (
+    add_epicardium, conserving_start, enforce_thickness, initial_epicardium, segment_epicardium,
+)
+from spheroseg.hermite import HermiteGrid
+from spheroseg.myocardium import SEGMENT_NAMES, myocardial_volume_ml, wall_thickness
+from spheroseg.quality import wall_report
+from spheroseg.results import SegmentationResult, TrackingResult
+from spheroseg.surface import Surface
+
+D, L_ENDO, L_EPI = 30.0, 0.8, 1.0
+BASE = np.array([60.0, 60.0, 70.0])
+APEX = BASE + [0, 0, -D * np.cosh(L_ENDO)]  # the long axis towards -z: the probe's side
+
+
+def shell(l0, pose):
+    system = ProlateSpheroidal(D)
+    grid = HermiteGrid(8, 8, (0.0, np.pi / 2), poles=system.poles)
+    return Surface.from_function(system, pose, grid, l0)
+
+
+def shells_image(*, myocardium=150.0, tissue=80.0, blood=20.0, seed=0, l_epi=L_EPI):
+    """Blood inside lambda = 0.8, myocardium to lambda = 1.0, tissue outside
+    (a confocal prolate shell of 6-9 mm), blood beyond the mitral plane;
+    Gaussian noise; 1.5 mm voxels."""
+    spacing = 1.5
+    n = (54, 80, 80)
+    k, j, i = np.meshgrid(*(np.arange(m) * spacing for m in n), indexing="ij")
+    world = np.stack([i, j, k], -1)
+    pose = Pose.from_apex_base(APEX, BASE)
+    lam, _, mu = ProlateSpheroidal(D).from_cartesian(pose.to_local(world))
+    below = mu <= np.pi / 2
+    image = np.where(below & (lam <= L_ENDO), blood, np.where(below & (lam <= l_epi), myocardium, tissue))
+    image = np.where(~below & (lam <= l_epi), blood, image)
+    image = image + np.random.default_rng(seed).normal(0, 12, image.shape)
+    return Volume(np.clip(image, 1, 255).astype(np.uint8), spacing=(spacing,) * 3), pose
+
+
+def test_initial_epicardium_has_the_prior_thickness():
+    endo = Surface.from_apex_base(APEX, BASE)
+    start = initial_epicardium(endo, thickness_mm=8.0)
+    grid = endo.grid
+    v2, v1 = np.meshgrid(grid.node_v2, grid.node_v1, indexing="ij")
+    np.testing.assert_allclose(wall_thickness(endo, start, v1, v2), 8.0, rtol=1e-9)
+    with pytest.raises(ValueError, match="thickness_mm"):
+        initial_epicardium(endo, thickness_mm=-1.0)
+
+
+def test_enforce_thickness_keeps_the_epicardium_outside():
+    endo = Surface.from_apex_base(APEX, BASE)
+    epi = initial_epicardium(endo, thickness_mm=8.0)
+    dented = epi.coefficients.copy()
+    dented[2:4, 1:3, 0] -= 0.4  # a region inside the endocardium
+    dented[2:4, 1:3, 2] += 0.5
+    epi = epi.with_coefficients(endo.grid.constrain(dented))
+    v1, v2 = np.random.default_rng(1).uniform([0, 0], [2 * np.pi, np.pi / 2], (5000, 2)).T
+    assert wall_thickness(endo, epi, v1, v2).min() < 0
+    fixed = enforce_thickness(endo, epi, min_thickness_mm=2.0)
+    assert wall_thickness(endo, fixed, v1, v2).min() >= 2.0 - 0.05
+    # far from the dent the wall is where it was (up to the lift)
+    far = (v2 > 1.3) & (np.abs(np.angle(np.exp(1j * (v1 - 4.0)))) < 0.5)
+    np.testing.assert_allclose(fixed.evaluate(v1[far], v2[far]), epi.evaluate(v1[far], v2[far]), atol=0.03)
+
+
+@pytest.mark.parametrize("myocardium, tissue, polarity", [(150.0, 80.0, "bright"), (60.0, 140.0, "dark")])
+def test_epicardium_of_a_prolate_shell(myocardium, tissue, polarity):
+    volume, pose = shells_image(myocardium=myocardium, tissue=tissue)
+    endo, truth = shell(L_ENDO, pose), shell(L_EPI, pose)
+    result = segment_epicardium(volume, endo, thickness_mm=7.0)
+    assert result.parameters["polarity"] == polarity
+    v1, v2 = np.meshgrid(np.linspace(0, 2 * np.pi, 24, endpoint=False), np.linspace(0.2, 1.5, 12))
+    error = wall_thickness(endo, result.surface, v1, v2) - wall_thickness(endo, truth, v1, v2)
+    assert np.median(np.abs(error)) < 1.0
+    expected = myocardial_volume_ml(endo, truth)
+    assert myocardial_volume_ml(endo, result.surface) == pytest.approx(expected, rel=0.1)
+
+
+def test_segment_with_myocardium_gives_the_wall():
+    volume, pose = shells_image()
+    res = segment(volume, APEX, BASE, myocardium=True, rv_insertion=0.5)
+    assert isinstance(res.epicardium, Surface)
+    np.testing.assert_array_equal(res.myocardium_mask(volume),
+                                  res.epicardium.mask(volume.grid) & ~res.surface.mask(volume.grid))
+    assert res.lv_mass_g == pytest.approx(1.05 * res.myocardial_volume_ml)
+    truth_ml = myocardial_volume_ml(shell(L_ENDO, pose), shell(L_EPI, pose))
+    assert res.myocardial_volume_ml == pytest.approx(truth_ml, rel=0.15)
+    table = res.segments
+    assert [row["name"] for row in table] == list(SEGMENT_NAMES)
+    assert sum(row["cavity_ml"] for row in table) == pytest.approx(res.volume_ml, rel=1e-3)
+    assert sum(row["myocardium_ml"] for row in table) == pytest.approx(res.myocardial_volume_ml, rel=1e-3)
+    assert res.wall_thickness_mm.shape == (17,) and np.all(res.wall_thickness_mm > 3)
+    assert res.segment_convention.rv_insertion == 0.5
+    assert "epicardium" in res.quality and res.parameters["epicardium"]["polarity"] == "bright"
+    plain = segment(volume, APEX, BASE)
+    with pytest.raises(ValueError, match="myocardium=True"):
+        plain.lv_mass_g
+
+
+def test_wall_report_flags_a_collapse_and_an_explosion():
+    rng = np.random.default_rng(0)
+    normal = wall_report(rng.uniform(6, 12, 1000), min_thickness_mm=2.0)
+    assert not normal["poor"] and 8 < normal["thickness_median_mm"] < 10
+    collapsed = wall_report(np.r_[np.full(300, 2.0), rng.uniform(6, 12, 700)], min_thickness_mm=2.0)
+    assert collapsed["poor"] and "collapsed" in collapsed["warnings"][0]
+    exploded = wall_report(rng.uniform(20, 40, 1000), min_thickness_mm=2.0)
+    assert exploded["poor"] and "thick" in exploded["warnings"][0]
+
+
+def test_a_collapsed_epicardium_makes_the_result_poor():
+    # a wall of about 1 mm: the epicardium falls onto its 3 mm floor
+    volume, pose = shells_image(l_epi=0.83)
+    endo = shell(L_ENDO, pose)
+    result = SegmentationResult(endo, 10, True, 20.0, 150.0, 0.1, quality={"warnings": [], "poor": False})
+    add_epicardium(result, volume, thickness_mm=6.0, min_thickness_mm=3.0)
+    assert result.epicardium is not None and result.quality["epicardium"]["floor_fraction"] > 0.1
+    assert result.quality["poor"] and result.quality["warnings"][0].startswith("epicardium: the wall collapsed")
+
+
+def test_tracking_result_segment_curves_and_sdi():
+    pose = Pose.from_apex_base(APEX, BASE)
+    n = 8
+    lam = L_ENDO - 0.1 * (1 - np.cos(2 * np.pi * np.arange(n) / n)) / 2  # smallest at frame 4: half the cycle
+    frames = [SegmentationResult(shell(l0, pose), 1, True, 0.0, 1.0, 0.0, epicardium=shell(l0 + 0.2, pose))
+              for l0 in lam]
+    tracked = TrackingResult(frames)
+    curves = tracked.segment_volumes_ml
+    assert curves.shape == (n, 17)
+    np.testing.assert_allclose(curves.sum(1), tracked.volumes_ml, rtol=1e-4)
+    np.testing.assert_allclose(tracked.times_to_minimum, 50.0, atol=1e-6)
+    assert tracked.sdi == pytest.approx(0.0, abs=1e-6)
+    np.testing.assert_allclose(tracked.masses_g, [1.05 * f.myocardial_volume_ml for f in frames])
+
+
+def test_track_with_myocardium_gives_every_frame_its_wall():
+    from spheroseg import track
+
+    volume, pose = shells_image()
+    other, _ = shells_image(seed=1)
+    tracked = track([volume, other, volume], APEX, BASE, myocardium=True, rv_insertion=0.3)
+    assert all(f.epicardium is not None and f.segment_convention.rv_insertion == 0.3 for f in tracked.frames)
+    truth_g = 1.05 * myocardial_volume_ml(shell(L_ENDO, pose), shell(L_EPI, pose))
+    np.testing.assert_allclose(tracked.masses_g, truth_g, rtol=0.15)
+    assert tracked.segment_volumes_ml.shape == (3, 17)
+
+
+def test_conserving_start_keeps_the_myocardial_volume():
+    pose = Pose.from_apex_base(APEX, BASE)
+    endo, epi = shell(L_ENDO, pose), shell(L_EPI, pose)
+    smaller = shell(0.7, pose)
+    start = conserving_start(smaller, endo, epi)
+    np.testing.assert_allclose(myocardial_volume_ml(smaller, start), myocardial_volume_ml(endo, epi), rtol=1e-9)
+    # a smaller cavity with the same wall volume: a thicker wall
+    v1, v2 = np.meshgrid(np.linspace(0, 6, 7), np.linspace(0.2, 1.5, 5))
+    assert np.all(wall_thickness(smaller, start, v1, v2) > wall_thickness(endo, epi, v1, v2))
