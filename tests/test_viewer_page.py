@@ -436,13 +436,12 @@ def test_find_places_points_the_user_can_drag(browser, phantom_file, tmp_path, m
     """Find: apex and base where ``spheroseg.locate.locate`` says (stubbed:
     the locator has its own tests), its confidence shown; dragging the apex
     re-segments during the drag, the slices follow it; a failure is said."""
-    from types import SimpleNamespace
-
     import spheroseg.viewer.session as session_module
+    from spheroseg.locate import Located
 
     ph, path = phantom_file
     apex = ph.apex + [0.0, 0.0, 4.0]
-    monkeypatch.setattr(session_module, "locate", lambda volume: SimpleNamespace(
+    monkeypatch.setattr(session_module, "locate", lambda volume: Located(
         apex=apex, base=ph.base, normal=np.array([0.0, 0.0, 1.0]), confidence=0.75, reason="stub"))
     server = open_viewer(path, save_root=tmp_path)
     server.serve_in_thread()

@@ -437,16 +437,15 @@ class _NoVentricle(ValueError):
 def test_find_places_apex_and_base_from_the_locator(server, phantom, monkeypatch):
     """``/api/find`` calls ``spheroseg.locate.locate`` (stubbed here: the
     locator has its own tests) and segments from what it returns."""
-    from types import SimpleNamespace
-
     import spheroseg.viewer.session as session_module
+    from spheroseg.locate import Located
 
     calls = []
 
     def found(volume):
         calls.append(volume)
-        return SimpleNamespace(apex=phantom.apex, base=phantom.base, normal=np.array([0.0, 0.0, 1.0]),
-                               confidence=0.75, reason="stub")
+        return Located(apex=phantom.apex, base=phantom.base, normal=np.array([0.0, 0.0, 1.0]),
+                       confidence=0.75, reason="stub")
 
     monkeypatch.setattr(session_module, "locate", found)
     response, payload = request(server, "POST", "/api/find", body={"frame": 0})
@@ -466,10 +465,40 @@ def test_find_places_apex_and_base_from_the_locator(server, phantom, monkeypatch
     monkeypatch.setattr(session_module, "locate", nothing)
     response, payload = request(server, "POST", "/api/find", body={"frame": 0})
     assert response.status == 400 and json.loads(payload)["error"] == "no ventricle found: no dark cavity"
-    monkeypatch.setattr(session_module, "locate", None)
-    response, payload = request(server, "POST", "/api/find", body={"frame": 0})
-    assert response.status == 400 and "spheroseg.locate" in json.loads(payload)["error"]
     assert alive(server)
+
+
+def test_given_points_are_checked_against_the_located_ventricle(server, phantom):
+    """As :func:`spheroseg.segment` does: apex and base swapped make the
+    result poor, with a warning naming the point, and the page's banner
+    gets it; the ventricle is located once a frame, however often the
+    user clicks; the right points are not flagged."""
+    import spheroseg.viewer.session as session_module
+
+    calls = []
+    real = session_module.locate
+
+    def counted(volume):
+        calls.append(volume)
+        return real(volume)
+
+    session_module.locate, restore = counted, real
+    try:
+        for apex, base in ((phantom.base, phantom.apex), (phantom.apex, phantom.base)):
+            response, payload = request(server, "POST", "/api/points",
+                                        body={"frame": 0, "apex": apex.tolist(), "base": base.tolist()})
+            assert response.status == 200, payload
+            event = wait_for(server)
+            api = spheroseg.segment(server.session.frames[0], apex, base)
+            assert event["poor"] == api.quality["poor"]
+            assert event["warnings"] == api.quality["warnings"]
+            if apex is phantom.base:
+                assert event["poor"] and any("swapped" in w for w in event["warnings"])
+            else:
+                assert not any("swapped" in w or "mitral plane" in w for w in event["warnings"])
+    finally:
+        session_module.locate = restore
+    assert len(calls) == 1
 
 
 def test_command_prints_the_address_once_it_answers(phantom, tmp_path):

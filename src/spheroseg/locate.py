@@ -484,12 +484,14 @@ def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) ->
     return warnings
 
 
-def initialise(volume, apex, base, *, annulus=None, init=None, check: bool = True):
+def initialise(volume, apex, base, *, annulus=None, init=None, check: bool = True, locator=None):
     """The points a segmentation starts from, and how they were had.
 
     With no points (and no ``annulus`` or ``init``) the ventricle is located;
     otherwise the points given are used and, if ``check``, located as well to
-    check them (:func:`check_points`).
+    check them (:func:`check_points`).  ``locator(volume) -> Located`` is
+    called in place of :func:`locate` when given (the viewer's, which
+    locates each frame once however often the user clicks).
 
     Returns
     -------
@@ -499,8 +501,9 @@ def initialise(volume, apex, base, *, annulus=None, init=None, check: bool = Tru
         ``located`` (:meth:`Located.as_dict`) when it was located.
     located : Located or None
     """
+    locator = locate if locator is None else locator
     if apex is None and base is None and annulus is None and init is None:
-        found = locate(volume)
+        found = locator(volume)
         return found.apex, found.base, {"method": "located", "apex": found.apex.tolist(),
                                         "base": found.base.tolist(), "located": found.as_dict()}, found
     if apex is None:
@@ -510,7 +513,7 @@ def initialise(volume, apex, base, *, annulus=None, init=None, check: bool = Tru
     found = None
     if check and init is None:
         try:
-            found = locate(volume)
+            found = locator(volume)
             initialisation["located"] = found.as_dict()
         except NoVentricleError as error:
             initialisation["located"] = str(error)

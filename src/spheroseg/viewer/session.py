@@ -32,10 +32,7 @@ from ..surface import Surface
 from ..tracker import Tracker
 from ..volume import Volume
 
-try:
-    from ..locate import NoVentricleError, locate  # noqa: F401 - NoVentricleError is a ValueError
-except ImportError:
-    locate = None
+from ..locate import NoVentricleError, annotate, initialise, locate
 
 #: the display mesh's resolution (around the axis, from apex to base): fixed,
 #: so the page builds its mesh once and only moves the vertices
@@ -225,6 +222,8 @@ class Session:
         self._jobs: queue.Queue = queue.Queue()
         self._nifti: bytes | None = None
         self._faces = None
+        # frame -> what locate() found there (or the NoVentricleError it raised)
+        self._located: dict[int, object] = {}
         self._worker = threading.Thread(target=self._work, name="spheroseg-viewer-worker", daemon=True)
         self._worker.start()
         if points is not None and points.complete:
@@ -258,7 +257,7 @@ class Session:
             "source": self.source.name, "frames": len(self.frames), "shape": list(grid.shape[::-1]),
             "spacing": grid.spacing.tolist(), "faces": _encode(self.faces(), "<u4"),
             "options": self.options.as_parameters(), "points": self.points.as_json(),
-            "job": self._generation, "locate": locate is not None,
+            "job": self._generation,
             "tracking": self._tracking_summary(),
             "save_root": str(self.save_root),
         }
@@ -295,9 +294,9 @@ class Session:
         (LPS mm), the locator's ``confidence`` (0-1) and its ``reason``; a
         one-line ``ValueError`` when no ventricle is found."""
         frame = self.check_frame(frame)
-        if locate is None:
-            raise ValueError("finding the ventricle needs spheroseg.locate, which this installation lacks")
-        found = locate(self.display[frame])
+        with self._lock:
+            self._located.pop(frame, None)
+        found = self._locate(self.frames[frame], frame)
         points = Points(apex=np.asarray(found.apex, dtype=float), base=np.asarray(found.base, dtype=float))
         job = self.set_points(points, frame=frame)
         return {"job": job, **points.as_json(), "confidence": float(found.confidence), "reason": str(found.reason)}
@@ -473,12 +472,38 @@ class Session:
 
         return callback
 
+    def _locate(self, volume, frame: int):
+        """:func:`spheroseg.locate.locate` on ``frame``, once a frame (the
+        clicks are checked against it after every segmentation)."""
+        with self._lock:
+            found = self._located.get(frame)
+        if found is None:
+            try:
+                found = locate(volume)
+            except NoVentricleError as error:
+                found = error
+            with self._lock:
+                self._located[frame] = found
+        if isinstance(found, NoVentricleError):
+            raise found
+        return found
+
+    def _check_points(self, result, frame: int, points: Points) -> None:
+        """Check the clicked points against the located ventricle and say so
+        in ``result.quality``, as :func:`spheroseg.segment` does."""
+        keywords = points.keywords()
+        _, _, initialisation, located = initialise(
+            self.frames[frame], keywords["apex"], keywords["base"], annulus=keywords["annulus"],
+            locator=lambda volume: self._locate(volume, frame))
+        annotate(result, initialisation, located)
+
     def _segment(self, job: int, frame: int, points: Points) -> None:
         tracker = Tracker(self.frames[frame], **points.keywords(), **self.options.as_parameters())
         self.events.publish("surface", self._surface_data(frame, tracker.surface, final=False, job=job))
         result = tracker.run(self._stream(job, frame))
         if not self._current(job):
             return
+        self._check_points(result, frame, points)
         with self._lock:
             self.results[frame] = (points, result)
         self.events.publish("surface", self._surface_data(frame, result.surface, final=True, result=result, job=job))
@@ -495,6 +520,7 @@ class Session:
                 tracker = Tracker(self.frames[frame], **points.keywords(), **self.options.as_parameters())
                 if t == frame:
                     results[t] = tracker.run(self._stream(job, t))
+                    self._check_points(results[t], t, points)
                     self._publish_frame(job, t, results[t], done, n)
                     continue
                 tracker.run()

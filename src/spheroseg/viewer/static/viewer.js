@@ -773,7 +773,6 @@ async function start() {
   state.job = study.job;
   $('source').textContent = study.source;
   $('folder').value = `${study.source.replace(/(\.seq\.nrrd|\.nii\.gz|\.[^.]*)$/, '')}-spheroseg`;
-  $('find').disabled = !study.locate;
   nv = new niivue.Niivue({
     backColor: [0.06, 0.07, 0.09, 1], crosshairColor: [0.25, 0.55, 1, 0.6], meshThicknessOn2D: 0, meshXRay: 0.35,
     dragAndDropEnabled: false, isSliceMM: true, multiplanarShowRender: niivue.SHOW_RENDER.ALWAYS,
