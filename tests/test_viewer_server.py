@@ -496,9 +496,16 @@ def test_given_points_are_checked_against_the_located_ventricle(server, phantom)
                 assert event["poor"] and any("swapped" in w for w in event["warnings"])
             else:
                 assert not any("swapped" in w or "mitral plane" in w for w in event["warnings"])
+        # the apex alone: the ventricle of frame 0 is located while the base is placed
+        server.session._located.clear()
+        response, _ = request(server, "POST", "/api/points", body={"frame": 0, "apex": phantom.apex.tolist()})
+        assert response.status == 200
+        end = time.monotonic() + 30
+        while 0 not in server.session._located and time.monotonic() < end:
+            time.sleep(0.05)
     finally:
         session_module.locate = restore
-    assert len(calls) == 1
+    assert len(calls) == 2 and 0 in server.session._located
 
 
 def test_command_prints_the_address_once_it_answers(phantom, tmp_path):

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import base64
 import collections
+import contextlib
 import os
 import queue
 import shutil
@@ -285,6 +286,8 @@ class Session:
             self._jobs.put(("segment", job, frame, points))
         else:
             self.events.publish("cleared", {"job": job, "frame": frame})
+            if points.apex is not None:  # locate while the user places the base: its click check is then ready
+                self._jobs.put(("locate", job, frame, None))
         return job
 
     def find(self, *, frame: int) -> dict:
@@ -449,8 +452,11 @@ class Session:
             try:
                 if kind == "segment":
                     self._segment(job, frame, points)
-                else:
+                elif kind == "track":
                     self._track(job, frame, points)
+                else:
+                    with contextlib.suppress(NoVentricleError):  # refused: the click check says nothing
+                        self._locate(self.frames[frame], frame)
             except Exception as exc:  # reported to the page; the worker goes on
                 message = " ".join(str(exc).split()) or type(exc).__name__
                 self.events.publish("failure", {"job": job, "message": message})
