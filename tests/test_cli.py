@@ -45,6 +45,32 @@ def points_args(ph, shift):
     return ["--apex", *(ph.apex + shift), "--base", *(ph.base + shift)]
 
 
+def test_segment_with_the_myocardium(case, tmp_path):
+    """``--myocardium``: the API's mass and myocardium mask, the epicardial
+    mesh and the heart as CMISS volume elements; ``--force`` then replaces
+    the whole set, these files included."""
+    folder, image, ph = case
+    path = folder / "myo.mha"
+    sitk.WriteImage(image, str(path))
+    shift = np.array(image.GetOrigin())
+    rv = ph.base + shift + [0.0, 20.0, 0.0]
+    out = tmp_path / "out"
+    proc = run("segment", path, *points_args(ph, shift), "--myocardium", "--rv-insertion", *rv, "--out", out,
+               "--quiet", "--no-report", "--allow-poor")
+    assert proc.returncode == 0, proc.stderr
+    results = json.loads((out / "results.json").read_text())
+    vol = load(path)
+    api = segment(vol, ph.apex + shift, ph.base + shift, myocardium=True, rv_insertion=rv)
+    assert results["myocardium"]["lv_mass_g"] == pytest.approx(api.lv_mass_g, rel=1e-9)
+    mask = sitk.GetArrayFromImage(sitk.ReadImage(str(out / "myocardium.mha"))).astype(bool)
+    np.testing.assert_array_equal(mask, api.myocardium_mask(vol))
+    for name in ("epicardium.vtk", "epicardium.ply", "epicardium.json", "heart.exnode", "heart.exelem"):
+        assert (out / name).stat().st_size > 0, name
+    proc = run("segment", path, *points_args(ph, shift), "--out", out, "--quiet", "--no-report", "--force")
+    assert proc.returncode == 0, proc.stderr
+    assert not (out / "myocardium.mha").exists() and not (out / "heart.exnode").exists()
+
+
 @pytest.mark.parametrize("suffix", [".mha", ".mhd", ".nii.gz", ".nrrd"])
 def test_segment_each_format(case, suffix, tmp_path):
     folder, image, ph = case

@@ -128,6 +128,12 @@ def build_parser() -> argparse.ArgumentParser:
     seg = sub.add_parser("segment", help="segment one 3D image", description="Segment one 3D image. " + _EXIT_HELP)
     seg.add_argument("image", help="3D image (.mhd, .mha, .nii[.gz], .nrrd, .npy, DICOM folder)")
     _add_common(seg)
+    seg.add_argument("--myocardium", action="store_true",
+                     help="also segment the epicardium: the myocardium mask, LV mass, wall thickness and the "
+                          "17 segments (results.json), the epicardial mesh and the heart as CMISS volume elements")
+    seg.add_argument("--rv-insertion", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                     help="with --myocardium: the anterior insertion of the right ventricle, world mm, where "
+                          "segment 1 starts (default: the model frame's first axis; docs/segments.png)")
     tr = sub.add_parser("track", help="segment every frame of a 3D+t sequence; EDV, ESV, EF",
                         description="Segment every frame of a 3D+t sequence; EDV, ESV, EF. " + _EXIT_HELP)
     tr.add_argument("sequence", help="4D image, .seq.nrrd, folder or glob of 3D frames, DICOM folder")
@@ -204,7 +210,9 @@ def _output_set() -> list[str]:
     from .io import MASK_SUFFIXES
 
     return (["results.json", "report.png", "masks", "meshes", "surface.json", "surface.exnode", "surface.exelem",
-             "mesh.vtk", "mesh.ply", "mesh.stl", "mask.raw", "mask.zraw"] + ["mask" + s for s in MASK_SUFFIXES])
+             "mesh.vtk", "mesh.ply", "mesh.stl", "mask.raw", "mask.zraw", "epicardium.vtk", "epicardium.ply",
+             "epicardium.json", "heart.exnode", "heart.exelem", "myocardium.raw", "myocardium.zraw"]
+            + ["mask" + s for s in MASK_SUFFIXES] + ["myocardium" + s for s in MASK_SUFFIXES])
 
 
 def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -> None:
@@ -377,7 +385,8 @@ def cmd_segment(args) -> int:
     with _report_worker(args) as worker:
         volume = _load_timed(source, args, seconds)
         t0 = time.perf_counter()
-        result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, **_segment_kwargs(args))
+        result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, myocardium=args.myocardium,
+                         rv_insertion=args.rv_insertion, **_segment_kwargs(args))
         seconds["segment"] = time.perf_counter() - t0
         seconds["descent"] = result.seconds
         written = write_folder_atomically(out, lambda tmp: write_segmentation_outputs(
