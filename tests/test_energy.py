@@ -99,6 +99,21 @@ def test_landmark_beyond_base_is_refused(rng):
         Landmarks.from_world(model, [BASE - 10 * (APEX - BASE) / np.linalg.norm(APEX - BASE)])
 
 
+@pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])
+def test_landmarks_on_the_base_plane_are_in_range(system, rng):
+    """Points in the base plane itself (the tracker's base ring) come back
+    from the coordinate map a rounding error beyond it: they are held, on
+    the plane; 0.1 mm beyond it they are refused."""
+    model, _ = random_model(system, rng)
+    pose = model.pose
+    angles = np.linspace(0, 2 * np.pi, 97)
+    ring = np.stack([np.zeros_like(angles), 12.0 * np.cos(angles), 12.0 * np.sin(angles)], axis=1)
+    lm = Landmarks.from_world(model, pose.to_world(ring))
+    assert lm.v0.shape == (len(angles),) and np.all(np.isfinite(lm.v0)) and np.all(np.isfinite(lm.basis))
+    with pytest.raises(ValueError, match="beyond the base plane"):
+        Landmarks.from_world(model, pose.to_world(ring - [0.1, 0.0, 0.0]))
+
+
 def test_region_force_sign():
     # dark (blood-like) grey at the surface: moving the surface out lowers the energy
     assert region_force(20.0, 30.0, 110.0) < 0 < region_force(100.0, 30.0, 110.0)

@@ -224,8 +224,12 @@ class Landmarks:
             raise ValueError("landmarks must be finite points")
         v0, v1, v2 = model.system.from_cartesian(model.pose.to_local(points))
         lo, hi = model.grid.v2_range
-        if np.any((v2 < lo) | (v2 > hi)):
+        # a point on the base plane itself (the tracker's base ring) comes
+        # back from the coordinate map a rounding error beyond it
+        rounding = 1e-9 * max(1.0, abs(hi - lo))
+        if np.any((v2 < lo - rounding) | (v2 > hi + rounding)):
             raise ValueError("a landmark lies beyond the base plane (outside the cavity's range)")
+        v2 = np.clip(v2, lo, hi)
         h0 = model.system.scale_factors(v0, v1, v2)[0]
         # dense: for a few points (the apex) the sparse basis times the
         # constraints costs several times more, and the descent multiplies
