@@ -110,7 +110,9 @@ def test_a_level_in_one_compiled_loop_equals_its_iterations(phantom, term_class,
                 d.iterate(obs, term.force(d.backend, ph.volume, obs))
             runs.append((d, term))
         (d, term), (d_ref, term_ref) = runs
+        before = dict(vars(term))
         run = d.run(ph.volume, term, tol=tol, max_iterations=cap)
+        assert vars(term).keys() == before.keys() and all(vars(term)[k] is v for k, v in before.items())
         iterations, motion, converged, obs, force = _stepped(d_ref, ph.volume, term_ref, tol=tol, max_iterations=cap)
         assert (run.iterations, run.converged) == (iterations, converged) and iterations > 1
         assert converged == (tol > 0)
@@ -121,9 +123,9 @@ def test_a_level_in_one_compiled_loop_equals_its_iterations(phantom, term_class,
         assert (d.step < step) == adaptive_step
         for name in ("f", "h0", "u", "world", "normal"):
             np.testing.assert_allclose(getattr(run.observation, name), getattr(obs, name), **close, err_msg=name)
-        for a, b in zip(run.force, force):
+        for a, b in zip(run.force[:5], force[:5]):
             np.testing.assert_allclose(a, b, **close)
-        for a, b in zip(term.grey_means, term_ref.grey_means):
+        for a, b in zip(run.force.grey_means, force.grey_means):
             np.testing.assert_allclose(a, b, **close)
 
 def test_a_compiled_loop_without_image_data_says_so(phantom):

@@ -133,13 +133,23 @@ class Force(NamedTuple):
     """What the force of eq. 22 needs at the sample points: the grey level
     ``u`` (or a data term's transform of it), the region means in the same
     units (scalars or arrays), the squared contrast the force is divided
-    by, and the bound of the resulting speed (in steps)."""
+    by, the bound of the resulting speed (in steps), and the region means
+    as measured (``measured``: in image units, before a term bounds or
+    moves them; None: ``c_in``, ``c_out`` themselves)."""
 
     u: np.ndarray
     c_in: object
     c_out: object
     scale: float
     clip: float = 1.0
+    measured: tuple | None = None
+
+    @property
+    def grey_means(self) -> tuple:
+        """The region means a result reports: :attr:`measured`, else
+        ``(c_in, c_out)`` (scalars, or arrays over the sample points whose
+        medians a result reports)."""
+        return (self.c_in, self.c_out) if self.measured is None else self.measured
 
 
 def _ratio(numerator: float, denominator: float) -> float:
@@ -170,9 +180,16 @@ class DataTerm:
         ``v`` (0: the grey levels; None: not known yet).
     step_factor : float
         The step of this term's stage, in multiples of the ``step`` option.
+    hands_over_bands : bool
+        Whether the ``measured`` means of its forces are the band means at
+        the sample points, from which a following stage may start
+        (:class:`LocalMeans`).
+    starts_from_bands : bool
+        Whether its stage starts from the band means the previous stage
+        measured last (:meth:`IntensityInterface.freeze`).
     loop_kind : {"fixed", "global", "local"} or None
         How a level run in one compiled loop computes this force
-        (:meth:`spheroseg.descent.Descent.run`): from :meth:`fixed_means`,
+        (:meth:`spheroseg.descent.Descent.run`): from :meth:`fixed_force`,
         as :meth:`global_means`, as :meth:`LocalMeans.band_means`; None: it
         cannot (the level then runs iteration by iteration).
     offsets : array or None
@@ -183,6 +200,8 @@ class DataTerm:
     needs_bands = False
     exponent: float | None = 0.0
     step_factor = 1.0
+    hands_over_bands = False
+    starts_from_bands = False
     loop_kind: str | None = None
     offsets: np.ndarray | None = None
 
@@ -194,9 +213,9 @@ class DataTerm:
         self.shell_offsets = shell_offsets(band_out)
 
     def force(self, backend, volume, obs) -> Force:
-        """The :class:`Force` for the observation ``obs``.  Sets
-        :attr:`grey_means`, the region means in image units (scalars, or
-        arrays over the sample points whose medians a result reports).
+        """The :class:`Force` for the observation ``obs``; the term keeps
+        nothing of it (the tracker keeps what a result reports,
+        :attr:`Force.grey_means`).
 
         Here: :meth:`statistics` of the samples at :attr:`offsets` along
         the normals of the band rows (the built-in terms override this)."""
@@ -204,9 +223,7 @@ class DataTerm:
             raise NotImplementedError(f"{type(self).__name__} defines neither force() nor offsets and statistics()")
         along = backend.samples_along(volume, obs, np.asarray(self.offsets, dtype=float),
                                       backend.discretisation.band_rows)
-        force = self.statistics(obs.u, along)
-        self.grey_means = (force.c_in, force.c_out)
-        return force
+        return self.statistics(obs.u, along)
 
     def statistics(self, u: np.ndarray, along: np.ndarray) -> Force:
         """A term of one's own: the force from what the iteration observed.
@@ -239,15 +256,10 @@ class DataTerm:
     def reset(self) -> None:
         """Forget what was measured on earlier frames (a new frame starts)."""
 
-    def fixed_means(self) -> tuple:
-        """``(c_in, c_out, scale)`` of a force that does not change in a level
-        (``loop_kind`` "fixed")."""
+    def fixed_force(self, u=None) -> Force:
+        """The force, at grey levels ``u``, of a term whose statistics do
+        not change in a level (``loop_kind`` "fixed")."""
         raise NotImplementedError
-
-    def set_means(self, c_in, c_out) -> None:
-        """Keep the region means measured last by a compiled loop, as
-        :meth:`force` keeps those it measures (:attr:`grey_means`)."""
-        self.grey_means = (c_in, c_out)
 
     def global_means(self, backend, volume, obs) -> tuple[float, float]:
         """Volume-weighted cavity mean and area-weighted shell mean, from the
@@ -277,13 +289,12 @@ class FixedInterface(DataTerm):
         lo, hi = samples[samples <= mid], samples[samples > mid]
         half = (hi.mean() - lo.mean()) / 2 if lo.size and hi.size else self.spread
         self.c_in, self.c_out = mid - half, mid + half
-        self.grey_means = (self.c_in, self.c_out)
 
     def force(self, backend, volume, obs) -> Force:
-        return Force(obs.u, *self.fixed_means())
+        return self.fixed_force(obs.u)
 
-    def fixed_means(self) -> tuple:
-        return self.c_in, self.c_out, (self.c_out - self.c_in) ** 2
+    def fixed_force(self, u=None) -> Force:
+        return Force(u, self.c_in, self.c_out, (self.c_out - self.c_in) ** 2)
 
 
 class GlobalMeans(DataTerm):
@@ -301,30 +312,23 @@ class GlobalMeans(DataTerm):
     loop_kind = "global"
 
     def force(self, backend, volume, obs) -> Force:
-        c_in, c_out = self.global_means(backend, volume, obs)
-        self.set_means(c_in, c_out)  # as measured (a result reports them)
-        c_out = max(c_out, c_in)
-        return Force(obs.u, c_in, c_out, max((c_out - c_in) ** 2, self.min_scale))
+        c_in, measured_out = self.global_means(backend, volume, obs)
+        c_out = max(measured_out, c_in)
+        return Force(obs.u, c_in, c_out, max((c_out - c_in) ** 2, self.min_scale), measured=(c_in, measured_out))
 
 
 class LocalMeans(DataTerm):
     """Band means along each normal, smoothed over the surface."""
 
     needs_bands = True
+    hands_over_bands = True
     loop_kind = "local"
 
     def force(self, backend, volume, obs) -> Force:
         c_in, c_out = self.band_means(backend, obs)
-        self.set_means(c_in, c_out)
         contrast = np.maximum(c_out - c_in, 0.0)
-        return Force(obs.u, c_in, c_in + contrast, max(nanmedian(contrast) ** 2, self.min_scale))
-
-    def set_means(self, c_in, c_out) -> None:
-        self.band_fields = (c_in, c_out)  # what the intensity interface starts from
-        self.grey_means = (c_in, c_out)  # their medians only when a result is made
-
-    def reset(self) -> None:
-        self.band_fields = None
+        return Force(obs.u, c_in, c_in + contrast, max(nanmedian(contrast) ** 2, self.min_scale),
+                     measured=(c_in, c_out))
 
     def band_means(self, backend, obs):
         """The band means projected on the Hermite space (the band rows'
@@ -412,6 +416,8 @@ class IntensityInterface(LocalMeans):
     #: step halves it back if the surface oscillates); taken only when the
     #: local means settled (see ``Tracker``).
     step_factor = 2.0
+    hands_over_bands = False
+    starts_from_bands = True
 
     def __init__(self, samples, *, band=8.0, band_out=15.0, interface=None):
         self.reset()  # first: the base class reads needs_bands
@@ -437,10 +443,10 @@ class IntensityInterface(LocalMeans):
     def force(self, backend, volume, obs) -> Force:
         if self._frozen is None:
             self.freeze(backend, volume, obs, *self.band_means(backend, obs))
-        return Force(obs.u, *self._frozen)
+        return self.fixed_force(obs.u)
 
-    def fixed_means(self) -> tuple:
-        return self._frozen
+    def fixed_force(self, u=None) -> Force:
+        return Force(u, *self._frozen, measured=self._measured)
 
     def freeze(self, backend, volume, obs, c_in, c_out) -> None:
         """Set the frozen levels from the band means ``c_in``, ``c_out``
@@ -455,7 +461,7 @@ class IntensityInterface(LocalMeans):
         c_out = c_in + contrast
         k = self.nepers
         threshold = c_out + k * (np.logaddexp(c_in / k, c_out / k) - c_out / k - np.log(2.0))
-        self.grey_means = (c_in, c_out)  # their medians only when a result is made
+        self._measured = (c_in, c_out)  # what a result reports (their medians)
         self._frozen = (threshold - contrast / 2, threshold + contrast / 2,
                         max(float(nanmedian(contrast)) ** 2, self.min_scale))
 

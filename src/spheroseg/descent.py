@@ -186,13 +186,13 @@ class Descent:
 
         n = self.model.n_samples
         if kind == "fixed":
-            fixed = data_term.fixed_means()
-            means = tuple(np.broadcast_to(np.asarray(c, float), n).copy() for c in fixed[:2])
+            fixed = data_term.fixed_force()
+            means = tuple(np.broadcast_to(np.asarray(c, float), n).copy() for c in (fixed.c_in, fixed.c_out))
         else:
-            fixed, means = (0.0, 0.0, 0.0), (self._no_means, self._no_means)
+            fixed, means = Force(None, 0.0, 0.0, 0.0), (self._no_means, self._no_means)
         term = _kernels.LoopTerm(
             {"fixed": _kernels.FIXED_MEANS, "global": _kernels.GLOBAL_MEANS, "local": _kernels.LOCAL_MEANS}[kind],
-            *means, float(fixed[2]), data_term.min_scale, CAVITY_FRACTIONS, data_term.shell_offsets,
+            *means, float(fixed.scale), data_term.min_scale, CAVITY_FRACTIONS, data_term.shell_offsets,
             data_term.band_offsets if kind == "local" else _NO_OFFSETS)
         previous = np.zeros(n) if self._previous_motion is None else self._previous_motion[0].copy()
         state = np.zeros(1, dtype=_kernels.LOOP_STATE)
@@ -217,13 +217,11 @@ class Descent:
         scale = float(s["scale"])
         if kind == "global":
             c_in, c_out = float(s["c_in"]), float(s["c_out"])
-            data_term.set_means(c_in, c_out)
-            force = Force(obs.u, c_in, max(c_out, c_in), scale)
+            force = Force(obs.u, c_in, max(c_out, c_in), scale, measured=(c_in, c_out))
         elif kind == "local":
-            data_term.set_means(means[0], means[1])
-            force = Force(obs.u, means[0], means[2], scale)
+            force = Force(obs.u, means[0], means[2], scale, measured=(means[0], means[1]))
         else:
-            force = Force(obs.u, fixed[0], fixed[1], scale)
+            force = fixed._replace(u=obs.u, scale=scale)
         return LevelRun(int(s["iterations"]), float(s["motion"]), status == _kernels.CONVERGED, obs, force)
 
     def restart(self, step: float) -> None:

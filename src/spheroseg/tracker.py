@@ -196,6 +196,7 @@ class Tracker:
         self._threads = kernel_thread_count(opts.threads)
         with kernel_threads(self._threads):
             self._terms = self._prepare_terms()
+            self._band_fields = None  # the band means the last local-means level measured
         self.iteration, self.motion, self.status = 0, np.nan, None
         self._level_iterations = 0
         self._converged = False
@@ -333,7 +334,9 @@ class Tracker:
         """Keep what ``iterations`` (the last of which observed ``obs``
         and moved by ``motion``) leave for a result, and end the level when
         its last one converged or the level reached its cap."""
-        self.c_in, self.c_out = term.grey_means
+        self.c_in, self.c_out = force.grey_means
+        if term.hands_over_bands:
+            self._band_fields = force.measured  # what the next stage may start from
         self._last = (obs.u, force, term.spread)  # for the quality report, read when a result is made
         self._observation = obs  # valid until the next observation (a stage's hand-over reads it)
         self.motion = motion
@@ -349,7 +352,7 @@ class Tracker:
         if self.level + 1 < len(self.levels):
             self.level += 1
             self._level_iterations = 0
-            self._terms[self.levels[self.level].data_term].reset()
+            self._start_term()
             if self.levels[self.level].patches == self.levels[self.level - 1].patches:
                 try:
                     self._hand_over()
@@ -366,15 +369,21 @@ class Tracker:
         else:
             self.status = 0 if converged else 1
 
+    def _start_term(self) -> None:
+        """The current level's data term forgets what it measured before
+        (a new level or frame), and so do the band means it hands over."""
+        term = self._terms[self.levels[self.level].data_term]
+        term.reset()
+        if term.hands_over_bands:
+            self._band_fields = None
+
     def _hand_over(self) -> None:
         """The intensity interface starts from the local means' last band
         means, about the wall where they stopped (when they ran in this frame)."""
-        previous = self._terms[self.levels[self.level - 1].data_term]
         term = self._terms[self.levels[self.level].data_term]
-        fields = getattr(previous, "band_fields", None)
-        if fields is not None and hasattr(term, "freeze"):
+        if self._band_fields is not None and term.starts_from_bands:
             with kernel_threads(self._threads):
-                term.freeze(self._descent.backend, self.volume, self._observation, *fields)
+                term.freeze(self._descent.backend, self.volume, self._observation, *self._band_fields)
 
     def _skip_empty_levels(self) -> None:
         if self.status is None and self.levels[self.level].max_iterations == 0:
@@ -494,7 +503,7 @@ class Tracker:
             self._descent.set_surface(surface)
             self._descent.set_reference(surface)
             self._descent.reset_step(self._stage_step())
-        self._terms[self.levels[self.level].data_term].reset()
+        self._start_term()
         self.iteration, self._level_iterations, self.status, self._converged = 0, 0, None, False
         self._no_speckle = False
         self._seconds = time.perf_counter() - started
@@ -544,8 +553,8 @@ class Tracker:
                     for tracker in candidates]
         best = candidates[int(np.argmin(energies))]
         if energies[0] - min(energies) > RESEGMENT_MARGIN * abs(energies[0]):
-            kept = ("_descent", "_terms", "_reference", "c_in", "c_out", "_last", "_observation", "motion",
-                    "_converged", "status")
+            kept = ("_descent", "_terms", "_band_fields", "_reference", "c_in", "c_out", "_last", "_observation",
+                    "motion", "_converged", "status")
             self.__dict__.update({name: best.__dict__[name] for name in kept if name in best.__dict__})
             self.level = len(self.levels) - 1  # every candidate ended on its finest level
             self.iteration += best.iteration
@@ -556,8 +565,11 @@ class Tracker:
         interface: the medians of its fixed levels (the intensity
         interface's), else of the region means last measured."""
         term = self._terms[self.levels[-1].data_term]
-        fixed = getattr(term, "_frozen", None)
-        c_in, c_out = (fixed[0], fixed[1]) if fixed is not None else (self.c_in, self.c_out)
+        if term.loop_kind == "fixed":
+            fixed = term.fixed_force()
+            c_in, c_out = fixed.c_in, fixed.c_out
+        else:
+            c_in, c_out = self.c_in, self.c_out
         return float(nanmedian(c_in)), float(nanmedian(c_out))
 
     def _follow_base(self, volume) -> None:
