@@ -161,6 +161,14 @@ def test_track_without_points_locates_in_the_first_frame():
     assert result.frames[1].initialisation is None
 
 
+def test_a_cavity_smaller_than_the_usual_range_alone_takes_the_confidence_under_a_half():
+    # 25 mL, below the 40-350 mL of the usual ventricles; everything else is clear
+    phantom = make_phantom(seed=31, spacing=2.0, length=64.0, radius=14.0, wall=13.5)
+    found = locate(phantom.volume)
+    assert found.scores["size"] < 1.0 and min(v for k, v in found.scores.items() if k != "size") == 1.0
+    assert found.confidence < 0.5 and "size" in found.reason
+
+
 CETUS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cetus"
 
 
