@@ -169,23 +169,21 @@ def test_a_cavity_smaller_than_the_usual_range_alone_takes_the_confidence_under_
     assert found.confidence < 0.5 and "size" in found.reason
 
 
-CETUS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cetus"
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def patient7():
-    points_file = CETUS / "Patient7_points.json"
-    if not points_file.is_file():
+    from importlib.util import module_from_spec, spec_from_file_location
+
+    # the benchmark's loader, so that the test reads the data as the figures do
+    spec = spec_from_file_location("benchmark_locate", ROOT / "benchmarks" / "locate.py")
+    benchmark = module_from_spec(spec)
+    spec.loader.exec_module(benchmark)
+    cases = benchmark.patient7(ROOT.parent / "shared" / "data" / "cetus")
+    if cases is None:
         pytest.skip("CETUS Patient 7 is not in ../shared/data/cetus")
-    points = json.loads(points_file.read_text())
-    spacing = points["assumed_spacing_mm"]
-    out = {}
-    for phase in ("ED", "ES"):
-        p = points[phase]
-        volume = Volume(np.load(CETUS / p["file"]), spacing=(spacing,) * 3, no_data_value=0)
-        apex, base = (np.array(p[k][::-1], float) * spacing for k in ("apex_index", "base_index"))
-        out[phase] = volume, apex, base
-    return out
+    return cases
 
 
 @pytest.mark.parametrize("phase", ["ED", "ES"])
