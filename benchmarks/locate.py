@@ -70,8 +70,10 @@ def phantom_cases(n: int, seed: int = 29) -> list[dict]:
     return rows
 
 
-def cetus() -> dict | None:
-    points_file = CETUS / "Patient7_points.json"
+def patient7(directory: Path = CETUS) -> dict | None:
+    """CETUS Patient 7 as ``{phase: (volume, apex, base)}`` (0.9 mm assumed,
+    the clicked points in world mm), or None when ``directory`` lacks it."""
+    points_file = directory / "Patient7_points.json"
     if not points_file.is_file():
         return None
     points = json.loads(points_file.read_text())
@@ -79,8 +81,17 @@ def cetus() -> dict | None:
     out = {}
     for phase in ("ED", "ES"):
         p = points[phase]
-        volume = Volume(np.load(CETUS / p["file"]), spacing=(spacing,) * 3, no_data_value=0)
-        apex, base = (np.array(p[k][::-1], float) * spacing for k in ("apex_index", "base_index"))
+        volume = Volume(np.load(directory / p["file"]), spacing=(spacing,) * 3, no_data_value=0)
+        out[phase] = (volume, *(np.array(p[k][::-1], float) * spacing for k in ("apex_index", "base_index")))
+    return out
+
+
+def cetus() -> dict | None:
+    cases = patient7()
+    if cases is None:
+        return None
+    out = {}
+    for phase, (volume, apex, base) in cases.items():
         clicked = segment(volume, apex, base, check=False).volume_ml
         row = {"clicked_ml": clicked}
         try:

@@ -384,7 +384,9 @@ def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict
     l_lo, l_hi = LENGTH_RANGE_MM
     scores = {
         "waist": 0.4 if stepped or waist == last else float(np.clip(depth_of_waist / 0.2, 0, 1)),
-        "size": 1.0 if SIZE_RANGE_ML[0] <= volume_ml <= SIZE_RANGE_ML[1] else 0.5,
+        # alone enough to take the confidence under 0.5: a pool of an unusual
+        # size is as often the wrong region, or part of the right one
+        "size": 1.0 if SIZE_RANGE_ML[0] <= volume_ml <= SIZE_RANGE_ML[1] else 0.4,
         "length": float(l_lo <= length <= l_hi),
         "taper": float(np.clip((0.65 - taper) / 0.2, 0, 1)),
     }
