@@ -110,6 +110,14 @@ def test_wall_report_flags_a_collapse_and_an_explosion():
     assert exploded["poor"] and "thick" in exploded["warnings"][0]
 
 
+def test_wall_report_flags_a_wall_thin_everywhere_but_off_its_floor():
+    # the tilted contrast_low case: 3 mm nearly everywhere, 2 mm floor seldom reached
+    rng = np.random.default_rng(1)
+    thin = wall_report(np.r_[rng.uniform(2.6, 3.4, 950), rng.uniform(6, 9, 50)], min_thickness_mm=2.0)
+    assert thin["floor_fraction"] < 0.1 and thin["poor"] and "thin" in thin["warnings"][0]
+    assert not wall_report(rng.uniform(4.5, 7.0, 1000), min_thickness_mm=2.0)["poor"]
+
+
 def test_a_collapsed_epicardium_makes_the_result_poor():
     # a wall of about 1 mm: the epicardium falls onto its 3 mm floor
     volume, pose = shells_image(l_epi=0.83)
