@@ -78,7 +78,7 @@ def test_epicardium_of_a_prolate_shell(myocardium, tissue, polarity):
     volume, pose = shells_image(myocardium=myocardium, tissue=tissue)
     endo, truth = shell(L_ENDO, pose), shell(L_EPI, pose)
     # Gaussian noise on sharp edges, no log-compressed speckle: the midpoint is the edge
-    result = segment_epicardium(volume, endo, thickness_mm=7.0, interface="midpoint")
+    result = segment_epicardium(volume, endo, thickness_mm=7.0, boundary="midpoint")
     assert result.parameters["polarity"] == polarity
     v1, v2 = np.meshgrid(np.linspace(0, 2 * np.pi, 24, endpoint=False), np.linspace(0.2, 1.5, 12))
     error = wall_thickness(endo, result.surface, v1, v2) - wall_thickness(endo, truth, v1, v2)
@@ -126,11 +126,13 @@ def test_intensity_interface_removes_the_midpoints_bias():
     endo, truth = shell(L_ENDO, pose), shell(L_EPI, pose)
     v1, v2 = np.meshgrid(np.linspace(0, 2 * np.pi, 24, endpoint=False), np.linspace(0.2, 1.5, 12))
     errors = {}
-    for interface in ("intensity", "midpoint"):
-        result = segment_epicardium(volume, endo, thickness_mm=7.0, interface=interface)
-        assert result.parameters["interface"] == interface
-        errors[interface] = np.median(wall_thickness(endo, result.surface, v1, v2) - wall_thickness(endo, truth, v1, v2))
+    for boundary in ("intensity", "midpoint"):
+        result = segment_epicardium(volume, endo, thickness_mm=7.0, boundary=boundary)
+        assert result.parameters["boundary"] == boundary
+        errors[boundary] = np.median(wall_thickness(endo, result.surface, v1, v2) - wall_thickness(endo, truth, v1, v2))
     assert abs(errors["intensity"]) < 0.5 < errors["midpoint"] - abs(errors["intensity"])
+    with pytest.raises(ValueError, match="boundary must be"):
+        segment_epicardium(volume, endo, boundary="outer")
 
 
 def test_segment_with_myocardium_gives_the_wall():

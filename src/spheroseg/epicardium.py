@@ -222,7 +222,7 @@ class MirroredInterface(LocalMeans):
 
 
 def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: float = 8.0,
-                       min_thickness_mm: float = 2.0, polarity: str = "auto", interface: str = "intensity",
+                       min_thickness_mm: float = 2.0, polarity: str = "auto", boundary: str = "intensity",
                        start: Surface | None = None, **options) -> SegmentationResult:
     """The epicardium of a segmented endocardium.
 
@@ -242,7 +242,7 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
         Whether the myocardium is brighter ("bright") or darker than what
         lies outside it; "auto" measures it at the start
         (:func:`wall_polarity`).
-    interface : {"intensity", "midpoint"}
+    boundary : {"intensity", "midpoint"}
         Where a bright wall's outer boundary lies: where the echo intensity
         is half way between the wall's and what lies beyond it
         (:class:`MirroredInterface`; the midpoint where the image has no
@@ -256,7 +256,7 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     **options
         :class:`spheroseg.SegmentOptions` of the descent; by default
         ``mode="local"`` (:class:`MirroredInterface` on a bright wall with
-        ``interface="intensity"``), ``band=4`` (the inner band stays in the wall),
+        ``boundary="intensity"``), ``band=4`` (the inner band stays in the wall),
         ``apex_weight=0`` (the epicardial apex is not clicked).
 
     Returns
@@ -266,8 +266,8 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     """
     if polarity not in ("auto", "bright", "dark"):
         raise ValueError(f"polarity must be 'auto', 'bright' or 'dark', got {polarity!r}")
-    if interface not in ("intensity", "midpoint"):
-        raise ValueError(f"interface must be 'intensity' or 'midpoint', got {interface!r}")
+    if boundary not in ("intensity", "midpoint"):
+        raise ValueError(f"boundary must be 'intensity' or 'midpoint', got {boundary!r}")
     own_mode = "mode" in options
     if start is None:
         start = initial_epicardium(endocardium, thickness_mm=thickness_mm)
@@ -282,20 +282,20 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     margin = 2 * SegmentOptions(**options).band_out + thickness_mm
     image = _reflected(volume, start, margin_mm=margin) if polarity == "bright" else volume
     if own_mode:
-        interface = None
-    elif polarity == "bright" and interface == "intensity":
+        boundary = None
+    elif polarity == "bright" and boundary == "intensity":
         try:
             options["mode"] = type("MirroredInterface", (MirroredInterface,),
                                    {"nepers": wall_nepers(volume, endocardium, start)})
         except NoSpeckleError:  # no speckle to read the log compression from: the local means' midpoint
-            interface = "midpoint"
+            boundary = "midpoint"
     else:
-        interface = "midpoint"
+        boundary = "midpoint"
     apex = endocardium.tip()
     result = Tracker(image, apex, endocardium.pose.origin, init=start, **options).run()
     result.surface = enforce_thickness(endocardium, result.surface, min_thickness_mm=min_thickness_mm)
     result.parameters = {**result.parameters, "thickness_mm": thickness_mm, "min_thickness_mm": min_thickness_mm,
-                         "polarity": polarity, "interface": interface}
+                         "polarity": polarity, "boundary": boundary}
     return result
 
 
@@ -347,6 +347,6 @@ def add_epicardium(result: SegmentationResult, volume: Volume, *, rv_insertion=N
     result.seconds += epi.seconds
     result.parameters = {**result.parameters, "epicardium": {k: v for k, v in epi.parameters.items()
                                                              if k in ("mode", "band", "smoothness", "thickness_mm",
-                                                                      "min_thickness_mm", "polarity", "interface")},
+                                                                      "min_thickness_mm", "polarity", "boundary")},
                          "segment_convention": convention.to_dict()}
     return result
