@@ -215,10 +215,10 @@ class MirroredInterface(LocalMeans):
 
     def force(self, backend, volume, obs) -> Force:
         c_in, c_out = self.band_means(backend, obs)
-        self.set_means(c_in, c_out)
         contrast = np.maximum(c_out - c_in, 0.0)
         t = mirrored_level(c_in, c_in + contrast, nepers=self.nepers)
-        return Force(obs.u, t - contrast / 2, t + contrast / 2, max(nanmedian(contrast) ** 2, self.min_scale))
+        return Force(obs.u, t - contrast / 2, t + contrast / 2, max(nanmedian(contrast) ** 2, self.min_scale),
+                     measured=(c_in, c_out))
 
 
 def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: float = 8.0,
