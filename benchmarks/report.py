@@ -907,6 +907,13 @@ def _myocardium(data) -> list[str]:
         out.append(f"| {c['family']} | {c['formation']} | {c['dice']:.3f} | {c['mass_error_pct']:+.1f} | "
                    f"{c['cavity_error_pct']:+.1f} | {c['myo_seconds'] / c['endo_seconds']:.2f} | {c['polarity']} | "
                    f"{'yes' if c['poor'] else ''} |")
+    out += ["", "A bright wall's epicardium lies where the echo intensity is half way between the wall's and what lies "
+            "beyond it (`epicardium.MirroredInterface`: on the reflected grey levels, `k` read from the wall's speckle). "
+            "Tried on this sweep: the grey levels' midpoint (the local means) put it outside, on the dim side of the "
+            "blurred edge (median mass error +9.1 %, +17 % at contrast_high); the crop as linear intensity under the "
+            "local means put it inside (-14 % and -22 % on default: the outer band's mean intensity follows what lies "
+            "beyond the wall). A median thickness below 4 mm is flagged (`quality.WALL_LIMITS`): at contrast_low the "
+            "phantom's wall is darker than the tissue outside it and the epicardium finds no outer boundary."]
     out += ["", f"Command: `{data.get('sequences_command', data['command'])}`. "
             "A tracked 10-frame cycle (`track(..., myocardium=True)`, default formation) whose wall has a region "
             "10 % of the cycle late (`phantom.LateRegion(theta=1, half_width=pi/3, delay=0.1)`): the mass at ED and "

@@ -4,7 +4,8 @@ import pytest
 from spheroseg import Volume, segment
 from spheroseg.coords import Pose, ProlateSpheroidal
 from spheroseg.epicardium import (
-    add_epicardium, conserving_start, enforce_thickness, initial_epicardium, segment_epicardium,
+    add_epicardium, conserving_start, enforce_thickness, initial_epicardium, mirrored_level, segment_epicardium,
+    wall_nepers,
 )
 from spheroseg.hermite import HermiteGrid
 from spheroseg.myocardium import SEGMENT_NAMES, myocardial_volume_ml, wall_thickness
@@ -23,10 +24,10 @@ def shell(l0, pose):
     return Surface.from_function(system, pose, grid, l0)
 
 
-def shells_image(*, myocardium=150.0, tissue=80.0, blood=20.0, seed=0, l_epi=L_EPI):
-    """Blood inside lambda = 0.8, myocardium to lambda = 1.0, tissue outside
-    (a confocal prolate shell of 6-9 mm), blood beyond the mitral plane;
-    Gaussian noise; 1.5 mm voxels."""
+def shell_labels(*, l_epi=L_EPI):
+    """Blood (0) inside lambda = 0.8, myocardium (1) to ``l_epi``, tissue (2)
+    outside (a confocal prolate shell of 6-9 mm), blood beyond the mitral
+    plane; 1.5 mm voxels: ``(labels, pose, spacing)``."""
     spacing = 1.5
     n = (54, 80, 80)
     k, j, i = np.meshgrid(*(np.arange(m) * spacing for m in n), indexing="ij")
@@ -34,8 +35,14 @@ def shells_image(*, myocardium=150.0, tissue=80.0, blood=20.0, seed=0, l_epi=L_E
     pose = Pose.from_apex_base(APEX, BASE)
     lam, _, mu = ProlateSpheroidal(D).from_cartesian(pose.to_local(world))
     below = mu <= np.pi / 2
-    image = np.where(below & (lam <= L_ENDO), blood, np.where(below & (lam <= l_epi), myocardium, tissue))
-    image = np.where(~below & (lam <= l_epi), blood, image)
+    labels = np.where(below & (lam <= L_ENDO), 0, np.where(below & (lam <= l_epi), 1, 2))
+    return np.where(~below & (lam <= l_epi), 0, labels), pose, spacing
+
+
+def shells_image(*, myocardium=150.0, tissue=80.0, blood=20.0, seed=0, l_epi=L_EPI):
+    """:func:`shell_labels` as grey levels with Gaussian noise."""
+    labels, pose, spacing = shell_labels(l_epi=l_epi)
+    image = np.array([blood, myocardium, tissue])[labels]
     image = image + np.random.default_rng(seed).normal(0, 12, image.shape)
     return Volume(np.clip(image, 1, 255).astype(np.uint8), spacing=(spacing,) * 3), pose
 
@@ -70,7 +77,8 @@ def test_enforce_thickness_keeps_the_epicardium_outside():
 def test_epicardium_of_a_prolate_shell(myocardium, tissue, polarity):
     volume, pose = shells_image(myocardium=myocardium, tissue=tissue)
     endo, truth = shell(L_ENDO, pose), shell(L_EPI, pose)
-    result = segment_epicardium(volume, endo, thickness_mm=7.0)
+    # Gaussian noise on sharp edges, no log-compressed speckle: the midpoint is the edge
+    result = segment_epicardium(volume, endo, thickness_mm=7.0, boundary="midpoint")
     assert result.parameters["polarity"] == polarity
     v1, v2 = np.meshgrid(np.linspace(0, 2 * np.pi, 24, endpoint=False), np.linspace(0.2, 1.5, 12))
     error = wall_thickness(endo, result.surface, v1, v2) - wall_thickness(endo, truth, v1, v2)
@@ -79,8 +87,56 @@ def test_epicardium_of_a_prolate_shell(myocardium, tissue, polarity):
     assert myocardial_volume_ml(endo, result.surface) == pytest.approx(expected, rel=0.1)
 
 
+def speckle_shells_image(*, nepers=15.0, contrast_db=12.0, blur_mm=2.0, seed=0):
+    """The shells of :func:`shells_image` as echo: intensities (blood -30 dB,
+    myocardium 0 dB, tissue ``-contrast_db``) blurred by a Gaussian PSF,
+    times fully developed speckle (exponential, independent per voxel),
+    log-compressed at ``nepers`` grey levels per neper."""
+    from scipy import ndimage
+
+    labels, pose, spacing = shell_labels()
+    levels = np.array([1e-3, 1.0, 10 ** (-contrast_db / 10)])
+    intensity = ndimage.gaussian_filter(levels[labels], blur_mm / spacing)
+    speckle = np.random.default_rng(seed).exponential(1.0, labels.shape)
+    grey = np.clip(np.round(128 + nepers * np.log(intensity * speckle)), 1, 255).astype(np.uint8)
+    return Volume(grey, spacing=(spacing,) * 3), pose
+
+
+def test_mirrored_level_is_the_half_way_intensity():
+    # independent: unreflect (u = L - v), exponentiate, compare with the intensities' mean
+    k, big = 17.0, 250.0
+    c_in, c_out = np.array([40.0, 100.0, 100.0]), np.array([80.0, 101.0, 240.0])
+    t = mirrored_level(c_in, c_out, nepers=k)
+    np.testing.assert_allclose(np.exp((big - t) / k), (np.exp((big - c_in) / k) + np.exp((big - c_out) / k)) / 2)
+    assert t[1] == pytest.approx(100.5, abs=0.01)  # weak contrast: the midpoint
+    assert t[2] == pytest.approx(100.0 + k * np.log(2.0), abs=0.01)  # strong: half the wall's intensity
+
+
+def test_wall_nepers_reads_the_log_compression():
+    volume, pose = speckle_shells_image(nepers=15.0, blur_mm=0.1)
+    endo = shell(L_ENDO, pose)
+    assert wall_nepers(volume, endo, shell(L_EPI, pose)) == pytest.approx(15.0, rel=0.08)
+
+
+def test_intensity_interface_removes_the_midpoints_bias():
+    """Blurred echo of a wall 12 dB brighter than the tissue beyond it: the
+    grey levels' midpoint puts the epicardium outside the true one (at the
+    intensities' geometric mean); the half-way intensity on it."""
+    volume, pose = speckle_shells_image()
+    endo, truth = shell(L_ENDO, pose), shell(L_EPI, pose)
+    v1, v2 = np.meshgrid(np.linspace(0, 2 * np.pi, 24, endpoint=False), np.linspace(0.2, 1.5, 12))
+    errors = {}
+    for boundary in ("intensity", "midpoint"):
+        result = segment_epicardium(volume, endo, thickness_mm=7.0, boundary=boundary)
+        assert result.parameters["boundary"] == boundary
+        errors[boundary] = np.median(wall_thickness(endo, result.surface, v1, v2) - wall_thickness(endo, truth, v1, v2))
+    assert abs(errors["intensity"]) < 0.5 < errors["midpoint"] - abs(errors["intensity"])
+    with pytest.raises(ValueError, match="boundary must be"):
+        segment_epicardium(volume, endo, boundary="outer")
+
+
 def test_segment_with_myocardium_gives_the_wall():
-    volume, pose = shells_image()
+    volume, pose = speckle_shells_image()
     res = segment(volume, APEX, BASE, myocardium=True, rv_insertion=0.5)
     assert isinstance(res.epicardium, Surface)
     np.testing.assert_array_equal(res.myocardium_mask(volume),
@@ -108,6 +164,14 @@ def test_wall_report_flags_a_collapse_and_an_explosion():
     assert collapsed["poor"] and "collapsed" in collapsed["warnings"][0]
     exploded = wall_report(rng.uniform(20, 40, 1000), min_thickness_mm=2.0)
     assert exploded["poor"] and "thick" in exploded["warnings"][0]
+
+
+def test_wall_report_flags_a_wall_thin_everywhere_but_off_its_floor():
+    # the tilted contrast_low case: 3 mm nearly everywhere, 2 mm floor seldom reached
+    rng = np.random.default_rng(1)
+    thin = wall_report(np.r_[rng.uniform(2.6, 3.4, 950), rng.uniform(6, 9, 50)], min_thickness_mm=2.0)
+    assert thin["floor_fraction"] < 0.1 and thin["poor"] and "thin" in thin["warnings"][0]
+    assert not wall_report(rng.uniform(4.5, 7.0, 1000), min_thickness_mm=2.0)["poor"]
 
 
 def test_a_collapsed_epicardium_makes_the_result_poor():
@@ -138,8 +202,8 @@ def test_tracking_result_segment_curves_and_sdi():
 def test_track_with_myocardium_gives_every_frame_its_wall():
     from spheroseg import track
 
-    volume, pose = shells_image()
-    other, _ = shells_image(seed=1)
+    volume, pose = speckle_shells_image()
+    other, _ = speckle_shells_image(seed=1)
     tracked = track([volume, other, volume], APEX, BASE, myocardium=True, rv_insertion=0.3)
     assert all(f.epicardium is not None and f.segment_convention.rv_insertion == 0.3 for f in tracked.frames)
     truth_g = 1.05 * myocardial_volume_ml(shell(L_ENDO, pose), shell(L_EPI, pose))

@@ -14,7 +14,9 @@ region inside a brighter one; the outer boundary of the myocardium is
 mostly the reverse (bright myocardium against darker tissue, lung and the
 right ventricle's blood), so the grey levels are reflected
 (``lo + hi - u``) when the wall is the brighter side of it, measured at the
-start.  A thickness below ``min_thickness_mm`` is raised to it afterwards
+start, and the boundary put where the echo intensity is half way between
+the wall's and what lies beyond it (:class:`MirroredInterface`): the
+midpoint of the grey levels lies on the dim side of a blurred edge.  A thickness below ``min_thickness_mm`` is raised to it afterwards
 (:func:`enforce_thickness`): the epicardium never lies inside the
 endocardium.
 """
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .dataterms import Force, LocalMeans, NoSpeckleError, nanmedian, speckle_nepers
 from .myocardium import SegmentConvention, wall_thickness_grid
 from .options import SegmentOptions
 from .quality import wall_report
@@ -31,8 +34,8 @@ from .surface import Surface
 from .tracker import Tracker
 from .volume import Volume
 
-__all__ = ["initial_epicardium", "conserving_start", "enforce_thickness", "wall_polarity", "segment_epicardium",
-           "add_epicardium"]
+__all__ = ["initial_epicardium", "conserving_start", "enforce_thickness", "wall_polarity", "wall_nepers",
+           "mirrored_level", "MirroredInterface", "segment_epicardium", "add_epicardium"]
 
 
 def _offsets(surface: Surface, thickness_mm: float, v1, v2) -> np.ndarray:
@@ -160,9 +163,67 @@ def _reflected(volume: Volume, surface: Surface, *, margin_mm: float) -> Volume:
                   origin=volume.index_to_world(start.astype(float)), direction=volume.direction, no_data_mask=missing)
 
 
+def wall_nepers(volume: Volume, endocardium: Surface, epicardium: Surface, *, per_patch: int = 6) -> float:
+    """Grey levels per neper of echo intensity (:func:`speckle_nepers`)
+    from the speckle of the wall: the nearest voxels at a quarter, half and
+    three quarters of the way from the endocardium to ``epicardium`` on
+    ``per_patch x per_patch`` rays per patch of the grid."""
+    grid = endocardium.grid
+    lo, hi = grid.v2_range
+    m1, m2 = grid.n1 * per_patch, grid.n2 * per_patch
+    v2, v1 = np.meshgrid(lo + (hi - lo) * (np.arange(m2) + 0.5) / m2, (np.arange(m1) + 0.5) * 2 * np.pi / m1,
+                         indexing="ij")
+    patch = (np.arange(m2)[:, None] // per_patch) * grid.n1 + np.arange(m1)[None, :] // per_patch
+    f_in, f_out = endocardium.radius(v1, v2), epicardium.radius(v1, v2)
+    v0 = f_in[..., None] + (f_out - f_in)[..., None] * np.array([0.25, 0.5, 0.75])
+    local = endocardium.system.to_cartesian(v0, v1[..., None], v2[..., None])
+    samples = volume.sample(endocardium.pose.to_world(local), order=0)
+    return speckle_nepers(samples.reshape(-1, 3), patch.ravel())
+
+
+def mirrored_level(c_in, c_out, *, nepers: float):
+    """The reflected grey level ``t`` whose unreflected intensity is half way
+    between those of the reflected levels ``c_in`` and ``c_out``::
+
+        t = -k ln((exp(-c_in / k) + exp(-c_out / k)) / 2)
+
+    (``k = nepers`` grey levels per neper); ``(c_in + c_out) / 2`` as ``k``
+    grows, ``c_in + k ln 2`` for a strong contrast."""
+    return -nepers * (np.logaddexp(-np.asarray(c_in) / nepers, -np.asarray(c_out) / nepers) - np.log(2.0))
+
+
+class MirroredInterface(LocalMeans):
+    """The outer wall where the echo intensity is half way between the
+    myocardium's and what lies beyond it, on reflected grey levels
+    ``L - v``.
+
+    On the reflected image the wall is the dark side: :class:`LocalMeans`'
+    midpoint of the band means ``c_in < c_out`` is the geometric mean of the
+    two intensities, on the dim side of the blurred edge.  The half-way
+    intensity of the unreflected levels (:class:`IntensityInterface`'s
+    ``g*``), reflected, is the level::
+
+        t = c_in + c_out - k ln((exp(c_in / k) + exp(c_out / k)) / 2)
+          = -k ln((exp(-c_in / k) + exp(-c_out / k)) / 2)
+
+    ``k`` (grey levels per neper, :attr:`nepers`) is the image's log
+    compression, set on a subclass (:func:`wall_nepers`).
+    """
+
+    loop_kind = None  # the compiled loop computes the plain local means only
+    nepers: float = np.inf
+
+    def force(self, backend, volume, obs) -> Force:
+        c_in, c_out = self.band_means(backend, obs)
+        contrast = np.maximum(c_out - c_in, 0.0)
+        t = mirrored_level(c_in, c_in + contrast, nepers=self.nepers)
+        return Force(obs.u, t - contrast / 2, t + contrast / 2, max(nanmedian(contrast) ** 2, self.min_scale),
+                     measured=(c_in, c_out))
+
+
 def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: float = 8.0,
-                       min_thickness_mm: float = 2.0, polarity: str = "auto", start: Surface | None = None,
-                       **options) -> SegmentationResult:
+                       min_thickness_mm: float = 2.0, polarity: str = "auto", boundary: str = "intensity",
+                       start: Surface | None = None, **options) -> SegmentationResult:
     """The epicardium of a segmented endocardium.
 
     Parameters
@@ -181,13 +242,21 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
         Whether the myocardium is brighter ("bright") or darker than what
         lies outside it; "auto" measures it at the start
         (:func:`wall_polarity`).
+    boundary : {"intensity", "midpoint"}
+        Where a bright wall's outer boundary lies: where the echo intensity
+        is half way between the wall's and what lies beyond it
+        (:class:`MirroredInterface`; the midpoint where the image has no
+        speckle to read its log compression from), or at the midpoint of
+        the band means' grey levels (:class:`spheroseg.dataterms.LocalMeans`).
+        Unused with ``mode`` given.
     start : Surface, optional
         The start (and the thin-plate prior's reference) instead of the
         endocardium moved out by ``thickness_mm``: in a sequence,
         :func:`conserving_start` of the previous frame.
     **options
         :class:`spheroseg.SegmentOptions` of the descent; by default
-        ``mode="local"``, ``band=4`` (the inner band stays in the wall),
+        ``mode="local"`` (:class:`MirroredInterface` on a bright wall with
+        ``boundary="intensity"``), ``band=4`` (the inner band stays in the wall),
         ``apex_weight=0`` (the epicardial apex is not clicked).
 
     Returns
@@ -197,6 +266,9 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     """
     if polarity not in ("auto", "bright", "dark"):
         raise ValueError(f"polarity must be 'auto', 'bright' or 'dark', got {polarity!r}")
+    if boundary not in ("intensity", "midpoint"):
+        raise ValueError(f"boundary must be 'intensity' or 'midpoint', got {boundary!r}")
+    own_mode = "mode" in options
     if start is None:
         start = initial_epicardium(endocardium, thickness_mm=thickness_mm)
     elif not isinstance(start, Surface) or start.grid.shape != endocardium.grid.shape:
@@ -209,11 +281,21 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     # what the descent can reach: the start, the bands and some room to move
     margin = 2 * SegmentOptions(**options).band_out + thickness_mm
     image = _reflected(volume, start, margin_mm=margin) if polarity == "bright" else volume
+    if own_mode:
+        boundary = None
+    elif polarity == "bright" and boundary == "intensity":
+        try:
+            options["mode"] = type("MirroredInterface", (MirroredInterface,),
+                                   {"nepers": wall_nepers(volume, endocardium, start)})
+        except NoSpeckleError:  # no speckle to read the log compression from: the local means' midpoint
+            boundary = "midpoint"
+    else:
+        boundary = "midpoint"
     apex = endocardium.tip()
     result = Tracker(image, apex, endocardium.pose.origin, init=start, **options).run()
     result.surface = enforce_thickness(endocardium, result.surface, min_thickness_mm=min_thickness_mm)
     result.parameters = {**result.parameters, "thickness_mm": thickness_mm, "min_thickness_mm": min_thickness_mm,
-                         "polarity": polarity}
+                         "polarity": polarity, "boundary": boundary}
     return result
 
 
@@ -265,6 +347,6 @@ def add_epicardium(result: SegmentationResult, volume: Volume, *, rv_insertion=N
     result.seconds += epi.seconds
     result.parameters = {**result.parameters, "epicardium": {k: v for k, v in epi.parameters.items()
                                                              if k in ("mode", "band", "smoothness", "thickness_mm",
-                                                                      "min_thickness_mm", "polarity")},
+                                                                      "min_thickness_mm", "polarity", "boundary")},
                          "segment_convention": convention.to_dict()}
     return result

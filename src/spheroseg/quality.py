@@ -138,15 +138,19 @@ def quality_report(*, contrast: float, low_contrast_fraction: float, no_data_fra
 
 #: the bounds of a plausible wall (mm): more of it than this fraction at the
 #: smallest thickness allowed is a collapse; a 95th percentile above this a
-#: wall thicker than severe hypertrophy (17 mm and more; Lang et al. 2015)
-WALL_LIMITS = {"floor_fraction": 0.1, "p95_mm": 25.0}
+#: wall thicker than severe hypertrophy (17 mm and more; Lang et al. 2015);
+#: a median below this thinner than an adult wall (6-10 mm normal; a scar
+#: thins a region, not the median of the whole wall)
+WALL_LIMITS = {"floor_fraction": 0.1, "p95_mm": 25.0, "median_min_mm": 4.0}
 
 
 def wall_report(thickness_mm, *, min_thickness_mm: float) -> dict:
     """How plausible a myocardium is, from its wall thickness (mm) sampled
     over the endocardium: the 5th, 50th and 95th percentiles, the fraction
     within 0.5 mm of ``min_thickness_mm`` (where the epicardium fell onto
-    its floor), ``warnings`` and ``poor``."""
+    its floor), ``warnings`` and ``poor``.  A collapse, a median thinner than
+    an adult wall and a 95th percentile thicker than one are flagged
+    (:data:`WALL_LIMITS`)."""
     t = np.asarray(thickness_mm, dtype=float).ravel()
     p5, p50, p95 = (float(v) for v in np.percentile(t, [5, 50, 95]))
     floor = float(np.mean(t <= min_thickness_mm + 0.5))
@@ -154,6 +158,8 @@ def wall_report(thickness_mm, *, min_thickness_mm: float) -> dict:
     if floor > WALL_LIMITS["floor_fraction"]:
         warnings.append(f"the wall collapsed to its smallest thickness ({min_thickness_mm:.1f} mm) over "
                         f"{100 * floor:.0f} % of it")
+    if p50 < WALL_LIMITS["median_min_mm"] and floor <= WALL_LIMITS["floor_fraction"]:
+        warnings.append(f"the wall is implausibly thin (median {p50:.1f} mm): the epicardium found no outer boundary")
     if p95 > WALL_LIMITS["p95_mm"]:
         warnings.append(f"the wall is implausibly thick (95th percentile {p95:.0f} mm): the epicardium went astray")
     return {"thickness_p5_mm": p5, "thickness_median_mm": p50, "thickness_p95_mm": p95, "floor_fraction": floor,
