@@ -30,3 +30,31 @@ def test_bullseye_places_and_colours_the_segments_as_defined():
         np.testing.assert_allclose(wedge.get_facecolor(), colour, atol=1e-6)
     np.testing.assert_allclose(wedges[16].get_facecolor(), colormaps["viridis"](1.0), atol=1e-6)  # the apex
     plt.close(fig)
+
+
+def test_the_report_draws_the_epicardium_beside_the_endocardium():
+    """The slices carry the epicardium's region; the figure draws one
+    contour more for it (blue), and none without it."""
+    from spheroseg.phantom import make_phantom
+    from spheroseg.report import parts_figure, report_parts
+    from spheroseg.surface import Surface
+
+    ph = make_phantom(seed=3, spacing=3.0)
+    endo = Surface.from_apex_base(ph.apex, ph.base)
+    from scipy import ndimage
+
+    outer = ndimage.binary_dilation(endo.mask(ph.volume.grid), iterations=2)
+    with_epi = report_parts(ph.volume, endo, epicardium_mask=outer)
+    for view in with_epi["slices"]:
+        assert view["epicardium"].shape == view["mask"].shape and view["epicardium"].sum() > view["mask"].sum()
+    assert all(view["epicardium"] is None for view in report_parts(ph.volume, endo)["slices"])
+
+    def contour_colours(parts):
+        fig = parts_figure(parts)
+        return [tuple(np.round(c.get_edgecolor()[0][:3], 3)) for ax in fig.axes[:3] for c in ax.collections]
+
+    import matplotlib.colors as mcolors
+
+    blue = tuple(np.round(mcolors.to_rgb("deepskyblue"), 3))
+    assert sum(c == blue for c in contour_colours(with_epi)) == 3
+    assert blue not in contour_colours(report_parts(ph.volume, endo))

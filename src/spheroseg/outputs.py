@@ -225,9 +225,11 @@ def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, 
     lap("mask")
     if report:
         name = Path(source).name if source is not None else "segmentation"
-        wall = result.wall_thickness_mm if getattr(result, "epicardium", None) is not None else None
+        epicardium = getattr(result, "epicardium", None)
+        wall = None if epicardium is None else result.wall_thickness_mm
         drawing = _start_report(out / "report.png", report_worker, _displayable(volume), result.surface, mask=mask,
-                                title=f"{name}: {result.volume_ml:.1f} mL", wall_thickness_mm=wall)
+                                title=f"{name}: {result.volume_ml:.1f} mL", wall_thickness_mm=wall,
+                                epicardium_mask=None if epicardium is None else epicardium.mask(volume.grid))
         lap("report")
     save_mask(out / ("mask" + mask_suffix), mask, volume)
     lap("writes")

@@ -15,9 +15,11 @@ __all__ = ["report_figure", "save_report", "report_parts", "parts_figure", "save
 
 
 def report_parts(volume: Volume, surface: Surface, *, mask=None, volumes_ml=None, ed_frame=None, es_frame=None,
-                 title: str = "", truth_mask=None, wall_thickness_mm=None) -> dict:
+                 title: str = "", truth_mask=None, wall_thickness_mm=None, epicardium_mask=None) -> dict:
     """What :func:`report_figure` draws, as plain arrays (small: three
-    slices, not the volume), so that another process can draw it."""
+    slices, not the volume), so that another process can draw it.
+    ``epicardium_mask`` (bool ``[z, y, x]``): the region inside the
+    epicardium, whose contour is drawn beside the endocardium's."""
     if mask is None:
         mask = surface_mask(surface, volume.grid)
     points, faces = surface.mesh(48, 24)
@@ -28,7 +30,8 @@ def report_parts(volume: Volume, surface: Surface, *, mask=None, volumes_ml=None
     for name, index, aspect in ((f"axial (z = {k})", np.s_[k], sx / sy), (f"coronal (y = {j})", np.s_[:, j], sx / sz),
                                 (f"sagittal (x = {i})", np.s_[:, :, i], sy / sz)):
         slices.append({"title": name, "image": volume.array[index], "mask": np.asarray(mask[index]),
-                       "truth": None if truth_mask is None else np.asarray(truth_mask[index]), "aspect": aspect})
+                       "truth": None if truth_mask is None else np.asarray(truth_mask[index]), "aspect": aspect,
+                       "epicardium": None if epicardium_mask is None else np.asarray(epicardium_mask[index])})
     return {"slices": slices, "points": points, "faces": faces, "centre": centre, "volume_ml": surface.volume_ml(),
             "volumes_ml": None if volumes_ml is None else np.asarray(volumes_ml, dtype=float), "ed_frame": ed_frame,
             "es_frame": es_frame, "title": title,
@@ -50,6 +53,8 @@ def parts_figure(parts: dict):
         ax.imshow(view["image"], cmap="gray", aspect=1 / view["aspect"], interpolation="nearest")
         if view["mask"].any():
             ax.contour(view["mask"], [0.5], colors="yellow", linewidths=1.0)
+        if view.get("epicardium") is not None and view["epicardium"].any():
+            ax.contour(view["epicardium"], [0.5], colors="deepskyblue", linewidths=1.0)
         if view["truth"] is not None and view["truth"].any():
             ax.contour(view["truth"], [0.5], colors="red", linewidths=0.8)
         ax.set_title(view["title"], fontsize=9)
