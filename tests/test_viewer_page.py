@@ -355,8 +355,12 @@ def test_modes_keys_orientation_and_refused_clicks(browser, phantom_file, tmp_pa
         # a message goes at the next action: Delete with nothing selected, then undo and redo
         page.keyboard.press("Delete")
         assert "select" in _status(page)
+        sent = int(page.evaluate("document.body.dataset.sent"))
         page.keyboard.press("Control+z")
-        page.wait_for_function("document.body.dataset.state === 'ready'", polling=100, timeout=TIMEOUT_MS)
+        # the page is 'ready' as soon as the points lack the apex; the server has them
+        # once the reply numbered the job
+        page.wait_for_function(f"Number(document.body.dataset.sent) > {sent}", polling=100, timeout=TIMEOUT_MS)
+        assert page.evaluate("document.body.dataset.state") == "ready"
         assert "select" not in _status(page) and session.points.apex is None
         page.keyboard.press("Control+y")
         job = wait_done(page, job)
