@@ -428,7 +428,7 @@ def main():
         # again: each repeat continues from where the last one ended)
         def follow():
             for vol in seq.volumes[1:]:
-                tracker.step(vol, max_iterations=ipf)
+                tracker.next_frame(vol, max_iterations=ipf)
         seconds = median_time(follow, 5)
         tracking[ipf] = (len(seq.volumes) - 1) / seconds
     full = median_time(lambda: track(seq.volumes, first.apex, first.base), 3)

@@ -6,7 +6,7 @@ import pytest
 from spheroseg import segment
 from spheroseg.metrics import dice
 from spheroseg.phantom import FORMATIONS, make_phantom
-from spheroseg.quality import landmark_residuals, quality_report
+from spheroseg.quality import FrameQuality, landmark_residuals, quality_report
 from spheroseg.surface import Surface
 
 
@@ -186,3 +186,27 @@ def test_axis_distances_in_the_model_frame_equal_the_world_frame(system):
                         moved.coefficients)
     assert moved.pose is initial.pose and elsewhere.pose is not initial.pose
     np.testing.assert_allclose(axis_distances(moved, initial), axis_distances(elsewhere, initial), rtol=1e-12)
+
+
+def test_frame_quality_of_the_initial_surface():
+    """The initial surface against itself: volume ratio and bulge 1, the
+    apex shift the distance from the clicked apex to its tip; the contrast
+    in units of the spread; no observation yet: unknown contrast, a warning."""
+    apex, base = np.array([0.0, 10.0, 90.0]), np.array([0.0, 0.0, 10.0])
+    initial = Surface.from_apex_base(apex, base)
+    clicked = apex + np.array([3.0, 4.0, 0.0])
+    frames = FrameQuality(initial, clicked)
+    report = frames.report(initial, observed=None, converged=True, landmarks=np.empty((0, 3)), no_speckle=False)
+    assert report["volume_ratio"] == pytest.approx(1.0, abs=1e-12) and report["bulge"] == pytest.approx(1.0)
+    assert report["apex_shift_mm"] == pytest.approx(np.linalg.norm(initial.tip() - clicked))
+    assert np.isnan(report["contrast"]) and report["poor"]
+
+    class Force:  # the two fields the report reads
+        c_in, c_out = np.array([10.0, 20.0, 30.0]), np.array([50.0, 21.0, 70.0])
+
+    u = np.array([1.0, np.nan, 3.0, 4.0])
+    report = frames.report(initial, observed=(u, Force, 20.0), converged=True, landmarks=np.empty((0, 3)),
+                           no_speckle=True)
+    assert report["contrast"] == pytest.approx(40.0 / 20.0) and report["no_data_fraction"] == 0.25
+    assert report["low_contrast_fraction"] == pytest.approx(1 / 3)
+    assert report["poor"] and "no speckle" in report["warnings"][-1]

@@ -116,7 +116,7 @@ def test_the_interface_starts_from_the_local_means(monkeypatch):
     first = seq.frames[0]
     tracker = Tracker(seq.volumes[0], first.apex, first.base)
     run_by_hand(tracker)
-    assert tracker.step(seq.volumes[1], max_iterations=4).iterations > 0  # a new frame: handed over again
+    assert tracker.next_frame(seq.volumes[1], max_iterations=4).iterations > 0  # a new frame: handed over again
     run_by_hand(Tracker(seq.volumes[1], first.apex, first.base, init=tracker.surface))
 
 
@@ -138,7 +138,7 @@ def test_stepping_frames_equals_track():
     seq = make_sequence(seed=5, n_frames=3, spacing=2.0)
     first = seq.frames[0]
     tracker = Tracker(seq.volumes[0], first.apex, first.base)
-    frames = [tracker.run()] + [tracker.step(v, max_iterations=6, follow_base=True) for v in seq.volumes[1:]]
+    frames = [tracker.run()] + [tracker.next_frame(v, max_iterations=6, follow_base=True) for v in seq.volumes[1:]]
     tr = track(seq.volumes, first.apex, first.base, iterations_per_frame=6)
     for a, b in zip(frames, tr.frames):
         assert a.iterations == b.iterations
@@ -284,3 +284,13 @@ def test_end_diastole_to_end_systole_directly_gives_the_ef(six_frames):
     seeds 0 and 2: -3.0, -2.8)."""
     frames = six_frames.frames
     assert abs(tracked_ef_error([frames[0], frames[3]])) < 3.0
+
+
+def test_step_is_a_deprecated_alias_of_next_frame(phantom):
+    trackers = [Tracker(phantom.volume, phantom.apex, phantom.base, mode="local", coarse_to_fine=False)
+                for _ in range(2)]
+    expected = trackers[0].next_frame(phantom.volume, max_iterations=3)
+    with pytest.warns(DeprecationWarning, match="next_frame"):
+        result = trackers[1].step(phantom.volume, max_iterations=3)
+    assert result.iterations == expected.iterations
+    np.testing.assert_array_equal(result.surface.coefficients, expected.surface.coefficients)

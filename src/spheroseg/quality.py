@@ -49,7 +49,8 @@ import numpy as np
 
 from .dataterms import nanmedian
 
-__all__ = ["quality_report", "quality_warning", "wall_bulge", "axis_distances", "landmark_residuals", "wall_report"]
+__all__ = ["quality_report", "quality_warning", "wall_bulge", "axis_distances", "landmark_residuals", "wall_report",
+           "FrameQuality"]
 
 #: the bounds of a plausible result
 LIMITS = {"contrast": 0.5, "low_contrast_fraction": 0.3, "no_data_fraction": 0.1, "apex_shift_mm": 10.0,
@@ -134,6 +135,52 @@ def quality_report(*, contrast: float, low_contrast_fraction: float, no_data_fra
             "no_data_fraction": float(no_data_fraction), "converged": bool(converged),
             "apex_shift_mm": float(apex_shift_mm), "volume_ratio": float(volume_ratio), "bulge": float(bulge),
             "landmark_residuals_mm": residuals, "warnings": warnings, "poor": bool(warnings)}
+
+
+class FrameQuality:
+    """The quality report of the frames segmented from one initial surface.
+
+    Parameters
+    ----------
+    initial : Surface
+        The initial shape the frames are compared with (its volume and its
+        wall's distances from the axis are computed once).
+    apex : array (3,)
+        The clicked apex (world mm).
+    """
+
+    def __init__(self, initial, apex: np.ndarray):
+        self.initial, self.apex = initial, apex
+        self.initial_volume_ml = initial.volume_ml()
+        self._axis_distances = None
+
+    def report(self, surface, *, observed, converged: bool, landmarks: np.ndarray, no_speckle: bool) -> dict:
+        """:func:`quality_report` of ``surface``, given what the last
+        iteration ``observed`` (``(u, force, spread)``: the grey levels at
+        the sample points, the data term's force, the grey-level spread
+        around the initial surface; None before any iteration), whether it
+        ``converged``, the ``landmarks`` held (world mm) and whether the
+        frame fell back to the local means for ``no_speckle``."""
+        if observed is not None:
+            u, force, spread = observed
+            no_data, contrast = float(np.mean(~np.isfinite(u))), np.asarray(force.c_out - force.c_in, float)
+        else:
+            no_data, contrast, spread = np.nan, np.full(1, np.nan), np.nan
+        if self._axis_distances is None:
+            self._axis_distances = axis_distances(self.initial, self.initial)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            report = quality_report(
+                contrast=float(nanmedian(contrast) / spread), no_data_fraction=no_data,
+                low_contrast_fraction=float(np.mean(np.broadcast_to(contrast, (1,) + np.shape(contrast)) < 0.1 * spread)),
+                converged=converged, apex_shift_mm=float(np.linalg.norm(surface.tip() - self.apex)),
+                volume_ratio=surface.volume_ml() / self.initial_volume_ml,
+                bulge=wall_bulge(surface, self.initial, reference=self._axis_distances),
+                landmark_residuals_mm=landmark_residuals(surface, landmarks))
+        if no_speckle:
+            report["warnings"].append("no speckle around the surface to undo the log compression with (a noise-free "
+                                      "or smoothed image?): the wall is the local means' (mode='local')")
+            report["poor"] = True
+        return report
 
 
 #: the bounds of a plausible wall (mm): more of it than this fraction at the

@@ -1,7 +1,7 @@
 """Segmentation and tracking: short loops over a :class:`spheroseg.Tracker`.
 
 The parts of an iteration live in modules named for them:
-:mod:`spheroseg.tracker` (the stepper and the coarse-to-fine schedule),
+:mod:`spheroseg.tracker` (the stepper), :mod:`spheroseg.stepper` (the schedule),
 :mod:`spheroseg.descent` (the least-squares step of eq. 25),
 :mod:`spheroseg.dataterms` (``c_in``, ``c_out`` of eq. 22),
 :mod:`spheroseg.backends` (the array work: numpy reference and compiled),
@@ -179,7 +179,7 @@ def track(
 
     The first frame is segmented from ``apex`` and ``base`` as by
     :func:`segment` (all its keywords apply); every later frame starts from
-    the previous frame's surface (:meth:`Tracker.step`) and runs until the
+    the previous frame's surface (:meth:`Tracker.next_frame`) and runs until the
     surface stops moving (``tol``), at most ``iterations_per_frame``
     iterations: the paper used 3 to 5; on the 10-frame phantom cycles, where
     the wall moves up to 4 mm between frames, 4 to 7 are run.  The matrices
@@ -225,7 +225,7 @@ def track(
     frames = []
     for volume in volumes:
         if frames:
-            frames.append(tracker.step(volume, max_iterations=iterations_per_frame, iter_callback=iter_callback,
+            frames.append(tracker.next_frame(volume, max_iterations=iterations_per_frame, iter_callback=iter_callback,
                                        follow_base=follow_base))
         else:
             frames.append(tracker.run(iter_callback))

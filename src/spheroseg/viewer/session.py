@@ -530,7 +530,7 @@ class Session:
                     self._publish_frame(job, t, results[t], done, n)
                     continue
                 tracker.run()
-            results[t] = tracker.step(self.frames[t], max_iterations=self.iterations_per_frame,
+            results[t] = tracker.next_frame(self.frames[t], max_iterations=self.iterations_per_frame,
                                       iter_callback=self._stream(job, t), follow_base=True)
             self._publish_frame(job, t, results[t], done, n)
         if not self._current(job):

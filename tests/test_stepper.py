@@ -1,0 +1,47 @@
+"""The level state machine: the schedule is data that no frame rewrites."""
+
+import numpy as np
+import pytest
+
+from spheroseg import Tracker
+from spheroseg.dataterms import GlobalMeans, LocalMeans
+from spheroseg.options import SegmentOptions
+from spheroseg.phantom import make_phantom
+from spheroseg.stepper import Level, held_points, schedule
+from spheroseg.coords import Pose
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return make_phantom(seed=11, spacing=2.0)
+
+
+def test_a_frame_caps_its_finest_levels_without_rewriting_the_schedule(phantom):
+    tracker = Tracker(phantom.volume, phantom.apex, phantom.base, mode="local")
+    levels = schedule(tracker.options)
+    assert tracker.levels == levels and isinstance(levels, tuple)
+    tracker.run()
+    result = tracker.next_frame(phantom.volume, max_iterations=3)
+    assert tracker.levels == levels  # the frame's cap lives beside the schedule
+    stepper = tracker.stepper
+    assert [stepper.max_iterations(k) for k in range(len(levels))] == [60, 60, 3]
+    assert result.parameters["max_iterations"] == 3 and result.parameters["coarse_to_fine"] is False
+    assert tracker.level == len(levels) - 1 and result.status in (0, 1)
+
+
+def test_a_schedule_of_ones_own(phantom):
+    levels = [Level((4, 4), GlobalMeans, 5, 0.1), Level((8, 8), LocalMeans, 4, 0.05)]
+    tracker = Tracker(phantom.volume, phantom.apex, phantom.base, levels=levels)
+    result = tracker.run()
+    assert tracker.levels == tuple(levels) and tracker.patches == (8, 8)
+    assert result.iterations <= 9 and result.surface.grid.n1 == 8
+
+
+def test_held_points_keep_the_cavity_side_and_the_apex():
+    pose = Pose.from_apex_base(np.array([0.0, 0, 80]), np.zeros(3))  # x1 along +z
+    landmarks = np.array([[10.0, 0, 20], [10.0, 0, -5]])  # the second is beyond the base plane
+    options = SegmentOptions(landmark_weight=3.0, apex_weight=2.0)
+    points, weights = held_points(pose, landmarks, np.array([0.0, 0, 80]), options)
+    np.testing.assert_array_equal(points, [[10.0, 0, 20], [0.0, 0, 80]])
+    np.testing.assert_array_equal(weights, [3.0, 2.0])
+    assert held_points(pose, landmarks[1:], np.zeros(3), SegmentOptions(apex_weight=0.0)) == (None, None)
