@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
-from spheroseg import _beam_kernels, _kernels  # noqa: E402
+from spheroseg import _kernels  # noqa: E402
 from spheroseg.beamspace import scan_convert, to_beam_space  # noqa: E402
 from spheroseg.phantom import FORMATIONS, make_phantom, make_sequence, probe_sector  # noqa: E402
 from spheroseg.segment import segment, track  # noqa: E402
@@ -86,13 +86,13 @@ def per_sample(repeats: int) -> list[dict]:
     for convention in ("tan", "sin"):
         beam = to_beam_space(ph.volume, probe_sector(ph.volume, convention=convention))
         cart = scan_convert(beam)
-        for name, kernels, volume in (("beam space", _beam_kernels, beam), ("Cartesian", _kernels, cart)):
-            view = volume.sampling_view()
-            kernels.sample_along(*view, world, normal, rows, offsets, 0.0, mean, count)  # compile / load
+        for name, volume in (("beam space", beam), ("Cartesian", cart)):
+            view = _kernels.sampler(volume.sampling_view())
+            _kernels.sample_along(*view, world, normal, rows, offsets, 0.0, mean, count)  # compile / load
             times = []
             for _ in range(repeats):
                 t0 = time.perf_counter()
-                kernels.sample_along(*view, world, normal, rows, offsets, 0.0, mean, count)
+                _kernels.sample_along(*view, world, normal, rows, offsets, 0.0, mean, count)
                 times.append(time.perf_counter() - t0)
             # the median and the fastest run: on a loaded machine the longer
             # (beam-space) calls are preempted more often than the short ones

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from spheroseg import _beam_kernels, segment, track
+from spheroseg import _kernels, segment, track
 from spheroseg.beamspace import beam_mask, beam_mask_volume_ml, scan_convert, to_beam_space
 from spheroseg.phantom import FORMATIONS, make_phantom, make_sequence, probe_sector
 
@@ -54,7 +54,7 @@ def test_phantom_formed_in_beam_space():
     assert direct.volume_ml == pytest.approx(ph.truth_volume_ml, rel=0.03)
 
 
-@pytest.mark.skipif(not _beam_kernels.AVAILABLE, reason="numba not installed")
+@pytest.mark.skipif(not _kernels.AVAILABLE, reason="numba not installed")
 def test_beam_space_compiled_and_numpy_backends_agree():
     ph = make_phantom(seed=2, spacing=1.5)
     beam = to_beam_space(ph.volume, probe_sector(ph.volume, convention="sin"))

@@ -43,10 +43,10 @@ PACKAGE = Path(SRC) / "spheroseg"
 #: (``surface`` and ``volume`` reach the rasteriser through the service
 #: ``raster`` only, which imports neither of them)
 LOWER = ("coords", "hermite", "surface", "volume", "energy", "discretisation", "dataterms")
-FORBIDDEN_BELOW = ("_kernels", "_beam_kernels", "_raster", "_runtime", "backends", "descent", "stepper", "frames",
+FORBIDDEN_BELOW = ("_kernels", "_raster", "_runtime", "backends", "descent", "stepper", "frames",
                    "initial", "tracker", "segment", "warmup", "batch", "cli", "outputs", "io")
 #: the compiled kernels and the runtime import no orchestration
-COMPILED = ("_kernels", "_beam_kernels", "_raster", "_runtime", "raster")
+COMPILED = ("_kernels", "_raster", "_runtime", "raster")
 ORCHESTRATION = ("backends", "descent", "stepper", "frames", "initial", "tracker", "segment", "warmup", "batch", "cli",
                  "outputs", "io", "viewer")
 

@@ -3,8 +3,8 @@
 An iteration touches only what the model sets: the 4096 sample points of an
 8 x 8-patch surface (8 x 8 Gauss-Legendre points a patch), their normals and
 a few trilinear samples along each normal.  In numpy that is some hundred
-array operations and sparse products on 4096-long arrays, about 2 ms; as
-plain loops compiled by numba it is a few hundred microseconds.  numba
+array operations and sparse products on 4096-long arrays; as plain loops
+compiled by numba it is a tenth of that time (docs/benchmarks.md).  numba
 compiles the loops from this Python source, so the readable numpy backend
 (:class:`spheroseg.backends.NumpyBackend`) stays the reference, and the tests
 check each kernel against it and whole segmentations on both to 1e-6.
@@ -18,6 +18,10 @@ per level:
   paper eq. 1 (the coordinates) and eqs. 16-17 (tangents, ``A_K``);
 - :func:`sample_along`: the mean of trilinear samples along normals;
   :func:`samples_at`: the samples themselves, trilinear or the nearest voxel;
+  both, and :func:`cavity_sums`, sample a Cartesian image or a beam-space
+  volume, whose arrays :func:`sampler` puts in one form (the sampler is
+  picked by the type of its beam parameters, None for a Cartesian image:
+  one source, compiled and cached on disk once per geometry);
 - :func:`cavity_sums`: samples along the rays inside the cavity, weighted by
   the volume element ``V = h0 h1 h2`` of eq. 19 (the global Chan-Vese mean);
 - :func:`gather`, :func:`scatter`: ``B H`` and ``B^T v`` for the Hermite
@@ -44,22 +48,33 @@ Only the prolate spheroidal system (the default) has a surface kernel.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import NamedTuple
 
 import numpy as np
 
 try:  # pragma: no cover - exercised when numba is installed
     from numba import njit, prange
+    from numba.core import types
+    from numba.core.errors import NumbaIRAssumptionWarning
+    from numba.extending import overload
+
+    # numba's internal check of the IR, on inlining _sample_at's choice of
+    # sampler into a loop, names a variable it expected in scope; the code
+    # compiled is right (the tests hold it equal to the reference)
+    warnings.filterwarnings("ignore", message=".*_sample_at_typed", category=NumbaIRAssumptionWarning)
 except ImportError:  # pragma: no cover
     njit, prange = None, range
 
 from .volume import INDEX_TOLERANCE as _EDGE
 
-__all__ = ["AVAILABLE", "prolate_surface", "sample_along", "samples_at", "cavity_sums", "gather",
-           "scatter", "normal_displacement", "csr_product", "descend"]
+__all__ = ["AVAILABLE", "NO_BEAM", "sampler", "prolate_surface", "sample_along", "samples_at", "cavity_sums",
+           "gather", "scatter", "normal_displacement", "csr_product", "descend"]
 
 AVAILABLE = njit is not None
 _ZERO = np.zeros(3)
+#: the ``beam`` argument of a Cartesian image (:func:`sampler`)
+NO_BEAM = None
 
 
 def _sample(image, strides, upper, fi, fj, fk):
@@ -88,6 +103,73 @@ def _sample(image, strides, upper, fi, fj, fk):
     c10 = image[c + sz] * (1.0 - ti) + image[c + sz + one] * ti
     c11 = image[c + sy + sz] * (1.0 - ti) + image[c + sy + sz + one] * ti
     return (c00 * (1.0 - tj) + c01 * tj) * (1.0 - tk) + (c10 * (1.0 - tj) + c11 * tj) * tk
+
+
+def _beam_sample(image, strides, upper, beam, x, y, z):
+    """Trilinear sample of a beam-space volume at the probe-frame point
+    ``(x, y, z)``, as :meth:`spheroseg.beamspace.BeamVolume.sample` (the
+    reference): the point in ``(r, e, a)`` index (one ``sqrt`` and two
+    ``atan``, a second ``sqrt`` in the "sin" convention), then :func:`_sample`
+    on the samples ``a`` fastest; NaN outside the sector and on no-data.
+    ``beam``: the separations and the index offset in ``(r, e, a)``, then 1
+    for the "sin" convention (:func:`sampler`)."""
+    # the sector lies in z > 0 in both conventions (half-angles under 90
+    # degrees), where atan2(u, z) = atan(u / z), the cheaper call
+    if not z > 0.0:
+        return np.nan
+    rho = math.sqrt(x * x + y * y + z * z)
+    fr = (rho - beam[3]) / beam[0]
+    if not (fr >= -_EDGE and fr <= upper[2] + _EDGE):  # off the range: no angles needed
+        return np.nan
+    inv_z = 1.0 / z
+    fe = (math.atan(y * inv_z) - beam[4]) / beam[1]
+    if beam[6] != 0.0:
+        alpha = math.atan(x / math.sqrt(y * y + z * z))
+    else:
+        alpha = math.atan(x * inv_z)
+    fa = (alpha - beam[5]) / beam[2]
+    return _sample(image, strides, upper, fa, fe, fr)
+
+
+def _sample_at(image, strides, upper, beam, x, y, z):
+    """The image at ``(x, y, z)`` of the sampler's frame: a Cartesian image's
+    continuous voxel index (``beam`` None) or a beam-space volume's probe
+    frame (:func:`sampler`).  Compiled, the choice is made by ``beam``'s
+    type (:func:`_sample_at_typed`): a Cartesian kernel holds no beam code."""
+    if beam is None:
+        return _sample(image, strides, upper, x, y, z)
+    return _beam_sample(image, strides, upper, beam, x, y, z)
+
+
+def _sample_at_typed(image, strides, upper, beam, x, y, z):
+    """:func:`_sample_at` for numba: the sampler of ``beam``'s type."""
+    if isinstance(beam, types.NoneType):
+        def cartesian(image, strides, upper, beam, x, y, z):
+            return _sample(image, strides, upper, x, y, z)
+        return cartesian
+
+    def beam_space(image, strides, upper, beam, x, y, z):
+        return _beam_sample(image, strides, upper, beam, x, y, z)
+    return beam_space
+
+
+def sampler(view) -> tuple:
+    """The image arguments of :func:`sample_along` and :func:`cavity_sums`
+    (``image, strides, upper, to_frame, frame_origin, beam``) for a
+    :meth:`spheroseg.Volume.sampling_view` or a
+    :meth:`spheroseg.beamspace.BeamVolume.sampling_view`.
+
+    A world point ``w`` is sampled at ``to_frame @ (w - frame_origin)``: a
+    Cartesian image's voxel index (``beam`` None), or a beam-space volume's
+    probe frame (``to_frame`` the probe's rotation transposed, the origin its
+    apex; ``beam`` its separations, index offset and convention), whose
+    samples are then read ``a`` fastest, as a Cartesian image's ``x``."""
+    if len(view) == 5:
+        return (*view, NO_BEAM)
+    values, strides, upper, rotation, apex, separations, index_offset, sin_convention = view
+    beam = np.array([*separations, *index_offset, 1.0 if sin_convention else 0.0])
+    return (values, np.array([1, strides[1], strides[0]], dtype=np.int64), np.ascontiguousarray(upper[::-1]),
+            np.ascontiguousarray(rotation.T), np.asarray(apex, dtype=float), beam)
 
 
 def _nearest(image, strides, upper, fi, fj, fk):
@@ -245,12 +327,13 @@ def prolate_surface(coefficients, order, basis1, basis2, cos_th, sin_th, cos_mu,
         out_normal[2, q] = r20 * m0 + r21 * m1 + r22 * m2
 
 
-def sample_along(image, strides, upper, to_index, image_origin, world, normal, rows, offsets, exponent, out_mean,
-                 out_count):
+def sample_along(image, strides, upper, to_index, image_origin, beam, world, normal, rows, offsets, exponent,
+                 out_mean, out_count):
     """For each ``q`` in ``rows``: the mean (NaN if none) and the number of the
     finite samples at ``world[:, q] + s normal[:, q]`` for ``s`` in
     ``offsets`` (mm); with a non-zero ``exponent`` ``a``, of ``exp(a v)`` for
-    each sample ``v`` (log compression undone)."""
+    each sample ``v`` (log compression undone).  The image arguments are
+    :func:`sampler`'s, of a Cartesian or a beam-space volume."""
     if offsets.shape[0] == 1:
         # the surface's own samples, every iteration: a parallel loop whose
         # body has no inner loop runs on SIMD lanes (a loop an offset, the
@@ -261,7 +344,7 @@ def sample_along(image, strides, upper, to_index, image_origin, world, normal, r
             q = rows[r]
             pi, pj, pk = _index(to_index, image_origin, world[0, q], world[1, q], world[2, q])
             ni, nj, nk = _index(to_index, _ZERO, normal[0, q], normal[1, q], normal[2, q])
-            v = _sample(image, strides, upper, pi + offset * ni, pj + offset * nj, pk + offset * nk)
+            v = _sample_at(image, strides, upper, beam, pi + offset * ni, pj + offset * nj, pk + offset * nk)
             if exponent != 0.0:
                 v = math.exp(exponent * v)
             out_mean[r] = v  # NaN: no finite sample
@@ -269,12 +352,12 @@ def sample_along(image, strides, upper, to_index, image_origin, world, normal, r
         return
     for r in prange(rows.shape[0]):
         q = rows[r]
-        # the point and the normal in voxel index: the samples are a line there
+        # the point and the normal in the sampler's frame: the samples are a line there
         pi, pj, pk = _index(to_index, image_origin, world[0, q], world[1, q], world[2, q])
         ni, nj, nk = _index(to_index, _ZERO, normal[0, q], normal[1, q], normal[2, q])
         total, count = 0.0, 0
         for s in offsets:
-            v = _sample(image, strides, upper, pi + s * ni, pj + s * nj, pk + s * nk)
+            v = _sample_at(image, strides, upper, beam, pi + s * ni, pj + s * nj, pk + s * nk)
             if exponent != 0.0:
                 v = math.exp(exponent * v)
             if not math.isnan(v):
@@ -284,10 +367,11 @@ def sample_along(image, strides, upper, to_index, image_origin, world, normal, r
         out_count[r] = count
 
 
-def samples_at(image, strides, upper, to_index, image_origin, world, normal, rows, offsets, nearest, out):
+def samples_at(image, strides, upper, to_index, image_origin, beam, world, normal, rows, offsets, nearest, out):
     """``out[r, k]``: the sample at ``world[:, q] + offsets[k] normal[:, q]``
     for ``q = rows[r]``, as :meth:`spheroseg.Volume.sample` (the reference):
-    trilinear, or with ``nearest`` the nearest voxel; NaN off the data."""
+    trilinear, or with ``nearest`` the nearest voxel (a Cartesian image's
+    only); NaN off the data.  The image arguments are :func:`sampler`'s."""
     for r in range(rows.shape[0]):
         q = rows[r]
         pi, pj, pk = _index(to_index, image_origin, world[0, q], world[1, q], world[2, q])
@@ -297,14 +381,15 @@ def samples_at(image, strides, upper, to_index, image_origin, world, normal, row
             if nearest:
                 out[r, k] = _nearest(image, strides, upper, pi + s * ni, pj + s * nj, pk + s * nk)
             else:
-                out[r, k] = _sample(image, strides, upper, pi + s * ni, pj + s * nj, pk + s * nk)
+                out[r, k] = _sample_at(image, strides, upper, beam, pi + s * ni, pj + s * nj, pk + s * nk)
 
 
-def cavity_sums(image, strides, upper, to_index, image_origin, f, cos_th, sin_th, cos_mu, sin_mu, d, rotation, origin,
-                rows, fractions, out_sum, out_weight):
+def cavity_sums(image, strides, upper, to_index, image_origin, beam, f, cos_th, sin_th, cos_mu, sin_mu, d, rotation,
+                origin, rows, fractions, out_sum, out_weight):
     """For each ``q`` in ``rows``, samples at ``lambda = t f[q]`` for ``t`` in
     ``fractions``, weighted by the volume element ``V = h0 h1 h2``: the sums
-    of ``V u`` and of ``V`` over the finite samples."""
+    of ``V u`` and of ``V`` over the finite samples.  The image arguments
+    are :func:`sampler`'s."""
     for r in prange(rows.shape[0]):
         q = rows[r]
         ct, st, cm, sm = cos_th[q], sin_th[q], cos_mu[q], sin_mu[q]
@@ -318,7 +403,7 @@ def cavity_sums(image, strides, upper, to_index, image_origin, f, cos_th, sin_th
             wy = rotation[1, 0] * x0 + rotation[1, 1] * x1 + rotation[1, 2] * x2 + origin[1]
             wz = rotation[2, 0] * x0 + rotation[2, 1] * x1 + rotation[2, 2] * x2 + origin[2]
             fi, fj, fk = _index(to_index, image_origin, wx, wy, wz)
-            v = _sample(image, strides, upper, fi, fj, fk)
+            v = _sample_at(image, strides, upper, beam, fi, fj, fk)
             if not math.isnan(v):
                 volume = d**3 * (sh * sh + sm * sm) * sh * sm
                 total += volume * v
@@ -593,7 +678,7 @@ def descend(p, reference, max_iterations, tol, state, prior, surface, image, ter
     prior : LoopPrior
     surface : LoopSurface
     image : tuple
-        :meth:`spheroseg.Volume.sampling_view`.
+        :func:`sampler` of :meth:`spheroseg.Volume.sampling_view`.
     term : LoopTerm
     obs : LoopObservation
         Filled with the last observation.
@@ -708,6 +793,8 @@ if AVAILABLE:
     _parallel = njit(cache=True, error_model="numpy", parallel=True)
     _inline = njit(cache=True, error_model="numpy", inline="always")
     _sample = _inline(_sample)
+    _beam_sample = _inline(_beam_sample)
+    overload(_sample_at, inline="always")(_sample_at_typed)
     _nearest = _inline(_nearest)
     _index = _inline(_index)
     _patch = _inline(_patch)

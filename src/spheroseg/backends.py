@@ -5,8 +5,8 @@
 :func:`spheroseg.energy.normal_speed` and restates none of them.
 :class:`CompiledBackend` does the same work in the numba kernels of
 :mod:`spheroseg._kernels` (prolate spheroidal system only), writing into
-arrays allocated once (a :class:`~spheroseg.beamspace.BeamVolume` is sampled
-by those of :mod:`spheroseg._beam_kernels`); the tests require both to give
+arrays allocated once (a :class:`~spheroseg.beamspace.BeamVolume` too: the
+kernels take either's arrays); the tests require both to give
 the same segmentations.  :func:`select_backend` chooses once, as trimesh picks a ray
 engine.
 
@@ -186,10 +186,9 @@ class CompiledBackend(NumpyBackend):
 
     def __init__(self, model: SampledSurface):
         super().__init__(model)
-        from . import _beam_kernels, _kernels
+        from . import _kernels
 
         self.kernels = _kernels
-        self.beam_kernels = _beam_kernels
         n, nb = model.n_samples, len(self.discretisation.band_rows)
         self._all_rows = np.arange(n)
         self._all_rows.flags.writeable = False  # as the band rows: one kernel signature for both
@@ -206,19 +205,19 @@ class CompiledBackend(NumpyBackend):
             return super().observe(p, volume, band_offsets=band_offsets, geometry=True, exponent=exponent)
         m, d, b = self.model, self.discretisation, self._buffers
         coefficients = self.product(d.constraints, p).reshape(m.grid.shape)
-        kernels, image = self._sampling(volume)
+        image = self._sampling(volume)
         with PARALLEL_LOCK:
             self.kernels.prolate_surface(coefficients, d.order, *d.tables, *d.trig, m.system.focal_length,
                                          m.pose.rotation, m.pose.origin, b["f"], b["h0"], b["cos"], b["area"],
                                          b["world"], b["normal"])
-            kernels.sample_along(*image, b["world"], b["normal"], self._all_rows, _SURFACE_OFFSETS, exponent, b["u"],
+            self.kernels.sample_along(*image, b["world"], b["normal"], self._all_rows, _SURFACE_OFFSETS, exponent, b["u"],
                                  self._counts)
             if band_offsets is not None:
                 rows = d.band_rows
                 counts = self._counts[:len(rows)]
-                kernels.sample_along(*image, b["world"], b["normal"], rows, -band_offsets, exponent, b["inside"],
+                self.kernels.sample_along(*image, b["world"], b["normal"], rows, -band_offsets, exponent, b["inside"],
                                      counts)
-                kernels.sample_along(*image, b["world"], b["normal"], rows, band_offsets, exponent, b["outside"],
+                self.kernels.sample_along(*image, b["world"], b["normal"], rows, band_offsets, exponent, b["outside"],
                                      counts)
         obs = Observation(**b)
         if band_offsets is None:
@@ -233,13 +232,12 @@ class CompiledBackend(NumpyBackend):
         return out
 
     def _sampling(self, volume):
-        """The kernels that sample ``volume`` (Cartesian or beam space) and
-        the arrays they read (kept for the last volume: an iteration asks up
-        to three times, and would build the read-only views each time)."""
+        """The arrays the kernels read to sample ``volume`` (Cartesian or beam
+        space; kept for the last volume: an iteration asks up to three
+        times, and would build the read-only views each time)."""
         if volume is not self._sampled:
-            kernels = self.beam_kernels if isinstance(volume, BeamVolume) else self.kernels
             # (a plain tuple: the kernels take it unpacked)
-            self._sampled, self._sampling_arrays = volume, (kernels, tuple(volume.sampling_view()))
+            self._sampled, self._sampling_arrays = volume, self.kernels.sampler(volume.sampling_view())
         return self._sampling_arrays
 
     def samples_along(self, volume, obs: Observation, offsets, rows=slice(None), *, exponent: float = 0.0,
@@ -248,23 +246,23 @@ class CompiledBackend(NumpyBackend):
             return super().samples_along(volume, obs, offsets, rows, exponent=exponent, order=order)
         offsets = np.ascontiguousarray(offsets, dtype=float)
         out = np.empty((len(rows), len(offsets)))
-        kernels, image = self._sampling(volume)
-        kernels.samples_at(*image, obs.world, obs.normal, rows, offsets, order == 0, out)
+        image = self._sampling(volume)
+        self.kernels.samples_at(*image, obs.world, obs.normal, rows, offsets, order == 0, out)
         return out
 
     def mean_along(self, volume, obs: Observation, offsets, rows, *, exponent: float = 0.0):
         mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
-        kernels, image = self._sampling(volume)
+        image = self._sampling(volume)
         with PARALLEL_LOCK:
-            kernels.sample_along(*image, obs.world, obs.normal, rows, offsets, exponent, mean, count)
+            self.kernels.sample_along(*image, obs.world, obs.normal, rows, offsets, exponent, mean, count)
         return mean, count
 
     def cavity_sums(self, volume, obs: Observation, fractions, rows):
         m, d = self.model, self.discretisation
         total, weight = np.empty(len(rows)), np.empty(len(rows))
-        kernels, image = self._sampling(volume)
+        image = self._sampling(volume)
         with PARALLEL_LOCK:
-            kernels.cavity_sums(*image, obs.f, *d.trig, m.system.focal_length, m.pose.rotation, m.pose.origin, rows,
+            self.kernels.cavity_sums(*image, obs.f, *d.trig, m.system.focal_length, m.pose.rotation, m.pose.origin, rows,
                                 fractions, total, weight)
         return total, weight
 
@@ -322,7 +320,7 @@ class CompiledBackend(NumpyBackend):
         means = np.empty((3, m.n_samples))
         with PARALLEL_LOCK:
             status = self.kernels.descend(p, reference, max_iterations, tol, state, prior, self._surface,
-                                          self._sampling(volume)[1], term, self._observed, means, previous)
+                                          self._sampling(volume), term, self._observed, means, previous)
         return status, Observation(**b), means
 
 

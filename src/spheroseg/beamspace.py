@@ -438,14 +438,16 @@ def _grid_slice_points(grid: ImageGrid, k: int) -> np.ndarray:
 def _sample_points(volume: BeamVolume, points: np.ndarray, order: int) -> np.ndarray:
     """``volume.sample(points, order=order)``, trilinear through the compiled
     kernel when numba is installed (tested equal)."""
-    from . import _beam_kernels  # numba only when sampling: import spheroseg stays light
+    from . import _kernels  # numba only when sampling: import spheroseg stays light
+    from ._runtime import PARALLEL_LOCK
 
-    if order != 1 or not _beam_kernels.AVAILABLE:
+    if order != 1 or not _kernels.AVAILABLE:
         return volume.sample(points, order=order)
     n = len(points)
     out, count = np.empty(n), np.empty(n, np.int64)
-    _beam_kernels.sample_along(*volume.sampling_view(), np.ascontiguousarray(points.T), np.zeros((3, n)),
-                               np.arange(n), np.zeros(1), 0.0, out, count)
+    with PARALLEL_LOCK:
+        _kernels.sample_along(*_kernels.sampler(volume.sampling_view()), np.ascontiguousarray(points.T),
+                              np.zeros((3, n)), np.arange(n), np.zeros(1), 0.0, out, count)
     return out
 
 
