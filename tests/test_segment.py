@@ -404,3 +404,20 @@ def test_tracking_follows_the_annulus_and_recovers_ejection_fraction():
     assert abs(tr.ef - seq.truth_ef) < 3.0, (tr.ef, seq.truth_ef)
     still = track(seq.volumes, first.apex, first.base, follow_base=False)
     assert still.esv_ml > tr.esv_ml + 5  # kept still, the plane closes the cavity in the atrium
+
+
+def test_the_functions_shadow_their_modules_as_documented():
+    """``spheroseg.segment`` and ``spheroseg.locate`` are the functions; the
+    modules are reached by name (docs/architecture.md)."""
+    import importlib
+    import sys
+
+    import spheroseg
+
+    for name in ("segment", "locate"):
+        module = importlib.import_module(f"spheroseg.{name}")
+        assert module is sys.modules[f"spheroseg.{name}"] and callable(getattr(spheroseg, name))
+        assert getattr(spheroseg, name) is getattr(module, name) and getattr(spheroseg, name) is not module
+    from spheroseg.segment import track as from_module
+
+    assert from_module is spheroseg.track
