@@ -311,19 +311,22 @@ class Tracker:
         self._seconds += time.perf_counter() - started
         return self.motion
 
-    def run_level(self) -> bool:
+    def run_level(self, max_iterations: int | None = None) -> bool:
         """Run the current level to its end (as :meth:`iterate` until the
-        level changes) in one compiled loop (:meth:`Descent.run`): the
-        same iterations without their Python-level cost.  False, having run
-        nothing, where that loop does not apply (see :meth:`Descent.run`)."""
+        level changes), or at most ``max_iterations`` of it, in one compiled
+        loop (:meth:`Descent.run`): the same iterations without their
+        Python-level cost.  False, having run nothing, where that loop does
+        not apply (see :meth:`Descent.run`)."""
         if self.status is not None:
             raise RuntimeError(f"the tracker has stopped ({self.message}); step(volume) starts a new frame")
         started = time.perf_counter()
         level = self.levels[self.level]
         term = self._terms[level.data_term]
+        remaining = level.max_iterations - self._level_iterations
+        if max_iterations is not None:
+            remaining = min(remaining, max_iterations)
         with kernel_threads(self._threads):
-            run = self._descent.run(self.volume, term, tol=level.tol,
-                                    max_iterations=level.max_iterations - self._level_iterations)
+            run = self._descent.run(self.volume, term, tol=level.tol, max_iterations=remaining)
         if run is None:
             return False
         self._advance(term, run.observation, run.force, run.motion, run.iterations)
@@ -403,14 +406,20 @@ class Tracker:
         """The state after the last iteration, as ``iter_callback`` gets it."""
         return Intermediate(self.surface, self.iteration, self.level, self.patches, float(self.motion))
 
-    def run(self, iter_callback=None) -> SegmentationResult:
+    def run(self, iter_callback=None, *, callback_every: int = 1) -> SegmentationResult:
         """Iterate until the current frame stops; ``iter_callback(intermediate)``
         is called after every iteration and may raise ``StopIteration``.
+        With ``callback_every`` k > 1 it is called after every k-th iteration
+        and at each level's end, and the iterations between run in the
+        compiled loop (:meth:`run_level`): a viewer's stream of intermediate
+        surfaces at the speed of a run without one.
         A frame whose base ring came out narrower than an annulus runs its
         finest level again with the ring held open (:meth:`_widen_base_ring`)."""
-        self._iterate_until_stopped(iter_callback)
+        if not (isinstance(callback_every, (int, np.integer)) and callback_every >= 1):
+            raise ValueError(f"callback_every must be a positive integer, got {callback_every!r}")
+        self._iterate_until_stopped(iter_callback, int(callback_every))
         if self.status in (0, 1) and self._widen_base_ring():
-            self._iterate_until_stopped(iter_callback)
+            self._iterate_until_stopped(iter_callback, int(callback_every))
         return self.result()
 
     def base_ring_floor(self) -> float:
@@ -450,18 +459,21 @@ class Tracker:
         self._level_iterations, self.status = 0, None
         return True
 
-    def _iterate_until_stopped(self, iter_callback=None) -> None:
+    def _iterate_until_stopped(self, iter_callback=None, callback_every: int = 1) -> None:
         while self.status is None:
-            if iter_callback is None and self.run_level():
+            if iter_callback is None:
+                if not self.run_level():
+                    self.iterate()
                 continue
-            self.iterate()
+            if callback_every == 1 or not self.run_level(callback_every):
+                self.iterate()
             if iter_callback is not None:
                 try:
                     iter_callback(self.intermediate())
                 except StopIteration:
                     self.stop(2)
 
-    def step(self, volume, *, max_iterations: int | None = None, iter_callback=None,
+    def step(self, volume, *, max_iterations: int | None = None, iter_callback=None, callback_every: int = 1,
              follow_base: bool = False) -> SegmentationResult:
         """Segment a new frame, starting from the current surface.
 
@@ -471,7 +483,8 @@ class Tracker:
         ``max_iterations`` (default: the options') until the surface stops
         moving.  With ``follow_base``, the mitral plane first moves along the
         long axis with the annulus (:func:`spheroseg.annulus.annulus_shift`)
-        and the model is posed there.
+        and the model is posed there.  ``iter_callback`` and
+        ``callback_every`` as in :meth:`run`.
         """
         _check_volume(volume)
         if max_iterations is not None and not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 1):
@@ -508,7 +521,7 @@ class Tracker:
         self._no_speckle = False
         self._seconds = time.perf_counter() - started
         self._frame_options = {"max_iterations": cap, "coarse_to_fine": False}
-        self.run(iter_callback)
+        self.run(iter_callback, callback_every=callback_every)
         if self.options.coarse_to_fine and self.status != 2:  # not when stopped from outside
             self._keep_better_start(surface)
         return self.result()
