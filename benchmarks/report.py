@@ -696,7 +696,8 @@ def _viewer(v) -> list[str]:
         lines += ["", f"The demo's page was ready {v['page_ready_s']:.1f} s after it was opened."]
     lines += ["", "Screenshots: `docs/viewer-1-loaded.png` (the demo, probe at the top), `-2-segmented`, "
                   "`-3-landmark`, `-4-tracked` (the sequence at end-systole), `-5-cetus` (CETUS Patient 7 "
-                  "segmented, 3D view on), `-6-help` (the shortcuts, on `?`)."]
+                  "segmented, 3D view on; the echo is CETUS data, CC BY-NC-SA 4.0, Bernard et al. 2016, shown, not "
+                  "shipped), `-6-help` (the shortcuts, on `?`)."]
     return lines
 
 

@@ -96,6 +96,35 @@ def test_iterating_by_hand_equals_segment(phantom):
         tracker.iterate()
 
 
+def test_a_callback_every_k_iterations_runs_the_compiled_loop_between(phantom):
+    """``callback_every``: the callback at every k-th iteration and at each
+    level's end, the same surface as a run without a callback (the same
+    compiled loop, cut into pieces), and a StopIteration still stops it."""
+    whole = Tracker(phantom.volume, phantom.apex, phantom.base).run()
+    seen = []
+    chunked = Tracker(phantom.volume, phantom.apex, phantom.base).run(
+        lambda it: seen.append((it.iteration, it.level)), callback_every=4)
+    assert chunked.iterations == whole.iterations and chunked.status == whole.status == 0
+    np.testing.assert_allclose(chunked.surface.coefficients, whole.surface.coefficients, rtol=0, atol=1e-12)
+    steps = np.diff([0] + [i for i, _ in seen])
+    assert seen[-1][0] == whole.iterations and np.all((steps >= 1) & (steps <= 4))
+    ends = [k for k in range(1, len(seen)) if seen[k][1] != seen[k - 1][1]]
+    assert len(ends) >= 2 and all(steps[k] <= 4 for k in ends)  # each level began a new piece
+    assert len(seen) < whole.iterations  # not at every iteration
+
+    calls = []
+
+    def stop_after(intermediate):
+        calls.append(intermediate.iteration)
+        if intermediate.iteration >= 6:
+            raise StopIteration
+
+    stopped = Tracker(phantom.volume, phantom.apex, phantom.base).run(stop_after, callback_every=3)
+    assert stopped.status == 2 and stopped.iterations == calls[-1] and 6 <= calls[-1] < 9
+    with pytest.raises(ValueError, match="callback_every must be a positive integer, got 0"):
+        Tracker(phantom.volume, phantom.apex, phantom.base).run(stop_after, callback_every=0)
+
+
 def test_the_interface_starts_from_the_local_means(monkeypatch):
     """The intensity stage is handed the local means' last band means, on
     every frame: it measures none itself, and its region means are theirs."""

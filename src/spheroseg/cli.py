@@ -70,20 +70,27 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     _add_options(p)
 
 
+def _add_model_options(p: argparse.ArgumentParser, *, no_data_help: str) -> None:
+    """The model's options, defaults from :class:`SegmentOptions` (segment,
+    track, batch, view)."""
+    p.add_argument("--system", default=SegmentOptions.system, choices=SYSTEMS)
+    p.add_argument("--patches", nargs=2, type=int, default=SegmentOptions.patches, metavar=("N_THETA", "N_MU"))
+    p.add_argument("--mode", default=SegmentOptions.mode, choices=MODES, help="data term")
+    p.add_argument("--no-data", default="auto", type=_no_data, metavar="auto|none|VALUE", help=no_data_help)
+
+
 def _add_options(p: argparse.ArgumentParser) -> None:
     """The segmentation and output options (segment, track, batch)."""
-    p.add_argument("--system", default="prolate", choices=SYSTEMS)
-    p.add_argument("--patches", nargs=2, type=int, default=(8, 8), metavar=("N_THETA", "N_MU"))
-    p.add_argument("--mode", default=SegmentOptions.mode, choices=MODES, help="data term")
-    p.add_argument("--step", type=float, default=1.0, help="largest surface motion per iteration, mm")
-    p.add_argument("--max-iterations", type=int, default=60, help="per coarse-to-fine level")
-    p.add_argument("--smoothness", type=float, default=1.0, help="thin-plate prior weight (0: the paper's method)")
+    _add_model_options(p, no_data_help="voxels without data: 'auto' (default) the zero padding around an echo "
+                                       "sector (a beam-space file's NoDataValue key), 'none', or a voxel value")
+    p.add_argument("--step", type=float, default=SegmentOptions.step, help="largest surface motion per iteration, mm")
+    p.add_argument("--max-iterations", type=int, default=SegmentOptions.max_iterations,
+                   help="per coarse-to-fine level")
+    p.add_argument("--smoothness", type=float, default=SegmentOptions.smoothness,
+                   help="thin-plate prior weight (0: the paper's method)")
     p.add_argument("--threads", type=int, metavar="N",
                    help="threads of the compiled kernels (default: the cores no other process is using; a batch of "
                         "several workers: 1 each); the results do not depend on it")
-    p.add_argument("--no-data", default="auto", type=_no_data, metavar="auto|none|VALUE",
-                   help="voxels without data: 'auto' (default) the zero padding around an echo sector "
-                        "(a beam-space file's NoDataValue key), 'none', or a voxel value")
     p.add_argument("--mask-format", metavar="EXT", help="mask file type, e.g. .nii.gz (default: the input's)")
     p.add_argument("--stl", action="store_true", help="also write the mesh as STL")
     p.add_argument("--no-report", action="store_true", help="skip the PNG report")
@@ -174,11 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--save-root", metavar="DIR", help="the folder the page saves under (default: the current one)")
     view.add_argument("--spacing", nargs=3, type=float, metavar=("SX", "SY", "SZ"),
                       help="voxel spacing in mm (required for .npy)")
-    view.add_argument("--system", default="prolate", choices=SYSTEMS)
-    view.add_argument("--patches", nargs=2, type=int, default=(8, 8), metavar=("N_THETA", "N_MU"))
-    view.add_argument("--mode", default=SegmentOptions.mode, choices=MODES, help="data term")
-    view.add_argument("--no-data", default="auto", type=_no_data, metavar="auto|none|VALUE",
-                      help="voxels without data, as for segment")
+    _add_model_options(view, no_data_help="voxels without data, as for segment")
     demo = sub.add_parser("demo", help="track a built-in synthetic sequence and compare with its truth")
     demo.add_argument("--out", metavar="DIR", help="output folder (default: a new ./spheroseg-demo*)")
     demo.add_argument("--force", action="store_true")

@@ -70,9 +70,8 @@ def fit_surface(
     rhs = b.T @ v0[keep] / keep.sum()
     if smoothness > 0:
         lhs = lhs + smoothness * grid.roughness_matrix()
-    # a sparse solve (one thread): numpy's threaded LAPACK took 150 ms
-    # instead of 1 on a busy 2-core machine, in every tracked frame that
-    # follows the annulus
+    # a sparse solve (one thread): numpy's threaded LAPACK stalls on a busy
+    # machine, in every tracked frame that follows the annulus
     params = spsolve(sp.csc_matrix(lhs), rhs)
     return Surface(system, pose, grid, a @ params)
 

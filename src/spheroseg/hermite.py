@@ -261,8 +261,8 @@ class HermiteGrid:
         """
         index, values = self._terms(np.ravel(v1), np.ravel(v2), d1, d2)
         n = index.shape[1]
-        # 16 distinct columns a row: built as CSR directly (through COO it
-        # cost 0.6 ms for a single point), columns sorted as COO's would be
+        # 16 distinct columns a row: built as CSR directly (COO's conversion
+        # dominates for a few points), columns sorted as COO's would be
         matrix = sp.csr_matrix((values.T.ravel(), index.T.ravel(), np.arange(0, 16 * n + 1, 16)),
                                shape=(n, self.n_coefficients))
         matrix.sort_indices()

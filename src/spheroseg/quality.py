@@ -48,6 +48,7 @@ import math
 import numpy as np
 
 from .dataterms import nanmedian
+from .fit import point_to_surface_distance
 
 __all__ = ["quality_report", "quality_warning", "wall_bulge", "axis_distances", "landmark_residuals", "wall_report",
            "FrameQuality"]
@@ -76,18 +77,15 @@ def wall_bulge(surface, initial, *, reference: np.ndarray | None = None) -> floa
 
 
 def landmark_residuals(surface, landmarks) -> np.ndarray:
-    """Distance (mm) from each landmark ``(k, 3)`` to ``surface``'s wall.
-
-    The nearest of 256 x 128 points of the wall (evenly in ``v1``, ``v2``,
-    base rim included): within half their spacing, some 0.3 mm on a
-    ventricle, of the distance to the surface itself.
-    """
+    """Distance (mm) from each landmark ``(k, 3)`` to ``surface``'s wall
+    (:func:`spheroseg.fit.point_to_surface_distance`: the nearest of a
+    coarse sampling of the wall, refined on the wall's parameters; a
+    landmark beyond the base plane gets its distance to the base ring)."""
     points = np.asarray(landmarks, dtype=float).reshape(-1, 3)
     if not len(points):
         return np.zeros(0)
-    lo, hi = surface.grid.v2_range
-    wall = surface.grid_points(np.linspace(0, 2 * np.pi, 256, endpoint=False), np.linspace(lo, hi, 128)).reshape(-1, 3)
-    return np.array([np.sqrt(np.min(np.sum((wall - p) ** 2, axis=1))) for p in points])
+    # a coarse start suffices: a landmark lies near the wall it pulls
+    return point_to_surface_distance(points, surface, n_v1=64, n_v2=32)
 
 
 def axis_distances(surface, initial) -> np.ndarray:

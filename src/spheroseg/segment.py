@@ -199,7 +199,7 @@ def track(
         Cap on iterations of every frame after the first.
     follow_base : bool
         Move the base plane with the mitral annulus (False: the first
-        frame's plane throughout, as round 1 did).
+        frame's plane throughout).
     progress : callable, optional
         ``progress(frames_done, frames)`` after each frame.
     myocardium, rv_insertion, epicardium_options

@@ -235,17 +235,20 @@ class Stepper:
         self.seconds += time.perf_counter() - started
         return self.motion
 
-    def run_level(self) -> bool:
+    def run_level(self, max_iterations: int | None = None) -> bool:
         """Run the current level to its end (as :meth:`iterate` until the
-        level changes) in one compiled loop (:meth:`Descent.run`).  False,
-        having run nothing, where that loop does not apply."""
+        level changes), or at most ``max_iterations`` of it, in one compiled
+        loop (:meth:`Descent.run`).  False, having run nothing, where that
+        loop does not apply."""
         self._check_running()
         started = time.perf_counter()
         level = self.levels[self.level]
         term = self.terms[level.data_term]
+        remaining = self.max_iterations() - self.level_iterations
+        if max_iterations is not None:
+            remaining = min(remaining, max_iterations)
         with kernel_threads(self.threads):
-            run = self.descent.run(self.volume, term, tol=level.tol,
-                                   max_iterations=self.max_iterations() - self.level_iterations)
+            run = self.descent.run(self.volume, term, tol=level.tol, max_iterations=remaining)
         if run is None:
             return False
         self._advance(term, run.observation, run.force, run.motion, run.iterations)

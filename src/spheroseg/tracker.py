@@ -183,12 +183,13 @@ class Tracker:
         """
         return self.stepper.iterate()
 
-    def run_level(self) -> bool:
+    def run_level(self, max_iterations: int | None = None) -> bool:
         """Run the current level to its end (as :meth:`iterate` until the
-        level changes) in one compiled loop (:meth:`Descent.run`): the
-        same iterations without their Python-level cost.  False, having run
-        nothing, where that loop does not apply (see :meth:`Descent.run`)."""
-        return self.stepper.run_level()
+        level changes), or at most ``max_iterations`` of it, in one compiled
+        loop (:meth:`Descent.run`): the same iterations without their
+        Python-level cost.  False, having run nothing, where that loop does
+        not apply (see :meth:`Descent.run`)."""
+        return self.stepper.run_level(max_iterations)
 
     def stop(self, status: int = 2) -> None:
         """End the current frame now (``status`` 2: stopped from outside)."""
@@ -198,26 +199,35 @@ class Tracker:
         """The state after the last iteration, as ``iter_callback`` gets it."""
         return Intermediate(self.surface, self.iteration, self.level, self.patches, float(self.motion))
 
-    def _iterate_until_stopped(self, iter_callback=None) -> None:
+    def _iterate_until_stopped(self, iter_callback=None, callback_every: int = 1) -> None:
         while self.status is None:
-            if iter_callback is None and self.run_level():
+            if iter_callback is None:
+                if not self.run_level():
+                    self.iterate()
                 continue
-            self.iterate()
+            if callback_every == 1 or not self.run_level(callback_every):
+                self.iterate()
             if iter_callback is not None:
                 try:
                     iter_callback(self.intermediate())
                 except StopIteration:
                     self.stop(2)
 
-    def run(self, iter_callback=None) -> SegmentationResult:
+    def run(self, iter_callback=None, *, callback_every: int = 1) -> SegmentationResult:
         """Iterate until the current frame stops; ``iter_callback(intermediate)``
         is called after every iteration and may raise ``StopIteration``.
+        With ``callback_every`` k > 1 it is called after every k-th iteration
+        and at each level's end, and the iterations between run in the
+        compiled loop (:meth:`run_level`): a viewer's stream of intermediate
+        surfaces at the speed of a run without one.
         A frame whose base ring came out narrower than :meth:`base_ring_floor`
         runs its finest level again with the ring held open
         (:func:`spheroseg.frames.base_ring_points`)."""
-        self._iterate_until_stopped(iter_callback)
+        if not (isinstance(callback_every, (int, np.integer)) and callback_every >= 1):
+            raise ValueError(f"callback_every must be a positive integer, got {callback_every!r}")
+        self._iterate_until_stopped(iter_callback, int(callback_every))
         if self.status in (0, 1) and self._widen_base_ring():
-            self._iterate_until_stopped(iter_callback)
+            self._iterate_until_stopped(iter_callback, int(callback_every))
         return self.result()
 
     def base_ring_floor(self) -> float:
@@ -242,7 +252,7 @@ class Tracker:
     # frames ----------------------------------------------------------------
 
     def next_frame(self, volume, *, max_iterations: int | None = None, iter_callback=None,
-                   follow_base: bool = False) -> SegmentationResult:
+                   callback_every: int = 1, follow_base: bool = False) -> SegmentationResult:
         """Segment a new frame, starting from the current surface.
 
         The finest level continues on ``volume``: same matrices and data
@@ -253,7 +263,8 @@ class Tracker:
         long axis with the annulus (:func:`spheroseg.frames.followed_base`)
         and the model is posed there.  With ``coarse_to_fine`` the frame is
         then segmented again from afar and the better segmentation kept
-        (:func:`spheroseg.frames.keep_better_start`).
+        (:func:`spheroseg.frames.keep_better_start`).  ``iter_callback``
+        and ``callback_every`` as in :meth:`run`.
         """
         check_volume(volume)
         if max_iterations is not None and not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 1):
@@ -272,7 +283,7 @@ class Tracker:
         start = self.surface
         stepper.start_frame(volume, self.options.max_iterations if max_iterations is None else int(max_iterations))
         stepper.seconds = time.perf_counter() - started
-        self.run(iter_callback)
+        self.run(iter_callback, callback_every=callback_every)
         if self.options.coarse_to_fine and self.status != 2:  # not when stopped from outside
             keep_better_start(self, start)
         return self.result()

@@ -42,6 +42,9 @@ MESH_RESOLUTION = (48, 24)
 #: (s): the final one is always sent; each costs a mesh, its encoding and the
 #: page's drawing, CPU the descent would otherwise have
 STREAM_INTERVAL = 0.1
+#: iterations between two looks at the stream (a newer job stops the descent
+#: there); those between run in the compiled loop, at a plain run's speed
+STREAM_EVERY = 8
 
 
 def _encode(array, dtype) -> str:
@@ -506,7 +509,7 @@ class Session:
     def _segment(self, job: int, frame: int, points: Points) -> None:
         tracker = Tracker(self.frames[frame], **points.keywords(), **self.options.as_parameters())
         self.events.publish("surface", self._surface_data(frame, tracker.surface, final=False, job=job))
-        result = tracker.run(self._stream(job, frame))
+        result = tracker.run(self._stream(job, frame), callback_every=STREAM_EVERY)
         if not self._current(job):
             return
         self._check_points(result, frame, points)
@@ -525,13 +528,14 @@ class Session:
             if t == frame or t == frame - 1:  # each direction starts from the clicked frame
                 tracker = Tracker(self.frames[frame], **points.keywords(), **self.options.as_parameters())
                 if t == frame:
-                    results[t] = tracker.run(self._stream(job, t))
+                    results[t] = tracker.run(self._stream(job, t), callback_every=STREAM_EVERY)
                     self._check_points(results[t], t, points)
                     self._publish_frame(job, t, results[t], done, n)
                     continue
                 tracker.run()
             results[t] = tracker.next_frame(self.frames[t], max_iterations=self.iterations_per_frame,
-                                      iter_callback=self._stream(job, t), follow_base=True)
+                                            iter_callback=self._stream(job, t), callback_every=STREAM_EVERY,
+                                            follow_base=True)
             self._publish_frame(job, t, results[t], done, n)
         if not self._current(job):
             return
