@@ -4,7 +4,7 @@ import pytest
 from spheroseg import Volume, segment
 from spheroseg.coords import Pose, ProlateSpheroidal
 from spheroseg.epicardium import (
-    add_epicardium, conserving_start, enforce_thickness, initial_epicardium, mirrored_level, segment_epicardium,
+    add_epicardium, conserving_start, enforce_thickness, initial_epicardium, segment_epicardium,
     wall_nepers,
 )
 from spheroseg.hermite import HermiteGrid
@@ -100,16 +100,6 @@ def speckle_shells_image(*, nepers=15.0, contrast_db=12.0, blur_mm=2.0, seed=0):
     speckle = np.random.default_rng(seed).exponential(1.0, labels.shape)
     grey = np.clip(np.round(128 + nepers * np.log(intensity * speckle)), 1, 255).astype(np.uint8)
     return Volume(grey, spacing=(spacing,) * 3), pose
-
-
-def test_mirrored_level_is_the_half_way_intensity():
-    # independent: unreflect (u = L - v), exponentiate, compare with the intensities' mean
-    k, big = 17.0, 250.0
-    c_in, c_out = np.array([40.0, 100.0, 100.0]), np.array([80.0, 101.0, 240.0])
-    t = mirrored_level(c_in, c_out, nepers=k)
-    np.testing.assert_allclose(np.exp((big - t) / k), (np.exp((big - c_in) / k) + np.exp((big - c_out) / k)) / 2)
-    assert t[1] == pytest.approx(100.5, abs=0.01)  # weak contrast: the midpoint
-    assert t[2] == pytest.approx(100.0 + k * np.log(2.0), abs=0.01)  # strong: half the wall's intensity
 
 
 def test_wall_nepers_reads_the_log_compression():

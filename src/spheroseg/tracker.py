@@ -631,7 +631,8 @@ class Tracker:
     def _quality(self, surface: Surface) -> dict:
         if hasattr(self, "_last"):
             u, force, spread = self._last
-            no_data, contrast = float(np.mean(~np.isfinite(u))), np.asarray(force.c_out - force.c_in, float)
+            # abs: a bright wall's term (LocalMeans.polarity -1) has c_in above c_out
+            no_data, contrast = float(np.mean(~np.isfinite(u))), np.abs(np.asarray(force.c_out - force.c_in, float))
         else:
             no_data, contrast, spread = np.nan, np.full(1, np.nan), np.nan
         if self._bulge_reference is None:  # the initial surface's: once for every frame
