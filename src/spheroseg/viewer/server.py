@@ -250,6 +250,14 @@ class ViewerHandler(BaseHTTPRequestHandler):
             raise RequestError(HTTPStatus.NOT_FOUND, f"frame {frame} is not segmented with the current points")
         self._json(data)
 
+    def epicardium(self, query, body) -> None:
+        session = self.server.session
+        frame = session.check_frame(_integer(query.get("frame", ["0"])[0], "frame"))
+        data = session.epicardium_event(frame)
+        if data is None:
+            raise RequestError(HTTPStatus.NOT_FOUND, f"frame {frame} is not segmented with the current points")
+        self._json(data)
+
     def points(self, query, body) -> None:
         body = _object(body)
         job = self.server.session.set_points(Points.from_json(body), frame=body.get("frame", 0))
@@ -310,6 +318,7 @@ ROUTES = {
     ("GET", "/api/study"): ViewerHandler.study,
     ("GET", "/api/volume.nii"): ViewerHandler.volume,
     ("GET", "/api/surface"): ViewerHandler.surface,
+    ("GET", "/api/epicardium"): ViewerHandler.epicardium,
     ("GET", "/api/events"): ViewerHandler.events,
     ("POST", "/api/points"): ViewerHandler.points,
     ("POST", "/api/find"): ViewerHandler.find,
