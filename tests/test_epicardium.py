@@ -210,3 +210,32 @@ def test_conserving_start_keeps_the_myocardial_volume():
     # a smaller cavity with the same wall volume: a thicker wall
     v1, v2 = np.meshgrid(np.linspace(0, 6, 7), np.linspace(0.2, 1.5, 5))
     assert np.all(wall_thickness(smaller, start, v1, v2) > wall_thickness(endo, epi, v1, v2))
+
+
+def test_cetus_patient7_mass_is_an_adults_and_agrees_at_ed_and_es(tmp_path):
+    """Real echo (CETUS Patient 7, read from ../shared; its 0.9 mm spacing
+    assumed): the LV mass in the adult range (Lang et al. 2015: 67-224 g
+    across women and men, widened to 50-300 g for the assumed spacing), the
+    wall not flagged, and the two phases' masses, segmented independently,
+    within 8 % of each other (the myocardium is nearly incompressible)."""
+    import json
+
+    from conftest import cetus_file
+
+    from spheroseg import load
+
+    points = json.loads(cetus_file("Patient7_points.json").read_text())
+    spacing = points["assumed_spacing_mm"]
+    masses = []
+    for phase in ("ED", "ES"):
+        np.save(tmp_path / "p7.npy", np.load(cetus_file(points[phase]["file"])))  # as the CLI reads it
+        volume = load(tmp_path / "p7.npy", spacing=(spacing,) * 3)
+        apex = np.array(points[phase]["apex_index"][::-1], float) * spacing
+        base = np.array(points[phase]["base_index"][::-1], float) * spacing
+        result = segment(volume, apex, base, myocardium=True)
+        assert result.parameters["epicardium"]["polarity"] == "bright"
+        assert not result.quality["epicardium"]["warnings"], result.quality["epicardium"]
+        assert 4.0 < result.quality["epicardium"]["thickness_median_mm"] < 12.0
+        masses.append(result.lv_mass_g)
+    assert all(50.0 < m < 300.0 for m in masses), masses
+    assert abs(masses[1] / masses[0] - 1) < 0.08, masses
