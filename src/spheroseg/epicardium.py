@@ -211,8 +211,7 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
         ``mode="local"`` (:func:`wall_term` on a bright wall; a ``mode``
         given runs on the image as it is, the wall inside), ``band=4`` (the
         inner band stays in the wall), ``apex_weight=0`` (the epicardial
-        apex is not clicked), ``tol=0.1`` (the coarse levels' tolerance:
-        the start is within a few mm of the wall).
+        apex is not clicked).
 
     Returns
     -------
@@ -231,7 +230,7 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     if polarity == "auto":
         contrast = wall_polarity(volume, endocardium, start)
         polarity = "dark" if contrast < 0 else "bright"
-    options = {"mode": "local", "band": 4.0, "apex_weight": 0.0, "tol": 0.1,
+    options = {"mode": "local", "band": 4.0, "apex_weight": 0.0,
                "patches": (endocardium.grid.n1, endocardium.grid.n2), **options}
     if own_mode:
         boundary = None
