@@ -129,7 +129,8 @@ def test_a_level_in_one_compiled_loop_equals_its_iterations(phantom, term_class,
         np.testing.assert_allclose(run.motion, motion, **close)
         np.testing.assert_allclose(d.p, d_ref.p, **close)
         assert (d.step, d.h0_floor) == pytest.approx((d_ref.step, d_ref.h0_floor), rel=1e-12)
-        assert (d.step < step) == adaptive_step or getattr(term_class, "polarity", 1.0) < 0  # a wall settles without halving it
+        # a wall settles without halving the step
+        assert (d.step < step) == adaptive_step or getattr(term_class, "polarity", 1.0) < 0
         for name in ("f", "h0", "u", "world", "normal"):
             np.testing.assert_allclose(getattr(run.observation, name), getattr(obs, name), **close, err_msg=name)
         for a, b in zip(run.force[:5], force[:5]):

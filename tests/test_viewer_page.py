@@ -486,16 +486,14 @@ def test_find_places_points_the_user_can_drag(browser, phantom_file, tmp_path, m
         server.close()
 
 
-def test_the_myocardium_box_draws_the_epicardium_outside(browser, tmp_path):
+def test_the_myocardium_box_draws_the_epicardium_outside(browser, phantom_file, tmp_path):
     """Off by default (the server computes no epicardium for the
     endocardium's contour); ticked, the page draws the API's epicardium in
     its own colour, outside the endocardium's contour on every row of the
     coronal slice where both cross it."""
     from spheroseg.epicardium import segment_epicardium
 
-    ph = make_phantom(seed=1, spacing=1.5, epicardium=True)
-    path = tmp_path / "phantom.mha"
-    save_volume(path, ph.volume)
+    ph, path = phantom_file
     server = open_viewer(path, save_root=tmp_path)
     server.serve_in_thread()
     try:

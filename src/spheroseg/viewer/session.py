@@ -290,7 +290,8 @@ class Session:
             with self._lock:
                 self._epicardia[frame] = cached
         epicardium = cached[1]
-        return {"frame": frame, "job": self._generation, "vertices": _encode(epicardium.mesh(*MESH_RESOLUTION)[0], "<f4"),
+        vertices = _encode(epicardium.mesh(*MESH_RESOLUTION)[0], "<f4")
+        return {"frame": frame, "job": self._generation, "vertices": vertices,
                 "lv_mass_g": lv_mass_g(myocardial_volume_ml(result.surface, epicardium))}
 
     # what the page asks for ---------------------------------------------------

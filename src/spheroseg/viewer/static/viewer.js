@@ -12,8 +12,8 @@
 'use strict';
 
 const $ = (id) => document.getElementById(id);
-const COLORS = { contour: '#ffd23c', epicardium: '#ff5ad2', apex: '#ff4d4d', base: '#4dff88', landmark: '#4de1ff', annulus: '#ff9f40',
-                 selected: '#ffffff' };
+const COLORS = { contour: '#ffd23c', epicardium: '#ff5ad2', apex: '#ff4d4d', base: '#4dff88', landmark: '#4de1ff',
+                 annulus: '#ff9f40', selected: '#ffffff' };
 const NEAR_MM = 2.0;      // a point this close to a slice is drawn full, farther ones faded
 const GRAB_PX = 9;        // how close a press must be to a point to drag it
 const DRAG_SEND_MS = 120; // the least time between two segmentations sent while a point is dragged
