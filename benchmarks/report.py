@@ -922,8 +922,8 @@ def _myocardium(data) -> list[str]:
             "Its level runs in the compiled loop (before: iteration by iteration in Python on a reflected copy of "
             "the image, 131 ms against 69 ms for the same call, min of 12). The level's iterations are all on the "
             "finest grid, where most of the endocardium's 18 run on the coarse ones: that is the ratio's floor "
-            "unless the epicardium iterates less. Tried: the quadrature order 6 instead of 8 (fewer sample points): Dice -0.01 and 1-3 "
-            "points of mass error worse on 8 cases, not kept; the tolerance 0.1 mm instead of 0.05: 20 % fewer "
+            "unless the epicardium iterates less. Tried: the quadrature order 6 instead of 8 (fewer sample "
+            "points): Dice -0.01 and 1-3 points of mass error worse on 8 cases, not kept; the tolerance 0.1 mm instead of 0.05: 20 % fewer "
             "iterations and the mass error the same or smaller on the 8 bright-wall cases, but at contrast_low the "
             "collapsing wall then stopped above the 4 mm flag (median thickness 4.1 and 4.8 mm, mass -21 and -17 % "
             "unflagged), not kept."]
