@@ -498,15 +498,18 @@ def test_the_myocardium_box_draws_the_epicardium_outside(browser, phantom_file, 
     server.serve_in_thread()
     try:
         page, errors = open_page(browser, server)
+        asked = []
+        page.on("request", lambda request: asked.append(request.url) if "/api/epicardium" in request.url else None)
         assert not page.is_checked("#myocardium")
         page.mouse.click(*screen_xy(page, 1, ph.apex))
         page.wait_for_function("Number(document.body.dataset.sent) >= 1", polling=100, timeout=TIMEOUT_MS)
         page.mouse.click(*screen_xy(page, 1, ph.base))
         wait_done(page)
         session = server.session
-        assert not session._epicardia and page.evaluate("viewer.state.epicardium") is None
+        assert not asked and page.evaluate("viewer.state.epicardium") is None
         page.click("#myocardium")
         page.wait_for_function("document.body.dataset.epicardium !== undefined", polling=100, timeout=TIMEOUT_MS)
+        assert len(asked) == 1
         page.screenshot(path=str(tmp_path / "myocardium.png"))
         result = session.results[0][1]
         api = segment_epicardium(session.frames[0], result.surface).surface

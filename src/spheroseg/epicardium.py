@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from .dataterms import LocalMeans, NoSpeckleError, speckle_nepers
-from .hermite import _gauss_legendre
+from .hermite import gauss_legendre
 from .myocardium import SegmentConvention, wall_thickness_grid
 from .quality import wall_report
 from .results import SegmentationResult
@@ -43,7 +43,7 @@ def _offsets(surface: Surface, thickness_mm: float, v1, v2) -> np.ndarray:
     ``thickness_mm`` long at ``(v1, v2)``: Newton's method on
     ``int_f^{f+t} h0 dv0 = thickness_mm`` (its derivative is ``h0(f + t)``)."""
     f = surface.radius(v1, v2)
-    x, w = _gauss_legendre(8)
+    x, w = gauss_legendre(8)
     t = thickness_mm / surface.system.scale_factors(f, v1, v2)[0]
     for _ in range(6):  # quadratic convergence from within a few per cent
         v0 = f[..., None] + t[..., None] * x

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .hermite import _gauss_legendre
+from .hermite import gauss_legendre
 from .surface import Surface
 
 __all__ = ["MYOCARDIAL_DENSITY", "SEGMENT_NAMES", "SegmentConvention", "myocardial_volume_ml", "lv_mass_g",
@@ -175,7 +175,7 @@ def wall_thickness_grid(endocardium: Surface, epicardium: Surface, v1, v2, *, or
 
 def _arc_length(system, lo, hi, v1, v2, order):
     """``int_lo^hi h0(v0, v1, v2) dv0`` by Gauss-Legendre of ``order`` points."""
-    t, w = _gauss_legendre(order)
+    t, w = gauss_legendre(order)
     length = hi - lo
     v0 = lo[..., None] + length[..., None] * t
     h0 = system.scale_factors(v0, np.asarray(v1)[..., None], np.asarray(v2)[..., None])[0]
