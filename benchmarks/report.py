@@ -915,6 +915,11 @@ def _myocardium(data) -> list[str]:
             "local means put it inside (-14 % and -22 % on default: the outer band's mean intensity follows what lies "
             "beyond the wall). A median thickness below 4 mm is flagged (`quality.WALL_LIMITS`): at contrast_low the "
             "phantom's wall is darker than the tissue outside it and the epicardium finds no outer boundary.", "",
+            "The ratios above were measured under a load average of about 10 on 2 cores (five sessions at "
+            "once). The previous figure (median 2.63) divided the Trackers' own seconds, which left out the "
+            "epicardium's set-up; timed as here, the previous code's ratio was 4.3-5.5 (default and "
+            "contrast_high, both scenes, median of 12 interleaved calls) against 2.6-2.9 for this code in "
+            "the same session. "
             "Where the epicardium's time goes (default formation, upright, least of 15 calls each on the shared "
             "machine): the endocardium's whole `segment` 22 ms; the epicardium's level about 2.4 ms an iteration "
             "(10 iterations here, on 8 x 8 patches, 4096 sample points each), its `Tracker` set-up 2.7 ms, the "
