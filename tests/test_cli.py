@@ -173,6 +173,40 @@ def test_track_4d_image_and_frames(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["o", "seq.mha", "short.mha"]  # nothing hidden left
 
 
+def test_track_with_the_myocardium(tmp_path):
+    """``track --myocardium``: the API's mass per frame, segmental volume
+    curves, times to minimum and SDI in results.json, every frame's
+    myocardium mask as the API's."""
+    from spheroseg.io import load_sequence
+    from spheroseg.segment import track
+
+    seq = make_sequence(seed=42, n_frames=3, spacing=2.0)
+    image = sitk.GetImageFromArray(np.stack([v.array for v in seq.volumes]).astype(np.uint8), isVector=False)
+    image.SetSpacing((2.0, 2.0, 2.0, 1.0))
+    path = tmp_path / "seq.mha"
+    sitk.WriteImage(image, str(path))
+    first = seq.frames[0]
+    rv = first.base + [0.0, 20.0, 0.0]
+    proc = run("track", path, "--apex", *first.apex, "--base", *first.base, "--myocardium", "--rv-insertion", *rv,
+               "--out", tmp_path / "o", "--quiet", "--no-report", "--allow-poor")
+    assert proc.returncode == 0, proc.stderr
+    block = json.loads((tmp_path / "o" / "results.json").read_text())["myocardium"]
+    volumes = load_sequence(str(path))
+    api = track(volumes, first.apex, first.base, myocardium=True, rv_insertion=rv)
+    np.testing.assert_allclose(block["lv_mass_g"], api.masses_g, rtol=1e-9)
+    np.testing.assert_allclose(block["segment_volumes_ml"], api.segment_volumes_ml, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(block["times_to_minimum_percent"], api.times_to_minimum, rtol=1e-9)
+    assert block["sdi_percent"] == pytest.approx(api.sdi, rel=1e-9)
+    assert np.shape(block["segment_volumes_ml"]) == (3, 17) and len(block["segment_names"]) == 17
+    assert block["segment_convention"] == api.frames[0].segment_convention.to_dict()
+    masses = block["lv_mass_g"]
+    ed, es = int(np.argmax(api.volumes_ml)), int(np.argmin(api.volumes_ml))
+    assert block["ed_es_mass_difference_percent"] == pytest.approx(100 * abs(masses[es] / masses[ed] - 1))
+    for t, (name, volume) in enumerate(zip(block["masks"], volumes)):
+        mask = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "o" / name))).astype(bool)
+        np.testing.assert_array_equal(mask, api.frames[t].myocardium_mask(volume))
+
+
 def test_demo(tmp_path):
     proc = run("demo", "--out", tmp_path / "demo")
     assert proc.returncode == 0, proc.stderr

@@ -5,7 +5,8 @@ import pytest
 
 from spheroseg.backends import NumpyBackend, select_backend
 from spheroseg.dataterms import (DATA_TERMS, FixedInterface, GlobalMeans, IntensityInterface, LocalMeans, band_offsets,
-                                  interface_nepers, nanmedian, otsu_threshold, shell_offsets, speckle_nepers)
+                                  interface_level, interface_nepers, nanmedian, otsu_threshold, shell_offsets,
+                                  speckle_nepers)
 from spheroseg.energy import SampledSurface
 from spheroseg.segment import segment
 from spheroseg.surface import Surface
@@ -95,6 +96,47 @@ def test_local_means_are_the_band_values_and_respect_polarity(two_regions):
     c_in, c_out, scale = term.force(b, flipped, obs)[1:4]
     np.testing.assert_allclose(c_out, c_in)
     assert scale == term.min_scale
+
+
+def test_interface_level_is_the_half_way_intensity():
+    # independent: exponentiate, compare with the intensities' mean
+    k = 17.0
+    dark, bright = np.array([40.0, 100.0, 100.0, 2000.0]), np.array([80.0, 101.0, 240.0, 9000.0])
+    level = interface_level(dark, bright, k)
+    np.testing.assert_allclose(level[:3], k * np.log((np.exp(dark[:3] / k) + np.exp(bright[:3] / k)) / 2))
+    assert level[1] == pytest.approx(100.5, abs=0.01)  # weak contrast: the midpoint
+    assert level[2] == pytest.approx(240.0 - k * np.log(2.0), abs=0.01)  # strong: half the bright intensity
+    assert level[3] == pytest.approx(9000.0 - k * np.log(2.0))  # where exp() overflows
+
+
+@pytest.mark.parametrize("backend", ["numpy", "auto"])
+def test_a_bright_inside_is_the_dark_inside_reflected(two_regions, backend):
+    """``polarity = -1`` (a bright wall inside) on the grey levels ``-u``
+    against ``polarity = +1`` on ``u``: the force's means and the measured
+    means negated, the same scale; with ``boundary_nepers`` the level
+    between its means is the half-way intensity of the band means.  (``-u``,
+    not ``L - u``: the band means' smoothing does not reproduce a constant
+    exactly.)"""
+    volume, model, p, _, _ = two_regions
+    b = NumpyBackend(model) if backend == "numpy" else select_backend(model)
+    flipped = Volume(-volume.array)
+    bright = type("Bright", (LocalMeans,), {"polarity": -1.0})(np.array([C_IN, C_OUT]), band=8.0)
+    dark = LocalMeans(np.array([C_IN, C_OUT]), band=8.0)
+    obs = b.observe(p, flipped, band_offsets=dark.band_offsets)
+    wall = bright.force(b, flipped, obs)
+    obs = b.observe(p, volume, band_offsets=dark.band_offsets)
+    cavity = dark.force(b, volume, obs)
+    for a, c in [(wall.c_in, cavity.c_in), (wall.c_out, cavity.c_out), *zip(wall.grey_means, cavity.grey_means)]:
+        np.testing.assert_allclose(a, -c, rtol=1e-12)
+    assert wall.scale == pytest.approx(cavity.scale, rel=1e-12) and np.median(wall.c_in) > np.median(wall.c_out)
+    k = 15.0
+    bright = type("Bright", (LocalMeans,), {"polarity": -1.0, "boundary_nepers": k})(np.array([C_IN, C_OUT]), band=8.0)
+    obs = b.observe(p, flipped, band_offsets=dark.band_offsets)
+    force = bright.force(b, flipped, obs)
+    c_in, c_out = force.grey_means
+    middle = (force.c_in + force.c_out) / 2
+    np.testing.assert_allclose(np.exp(middle / k), (np.exp(c_in / k) + np.exp(c_out / k)) / 2, rtol=1e-9)
+    np.testing.assert_allclose(force.c_in - force.c_out, c_in - c_out, rtol=1e-12)
 
 
 def test_fixed_interface_levels():

@@ -484,3 +484,66 @@ def test_find_places_points_the_user_can_drag(browser, phantom_file, tmp_path, m
         assert errors == []
     finally:
         server.close()
+
+
+def test_the_myocardium_box_draws_the_epicardium_outside(browser, phantom_file, tmp_path):
+    """Off by default (the server computes no epicardium for the
+    endocardium's contour); ticked, the page draws the API's epicardium in
+    its own colour, outside the endocardium's contour on every row of the
+    coronal slice where both cross it."""
+    from spheroseg.epicardium import segment_epicardium
+
+    ph, path = phantom_file
+    server = open_viewer(path, save_root=tmp_path)
+    server.serve_in_thread()
+    try:
+        page, errors = open_page(browser, server)
+        asked = []
+        page.on("request", lambda request: asked.append(request.url) if "/api/epicardium" in request.url else None)
+        assert not page.is_checked("#myocardium")
+        page.mouse.click(*screen_xy(page, 1, ph.apex))
+        page.wait_for_function("Number(document.body.dataset.sent) >= 1", polling=100, timeout=TIMEOUT_MS)
+        page.mouse.click(*screen_xy(page, 1, ph.base))
+        wait_done(page)
+        session = server.session
+        assert not asked and page.evaluate("viewer.state.epicardium") is None
+        page.click("#myocardium")
+        page.wait_for_function("document.body.dataset.epicardium !== undefined", polling=100, timeout=TIMEOUT_MS)
+        assert len(asked) == 1
+        page.screenshot(path=str(tmp_path / "myocardium.png"))
+        result = session.results[0][1]
+        api = segment_epicardium(session.frames[0], result.surface).surface
+        shown = page.evaluate("Array.from(viewer.state.epicardium)")
+        sign = np.array([-1.0, 1.0, -1.0])  # the echo orientation's display frame (viewer.js SIGN)
+        np.testing.assert_allclose(np.reshape(shown, (-1, 3)), api.mesh(48, 24)[0] * sign, atol=1e-3)
+        assert "LV mass" in page.text_content("#volume")
+        # per row of the coronal tile: the leftmost and rightmost yellow (endocardium) and magenta (epicardium) pixels
+        rows = page.evaluate("""() => { const t = viewer.sliceTiles().find((t) => t.axCorSag === 1);
+            const [l, top, w, h] = t.leftTopWidthHeight.map(Math.round);
+            const d = document.getElementById('overlay').getContext('2d').getImageData(l, top, w, h).data;
+            const rows = [];
+            for (let y = 0; y < h; y++) {
+              const row = { endo: [], epi: [] };
+              for (let x = 0; x < w; x++) {
+                const i = 4 * (y * w + x);
+                if (d[i + 3] < 60) continue;
+                if (d[i] > 200 && d[i + 1] > 170 && d[i + 2] < 120) row.endo.push(x);
+                else if (d[i] > 200 && d[i + 1] < 150 && d[i + 2] > 160) row.epi.push(x);
+              }
+              // not the mitral plane's rows, where the contours run across the cavity
+              if (row.endo.length && row.epi.length && row.endo.length < 12 && row.epi.length < 12)
+                rows.push([Math.min(...row.endo), Math.max(...row.endo), Math.min(...row.epi), Math.max(...row.epi)]);
+            }
+            return rows; }""")
+        rows = np.array(rows)
+        assert len(rows) > 40  # the slice crosses both walls over a long-axis length
+        # the epicardium's outermost pixels lie outside the endocardium's, on both sides (2 px of line width)
+        inside = (rows[:, 2] > rows[:, 0] + 2) | (rows[:, 3] < rows[:, 1] - 2)
+        assert not inside.any(), rows[inside]
+        assert np.median(rows[:, 0] - rows[:, 2]) > 3 and np.median(rows[:, 3] - rows[:, 1]) > 3
+        # unticked: the epicardium goes
+        page.click("#myocardium")
+        assert page.evaluate("viewer.state.epicardium") is None and "LV mass" not in page.text_content("#volume")
+        assert not errors, errors
+    finally:
+        server.close()

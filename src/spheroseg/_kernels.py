@@ -66,6 +66,7 @@ try:  # pragma: no cover - exercised when numba is installed
 except ImportError:  # pragma: no cover
     njit, prange = None, range
 
+from .dataterms import interface_level as _interface_level
 from .volume import INDEX_TOLERANCE as _EDGE
 
 __all__ = ["AVAILABLE", "NO_BEAM", "sampler", "prolate_surface", "sample_along", "samples_at", "cavity_sums",
@@ -494,7 +495,8 @@ class LoopTerm(NamedTuple):
     """The data term as :func:`descend` computes it: its ``kind``
     (:data:`FIXED_MEANS`, :data:`GLOBAL_MEANS`, :data:`LOCAL_MEANS`), the
     fixed means at every sample and their scale, the least scale, the
-    cavity fractions, the shell's and the bands' offsets (mm)."""
+    cavity fractions, the shell's and the bands' offsets (mm), and the
+    local means' polarity and boundary (:class:`spheroseg.dataterms.LocalMeans`)."""
 
     kind: int
     fixed_in: np.ndarray
@@ -504,6 +506,8 @@ class LoopTerm(NamedTuple):
     fractions: np.ndarray
     shell_offsets: np.ndarray
     band_offsets: np.ndarray
+    polarity: float = 1.0
+    boundary_nepers: float = np.inf
 
 
 class LoopObservation(NamedTuple):
@@ -656,6 +660,21 @@ def _band_means(inside, outside, surface, out_c_in, out_c_out):
     return True
 
 
+def _local_force(band_in, band_out, polarity, boundary_nepers, out_contrast, out_c_in, out_c_out):
+    """:meth:`spheroseg.dataterms.LocalMeans.force` from its band means: the
+    contrast of the right polarity and the force's means."""
+    finite = math.isfinite(boundary_nepers)
+    for q in range(band_in.shape[0]):
+        contrast = max(polarity * (band_out[q] - band_in[q]), 0.0)
+        out_contrast[q] = contrast
+        force_in, force_out = band_in[q], band_in[q] + polarity * contrast
+        if finite:
+            dark, bright = (force_in, force_out) if polarity > 0 else (force_out, force_in)
+            level = _interface_level(dark, bright, boundary_nepers)
+            force_in, force_out = level - polarity * contrast / 2, level + polarity * contrast / 2
+        out_c_in[q], out_c_out[q] = force_in, force_out
+
+
 def descend(p, reference, max_iterations, tol, state, prior, surface, image, term, obs, means, previous):
     """A whole level of the descent in one call: the data term's force and
     :meth:`spheroseg.descent.Descent.iterate`, repeated until the RMS motion
@@ -682,9 +701,10 @@ def descend(p, reference, max_iterations, tol, state, prior, surface, image, ter
     term : LoopTerm
     obs : LoopObservation
         Filled with the last observation.
-    means : array (3, n)
+    means : array (4, n)
         The force's ``c_in``, the band means' ``c_out``, the force's
-        ``c_out``, as the last iteration saw them.
+        ``c_out`` and the band means' ``c_in``, as the last iteration saw
+        them.
     previous : array (n,)
         The previous motion at the sample points (read and updated).
 
@@ -704,7 +724,7 @@ def descend(p, reference, max_iterations, tol, state, prior, surface, image, ter
     shell_offsets, band_offsets = term.shell_offsets, term.band_offsets
     f, h0, cos, area_element, world, normal, u = obs.f, obs.h0, obs.cos, obs.area, obs.world, obs.normal, obs.u
     inside, outside = obs.inside, obs.outside
-    c_in, band_out, c_out = means[0], means[1], means[2]
+    c_in, band_out, c_out, band_in = means[0], means[1], means[2], means[3]
     n, n_parameters, n_landmarks = f.shape[0], p.shape[0], lm_v0.shape[0]
     coefficients = np.empty((1,) + grid_shape)  # the surface's, then the step's
     counts, band_counts = np.empty(n, np.int64), np.empty(band_rows.shape[0], np.int64)
@@ -732,12 +752,10 @@ def descend(p, reference, max_iterations, tol, state, prior, surface, image, ter
         elif kind == LOCAL_MEANS:
             sample_along(*image, world, normal, band_rows, inner_offsets, 0.0, inside, band_counts)
             sample_along(*image, world, normal, band_rows, band_offsets, 0.0, outside, band_counts)
-            if not _band_means(inside, outside, surface, c_in, band_out):
+            if not _band_means(inside, outside, surface, band_in, band_out):
                 return NO_BAND_DATA
             contrast = scratch[0]
-            for q in range(n):
-                contrast[q] = max(band_out[q] - c_in[q], 0.0)
-                c_out[q] = c_in[q] + contrast[q]
+            _local_force(band_in, band_out, term.polarity, term.boundary_nepers, contrast, c_in, c_out)
             scale = max(_median(contrast, scratch[1]) ** 2, min_scale)
         else:
             for q in range(n):
@@ -815,4 +833,6 @@ if AVAILABLE:
     _median = _compile(_median)
     _global_means = _compile(_global_means)
     _band_means = _compile(_band_means)
+    _interface_level = _inline(_interface_level)
+    _local_force = _compile(_local_force)
     descend = _compile(descend)

@@ -308,7 +308,8 @@ class CompiledBackend(NumpyBackend):
         updating ``p``, ``state`` and ``previous`` in place.
 
         Returns its status, the last observation and the force's means
-        ``(3, n)`` (``c_in``, the band means' ``c_out``, the force's ``c_out``)."""
+        ``(4, n)`` (``c_in``, the band means' ``c_out``, the force's ``c_out``,
+        the band means' ``c_in``)."""
         m, d, b = self.model, self.discretisation, self._buffers
         if self._surface is None:  # what depends on the grid and pose only, and the buffers
             csr = tuple((a.indptr, a.indices, a.data) for a in (d.constraints, d.constraints_t))
@@ -317,7 +318,7 @@ class CompiledBackend(NumpyBackend):
                 m.system.focal_length, m.pose.rotation, m.pose.origin, m.weights, d.area, MIN_COS, self._all_rows,
                 d.band_rows, d.band_weights, d.mass_inverse)
             self._observed = self.kernels.LoopObservation(**b)
-        means = np.empty((3, m.n_samples))
+        means = np.empty((4, m.n_samples))
         with PARALLEL_LOCK:
             status = self.kernels.descend(p, reference, max_iterations, tol, state, prior, self._surface,
                                           self._sampling(volume), term, self._observed, means, previous)

@@ -125,6 +125,13 @@ def _positive(kind):
     return parse
 
 
+def _add_myocardium(parser, outputs: str) -> None:
+    parser.add_argument("--myocardium", action="store_true", help=f"also segment the epicardium: {outputs}")
+    parser.add_argument("--rv-insertion", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                        help="with --myocardium: the anterior insertion of the right ventricle, world mm, where "
+                             "segment 1 starts (default: the model frame's first axis; docs/segments.png)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="spheroseg",
@@ -135,17 +142,15 @@ def build_parser() -> argparse.ArgumentParser:
     seg = sub.add_parser("segment", help="segment one 3D image", description="Segment one 3D image. " + _EXIT_HELP)
     seg.add_argument("image", help="3D image (.mhd, .mha, .nii[.gz], .nrrd, .npy, DICOM folder)")
     _add_common(seg)
-    seg.add_argument("--myocardium", action="store_true",
-                     help="also segment the epicardium: the myocardium mask, LV mass, wall thickness and the "
-                          "17 segments (results.json), the epicardial mesh and the heart as CMISS volume elements")
-    seg.add_argument("--rv-insertion", nargs=3, type=float, metavar=("X", "Y", "Z"),
-                     help="with --myocardium: the anterior insertion of the right ventricle, world mm, where "
-                          "segment 1 starts (default: the model frame's first axis; docs/segments.png)")
+    _add_myocardium(seg, "the myocardium mask, LV mass, wall thickness and the 17 segments (results.json), the "
+                         "epicardial mesh and the heart as CMISS volume elements")
     tr = sub.add_parser("track", help="segment every frame of a 3D+t sequence; EDV, ESV, EF",
                         description="Segment every frame of a 3D+t sequence; EDV, ESV, EF. " + _EXIT_HELP)
     tr.add_argument("sequence", help="4D image, .seq.nrrd, folder or glob of 3D frames, DICOM folder")
     _add_common(tr)
     tr.add_argument("--iterations-per-frame", type=int, default=20)
+    _add_myocardium(tr, "every frame's myocardium mask (masks/frame_TTT_myocardium*), and in results.json the LV "
+                        "mass per frame, the 17 segments' volume curves, their times to minimum volume and the SDI")
     sc = sub.add_parser("scan-convert", help="resample a beam-space image or 3D+t sequence on a Cartesian grid")
     sc.add_argument("image", help="beam-space .mha/.nrrd (ITK PhasedArray3D header keys), 3D or 3D+t")
     sc.add_argument("output", help="Cartesian image to write (.mha, .mhd, .nrrd, .nii, .nii.gz)")
@@ -449,7 +454,8 @@ def cmd_track(args) -> int:
         progress = (lambda done, total: bar.update(done - bar.n)) if bar is not None else None
         try:
             result = track(volumes, apex, base, annulus=annulus, landmarks=landmarks,
-                           iterations_per_frame=args.iterations_per_frame, progress=progress, **_segment_kwargs(args))
+                           iterations_per_frame=args.iterations_per_frame, progress=progress,
+                           myocardium=args.myocardium, rv_insertion=args.rv_insertion, **_segment_kwargs(args))
         finally:
             if bar is not None:
                 bar.close()

@@ -72,7 +72,7 @@ import numpy as np
 
 __all__ = ["DataTerm", "Force", "FixedInterface", "GlobalMeans", "LocalMeans", "IntensityInterface", "DATA_TERMS",
            "band_offsets", "shell_offsets", "otsu_threshold", "speckle_nepers", "interface_nepers", "patch_of_rows",
-           "nanmedian", "MAX_CONTRAST_DB"]
+           "nanmedian", "interface_level", "MAX_CONTRAST_DB"]
 
 #: fractions of f at which the cavity is sampled along each ray (the global means)
 CAVITY_FRACTIONS = np.array([0.15, 0.35, 0.55, 0.75, 0.95])
@@ -318,16 +318,34 @@ class GlobalMeans(DataTerm):
 
 
 class LocalMeans(DataTerm):
-    """Band means along each normal, smoothed over the surface."""
+    """Band means along each normal, smoothed over the surface.
+
+    The boundary lies where the grey level is half way between the inner
+    and the outer band means, or, with :attr:`boundary_nepers` finite,
+    where the echo intensity is (:func:`interface_level`).  Band means of
+    the wrong :attr:`polarity` give no force there.
+    """
 
     needs_bands = True
     hands_over_bands = True
     loop_kind = "local"
+    #: +1: the inside (``c_in``'s region) is the darker, as the cavity's
+    #: blood; -1: the brighter, as a bright wall seen from within
+    polarity = 1.0
+    #: grey levels per neper of echo intensity of the half-way intensity
+    #: boundary; inf: the grey levels' midpoint
+    boundary_nepers = np.inf
 
     def force(self, backend, volume, obs) -> Force:
         c_in, c_out = self.band_means(backend, obs)
-        contrast = np.maximum(c_out - c_in, 0.0)
-        return Force(obs.u, c_in, c_in + contrast, max(nanmedian(contrast) ** 2, self.min_scale),
+        sign = self.polarity
+        contrast = np.maximum(sign * (c_out - c_in), 0.0)
+        force_in, force_out = c_in, c_in + sign * contrast
+        if np.isfinite(self.boundary_nepers):
+            dark, bright = (force_in, force_out) if sign > 0 else (force_out, force_in)
+            level = interface_level(dark, bright, self.boundary_nepers)
+            force_in, force_out = level - sign * contrast / 2, level + sign * contrast / 2
+        return Force(obs.u, force_in, force_out, max(nanmedian(contrast) ** 2, self.min_scale),
                      measured=(c_in, c_out))
 
     def band_means(self, backend, obs):
@@ -370,8 +388,8 @@ class IntensityInterface(LocalMeans):
 
         g* = k ln((exp(c_in / k) + exp(c_out / k)) / 2)
 
-    (``c_out - k ln 2`` for a strong contrast: half the tissue's power).
-    The force stays in grey levels, so a bright speckle weighs no more than
+    (``c_out - k ln 2`` for a strong contrast: half the tissue's power;
+    :func:`interface_level`).  The force stays in grey levels, so a bright speckle weighs no more than
     in :class:`LocalMeans`.
 
     It is the second stage of the finest level: :class:`LocalMeans` first
@@ -459,8 +477,7 @@ class IntensityInterface(LocalMeans):
             self.nepers = self.estimate_nepers(backend, volume, obs)
         contrast = np.maximum(c_out - c_in, 0.0)
         c_out = c_in + contrast
-        k = self.nepers
-        threshold = c_out + k * (np.logaddexp(c_in / k, c_out / k) - c_out / k - np.log(2.0))
+        threshold = interface_level(c_in, c_out, self.nepers)
         self._measured = (c_in, c_out)  # what a result reports (their medians)
         self._frozen = (threshold - contrast / 2, threshold + contrast / 2,
                         max(float(nanmedian(contrast)) ** 2, self.min_scale))
@@ -472,6 +489,21 @@ class IntensityInterface(LocalMeans):
         rows = d.band_rows
         outer = backend.samples_along(volume, obs, self.band_offsets, rows, order=0)  # (rows, offsets)
         return interface_nepers(outer, patch_of_rows(d.grid, d.order, rows), nanmedian(obs.outside - obs.inside))
+
+
+def interface_level(dark, bright, nepers):
+    """The grey level whose echo intensity is half way between those of the
+    grey levels ``dark`` and ``bright`` (``dark <= bright``; scalars or
+    arrays), with ``nepers`` grey levels per neper of intensity::
+
+        g* = k ln((exp(dark / k) + exp(bright / k)) / 2)
+
+    written so that it neither overflows nor cancels:
+    ``bright + k (ln(exp(dark / k) + exp(bright / k)) - bright / k - ln 2)``.
+    ``(dark + bright) / 2`` as ``k`` grows, ``bright - k ln 2`` for a strong
+    contrast (half the brighter region's intensity).  Compiled as it stands
+    for the level loop (:mod:`spheroseg._kernels`)."""
+    return bright + nepers * (np.logaddexp(dark / nepers, bright / nepers) - bright / nepers - np.log(2.0))
 
 
 def patch_of_rows(grid, order: int, rows: np.ndarray) -> np.ndarray:

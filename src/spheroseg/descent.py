@@ -193,7 +193,8 @@ class Descent:
         term = _kernels.LoopTerm(
             {"fixed": _kernels.FIXED_MEANS, "global": _kernels.GLOBAL_MEANS, "local": _kernels.LOCAL_MEANS}[kind],
             *means, float(fixed.scale), data_term.min_scale, CAVITY_FRACTIONS, data_term.shell_offsets,
-            data_term.band_offsets if kind == "local" else _NO_OFFSETS)
+            data_term.band_offsets if kind == "local" else _NO_OFFSETS,
+            *((float(data_term.polarity), float(data_term.boundary_nepers)) if kind == "local" else ()))
         previous = np.zeros(n) if self._previous_motion is None else self._previous_motion[0].copy()
         state = np.zeros(1, dtype=_kernels.LOOP_STATE)
         s = state[0]
@@ -219,7 +220,7 @@ class Descent:
             c_in, c_out = float(s["c_in"]), float(s["c_out"])
             force = Force(obs.u, c_in, max(c_out, c_in), scale, measured=(c_in, c_out))
         elif kind == "local":
-            force = Force(obs.u, means[0], means[2], scale, measured=(means[0], means[1]))
+            force = Force(obs.u, means[0], means[2], scale, measured=(means[3], means[1]))
         else:
             force = fixed._replace(u=obs.u, scale=scale)
         return LevelRun(int(s["iterations"]), float(s["motion"]), status == _kernels.CONVERGED, obs, force)

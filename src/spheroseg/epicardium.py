@@ -9,25 +9,25 @@ It is found by the endocardium's own descent (:class:`spheroseg.Tracker`,
 the least-squares step of eq. 25 with its data terms), started from the
 endocardium moved out by a prior thickness.  The descent's thin-plate prior
 acts on the departure from that start: on ``t`` minus the prior thickness,
-a prior on the thickness and its smoothness.  The data terms expect a dark
-region inside a brighter one; the outer boundary of the myocardium is
-mostly the reverse (bright myocardium against darker tissue, lung and the
-right ventricle's blood), so the grey levels are reflected
-(``lo + hi - u``) when the wall is the brighter side of it, measured at the
-start, and the boundary put where the echo intensity is half way between
-the wall's and what lies beyond it (:class:`MirroredInterface`): the
-midpoint of the grey levels lies on the dim side of a blurred edge.  A thickness below ``min_thickness_mm`` is raised to it afterwards
-(:func:`enforce_thickness`): the epicardium never lies inside the
-endocardium.
+a prior on the thickness and its smoothness.  The outer boundary of the
+myocardium is mostly bright myocardium against darker tissue, lung and the
+right ventricle's blood: when the wall is the brighter side of it (measured
+at the start), the local means run with the wall inside
+(:func:`wall_term`: ``LocalMeans.polarity`` -1, in the compiled level loop
+as the endocardium's) and put the boundary where the echo intensity is half
+way between the wall's and what lies beyond it: the midpoint of the grey
+levels lies on the dim side of a blurred edge.  A thickness below
+``min_thickness_mm`` is raised to it afterwards (:func:`enforce_thickness`):
+the epicardium never lies inside the endocardium.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .dataterms import Force, LocalMeans, NoSpeckleError, nanmedian, speckle_nepers
+from .dataterms import LocalMeans, NoSpeckleError, speckle_nepers
+from .hermite import gauss_legendre
 from .myocardium import SegmentConvention, wall_thickness_grid
-from .options import SegmentOptions
 from .quality import wall_report
 from .results import SegmentationResult
 from .surface import Surface
@@ -35,7 +35,7 @@ from .tracker import Tracker
 from .volume import Volume
 
 __all__ = ["initial_epicardium", "conserving_start", "enforce_thickness", "wall_polarity", "wall_nepers",
-           "mirrored_level", "MirroredInterface", "segment_epicardium", "add_epicardium"]
+           "wall_term", "segment_epicardium", "add_epicardium"]
 
 
 def _offsets(surface: Surface, thickness_mm: float, v1, v2) -> np.ndarray:
@@ -43,11 +43,11 @@ def _offsets(surface: Surface, thickness_mm: float, v1, v2) -> np.ndarray:
     ``thickness_mm`` long at ``(v1, v2)``: Newton's method on
     ``int_f^{f+t} h0 dv0 = thickness_mm`` (its derivative is ``h0(f + t)``)."""
     f = surface.radius(v1, v2)
-    x, w = np.polynomial.legendre.leggauss(8)
+    x, w = gauss_legendre(8)
     t = thickness_mm / surface.system.scale_factors(f, v1, v2)[0]
     for _ in range(6):  # quadratic convergence from within a few per cent
-        v0 = f[..., None] + t[..., None] * (x + 1) / 2
-        length = (surface.system.scale_factors(v0, v1[..., None], v2[..., None])[0] @ w) * t / 2
+        v0 = f[..., None] + t[..., None] * x
+        length = (surface.system.scale_factors(v0, v1[..., None], v2[..., None])[0] @ w) * t
         t = t - (length - thickness_mm) / surface.system.scale_factors(f + t, v1, v2)[0]
     return t
 
@@ -113,7 +113,8 @@ def enforce_thickness(endocardium: Surface, epicardium: Surface, *, min_thicknes
     epi = endocardium.with_coefficients(grid.constrain(endocardium.coefficients + t))
     lo, hi = grid.v2_range
     v1, v2 = np.linspace(0, 2 * np.pi, n, endpoint=False), lo + (hi - lo) * np.linspace(0, 1, n)
-    deficit = min_thickness_mm - wall_thickness_grid(endocardium, epi, v1, v2).min()
+    # 4 Gauss nodes: h0 is smooth across a wall (8 agree to 1e-13 mm on a phantom's)
+    deficit = min_thickness_mm - wall_thickness_grid(endocardium, epi, v1, v2, order=4).min()
     if deficit > 0:
         # a constant in v0 moves the wall out by at least its times the smallest h0 there
         f = np.maximum(grid.evaluate_grid(endocardium.coefficients, v1, v2), 0.0)
@@ -125,7 +126,7 @@ def enforce_thickness(endocardium: Surface, epicardium: Surface, *, min_thicknes
 
 
 def wall_polarity(volume: Volume, endocardium: Surface, epicardium: Surface, *, shell_mm: float = 8.0,
-                  n: int = 48) -> float:
+                  n: int = 24) -> float:
     """The median grey level of the wall (between the two surfaces) minus
     that of a shell ``shell_mm`` thick outside the epicardium, sampled along
     ``v0`` on an ``n x n`` grid of ``(v1, v2)``; NaN without data."""
@@ -146,23 +147,6 @@ def wall_polarity(volume: Volume, endocardium: Surface, epicardium: Surface, *, 
     return float(grey(wall) - grey(shell))
 
 
-def _reflected(volume: Volume, surface: Surface, *, margin_mm: float) -> Volume:
-    """The part of the volume within ``margin_mm`` of the surface's bounding
-    box, its grey levels reflected (``lo + hi - u``, its extremes)."""
-    lo, hi = surface.bounding_box()
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    index = volume.world_to_index(corners)
-    pad = margin_mm / volume.spacing
-    start = np.clip(np.floor(index.min(0) - pad).astype(int), 0, np.array(volume.shape[::-1]) - 2)
-    stop = np.clip(np.ceil(index.max(0) + pad).astype(int) + 1, start + 2, np.array(volume.shape[::-1]))
-    box = np.s_[start[2]:stop[2], start[1]:stop[1], start[0]:stop[0]]
-    array = volume.array[box]
-    missing = None if volume.no_data_mask is None else volume.no_data_mask[box]
-    # any constant will do (the data terms see differences); no-data voxels stay no-data
-    return Volume(float(array.min()) + float(array.max()) - array, spacing=volume.spacing,
-                  origin=volume.index_to_world(start.astype(float)), direction=volume.direction, no_data_mask=missing)
-
-
 def wall_nepers(volume: Volume, endocardium: Surface, epicardium: Surface, *, per_patch: int = 6) -> float:
     """Grey levels per neper of echo intensity (:func:`speckle_nepers`)
     from the speckle of the wall: the nearest voxels at a quarter, half and
@@ -181,44 +165,13 @@ def wall_nepers(volume: Volume, endocardium: Surface, epicardium: Surface, *, pe
     return speckle_nepers(samples.reshape(-1, 3), patch.ravel())
 
 
-def mirrored_level(c_in, c_out, *, nepers: float):
-    """The reflected grey level ``t`` whose unreflected intensity is half way
-    between those of the reflected levels ``c_in`` and ``c_out``::
-
-        t = -k ln((exp(-c_in / k) + exp(-c_out / k)) / 2)
-
-    (``k = nepers`` grey levels per neper); ``(c_in + c_out) / 2`` as ``k``
-    grows, ``c_in + k ln 2`` for a strong contrast."""
-    return -nepers * (np.logaddexp(-np.asarray(c_in) / nepers, -np.asarray(c_out) / nepers) - np.log(2.0))
-
-
-class MirroredInterface(LocalMeans):
-    """The outer wall where the echo intensity is half way between the
-    myocardium's and what lies beyond it, on reflected grey levels
-    ``L - v``.
-
-    On the reflected image the wall is the dark side: :class:`LocalMeans`'
-    midpoint of the band means ``c_in < c_out`` is the geometric mean of the
-    two intensities, on the dim side of the blurred edge.  The half-way
-    intensity of the unreflected levels (:class:`IntensityInterface`'s
-    ``g*``), reflected, is the level::
-
-        t = c_in + c_out - k ln((exp(c_in / k) + exp(c_out / k)) / 2)
-          = -k ln((exp(-c_in / k) + exp(-c_out / k)) / 2)
-
-    ``k`` (grey levels per neper, :attr:`nepers`) is the image's log
-    compression, set on a subclass (:func:`wall_nepers`).
-    """
-
-    loop_kind = None  # the compiled loop computes the plain local means only
-    nepers: float = np.inf
-
-    def force(self, backend, volume, obs) -> Force:
-        c_in, c_out = self.band_means(backend, obs)
-        contrast = np.maximum(c_out - c_in, 0.0)
-        t = mirrored_level(c_in, c_in + contrast, nepers=self.nepers)
-        return Force(obs.u, t - contrast / 2, t + contrast / 2, max(nanmedian(contrast) ** 2, self.min_scale),
-                     measured=(c_in, c_out))
+def wall_term(nepers: float = np.inf) -> type[LocalMeans]:
+    """The data term of a bright wall's outer boundary: the local means
+    with the wall inside (:attr:`LocalMeans.polarity` -1), the boundary
+    where the echo intensity is half way between the wall's and what lies
+    beyond it at ``nepers`` grey levels per neper (:func:`wall_nepers`;
+    inf: the grey levels' midpoint)."""
+    return type("OuterWall", (LocalMeans,), {"polarity": -1.0, "boundary_nepers": float(nepers)})
 
 
 def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: float = 8.0,
@@ -245,7 +198,7 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     boundary : {"intensity", "midpoint"}
         Where a bright wall's outer boundary lies: where the echo intensity
         is half way between the wall's and what lies beyond it
-        (:class:`MirroredInterface`; the midpoint where the image has no
+        (:func:`wall_term`; the midpoint where the image has no
         speckle to read its log compression from), or at the midpoint of
         the band means' grey levels (:class:`spheroseg.dataterms.LocalMeans`).
         Unused with ``mode`` given.
@@ -255,9 +208,10 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
         :func:`conserving_start` of the previous frame.
     **options
         :class:`spheroseg.SegmentOptions` of the descent; by default
-        ``mode="local"`` (:class:`MirroredInterface` on a bright wall with
-        ``boundary="intensity"``), ``band=4`` (the inner band stays in the wall),
-        ``apex_weight=0`` (the epicardial apex is not clicked).
+        ``mode="local"`` (:func:`wall_term` on a bright wall; a ``mode``
+        given runs on the image as it is, the wall inside), ``band=4`` (the
+        inner band stays in the wall), ``apex_weight=0`` (the epicardial
+        apex is not clicked).
 
     Returns
     -------
@@ -278,21 +232,20 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
         polarity = "dark" if contrast < 0 else "bright"
     options = {"mode": "local", "band": 4.0, "apex_weight": 0.0,
                "patches": (endocardium.grid.n1, endocardium.grid.n2), **options}
-    # what the descent can reach: the start, the bands and some room to move
-    margin = 2 * SegmentOptions(**options).band_out + thickness_mm
-    image = _reflected(volume, start, margin_mm=margin) if polarity == "bright" else volume
     if own_mode:
         boundary = None
-    elif polarity == "bright" and boundary == "intensity":
-        try:
-            options["mode"] = type("MirroredInterface", (MirroredInterface,),
-                                   {"nepers": wall_nepers(volume, endocardium, start)})
-        except NoSpeckleError:  # no speckle to read the log compression from: the local means' midpoint
-            boundary = "midpoint"
+    elif polarity == "bright":
+        nepers = np.inf
+        if boundary == "intensity":
+            try:
+                nepers = wall_nepers(volume, endocardium, start)
+            except NoSpeckleError:  # no speckle to read the log compression from: the grey levels' midpoint
+                boundary = "midpoint"
+        options["mode"] = wall_term(nepers)
     else:
         boundary = "midpoint"
     apex = endocardium.tip()
-    result = Tracker(image, apex, endocardium.pose.origin, init=start, **options).run()
+    result = Tracker(volume, apex, endocardium.pose.origin, init=start, **options).run()
     result.surface = enforce_thickness(endocardium, result.surface, min_thickness_mm=min_thickness_mm)
     result.parameters = {**result.parameters, "thickness_mm": thickness_mm, "min_thickness_mm": min_thickness_mm,
                          "polarity": polarity, "boundary": boundary}
@@ -335,7 +288,7 @@ def add_epicardium(result: SegmentationResult, volume: Volume, *, rv_insertion=N
     lo, hi = endo.grid.v2_range
     n = 48
     v1, v2 = (np.arange(n) + 0.5) * 2 * np.pi / n, lo + (hi - lo) * (np.arange(n) + 0.5) / n
-    wall = wall_report(wall_thickness_grid(endo, epi.surface, v1, v2),
+    wall = wall_report(wall_thickness_grid(endo, epi.surface, v1, v2, order=4),
                        min_thickness_mm=epi.parameters["min_thickness_mm"])
     quality = dict(result.quality or {"warnings": [], "poor": False})
     quality["epicardium"] = wall

@@ -33,7 +33,7 @@ from functools import lru_cache
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["hermite_basis", "global_basis", "patch_dofs", "HermiteGrid", "basis_norms"]
+__all__ = ["hermite_basis", "global_basis", "patch_dofs", "HermiteGrid", "basis_norms", "gauss_legendre"]
 
 
 def hermite_basis(t: np.ndarray, derivative: int = 0) -> np.ndarray:
@@ -114,7 +114,7 @@ def patch_dofs(n1: int, n2: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=16)
-def _gauss_legendre(order: int) -> tuple[np.ndarray, np.ndarray]:
+def gauss_legendre(order: int) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Legendre points and weights on ``[0, 1]`` (read-only, computed
     once an order)."""
     x, w = np.polynomial.legendre.leggauss(order)
@@ -328,7 +328,7 @@ class HermiteGrid:
         """
         if order < 1:
             raise ValueError(f"quadrature order must be >= 1, got {order!r}")
-        t, w = _gauss_legendre(order)
+        t, w = gauss_legendre(order)
         w1 = 2 * np.pi / self.n1
         lo, hi = self.v2_range
         w2 = (hi - lo) / self.n2
@@ -359,7 +359,7 @@ class HermiteGrid:
         The sample points of :meth:`quadrature` are their tensor product, so
         the compiled kernels evaluate ``f`` patch by patch from these two
         small tables instead of a sparse matrix."""
-        t, _ = _gauss_legendre(order)
+        t, _ = gauss_legendre(order)
         lo, hi = self.v2_range
         tables = []
         for width in (2 * np.pi / self.n1, (hi - lo) / self.n2):

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .hermite import gauss_legendre
 from .surface import Surface
 
 __all__ = ["MYOCARDIAL_DENSITY", "SEGMENT_NAMES", "SegmentConvention", "myocardial_volume_ml", "lv_mass_g",
@@ -174,11 +175,11 @@ def wall_thickness_grid(endocardium: Surface, epicardium: Surface, v1, v2, *, or
 
 def _arc_length(system, lo, hi, v1, v2, order):
     """``int_lo^hi h0(v0, v1, v2) dv0`` by Gauss-Legendre of ``order`` points."""
-    x, w = np.polynomial.legendre.leggauss(order)
-    half, mid = (hi - lo) / 2, (hi + lo) / 2
-    v0 = mid[..., None] + half[..., None] * x
+    t, w = gauss_legendre(order)
+    length = hi - lo
+    v0 = lo[..., None] + length[..., None] * t
     h0 = system.scale_factors(v0, np.asarray(v1)[..., None], np.asarray(v2)[..., None])[0]
-    return (h0 @ w) * half
+    return (h0 @ w) * length
 
 
 def cavity_length(endocardium: Surface, *, n: int = 64) -> float:

@@ -21,7 +21,7 @@ from ._version import __version__
 from .io import save_mask, write_atomically
 
 __all__ = ["write_segmentation_outputs", "write_tracking_outputs", "write_surface_files", "write_frame_files",
-           "write_json", "versions", "default_mask_suffix", "write_myocardium_files"]
+           "write_json", "versions", "default_mask_suffix", "write_myocardium_files", "write_tracking_myocardium"]
 
 _UNITS = {"points": "mm, LPS (ITK physical space)", "volume": "mL"}
 
@@ -262,7 +262,9 @@ def write_tracking_outputs(out: Path, volumes, result, *, source=None, apex, bas
     Files: ``masks/frame_TTT<mask_suffix>``, ``meshes/frame_TTT.vtk|.ply[|.stl]``,
     ``meshes/frame_TTT_surface.json`` and CMISS files per frame, ``report.png``
     (volume curve and the end-diastolic frame, if ``report``) and
-    ``results.json`` (volumes per frame, EDV, ESV in mL, EF in percent).
+    ``results.json`` (volumes per frame, EDV, ESV in mL, EF in percent);
+    with the myocardium (``track(..., myocardium=True)``), its masks and
+    block (:func:`write_tracking_myocardium`).
 
     Parameters
     ----------
@@ -290,6 +292,8 @@ def write_tracking_outputs(out: Path, volumes, result, *, source=None, apex, bas
             volumes_ml=result.volumes_ml, ed_frame=ed, es_frame=result.es_frame,
             title=f"{name}: EDV {result.edv_ml:.1f} mL, ESV {result.esv_ml:.1f} mL, EF {result.ef:.1f} %")
     write_frame_files(out, volumes, result, mask_suffix=mask_suffix, stl=stl)
+    myocardium = (write_tracking_myocardium(out, volumes, result, mask_suffix=mask_suffix)
+                  if result.frames[0].epicardium is not None else None)
     if report:
         drawing()
     timings = dict(seconds or {})
@@ -304,6 +308,27 @@ def write_tracking_outputs(out: Path, volumes, result, *, source=None, apex, bas
         "bases": [f.surface.pose.origin for f in result.frames],
         "parameters": {**result.frames[0].parameters, "iterations_per_frame": later.get("max_iterations")},
         "units": {**_UNITS, "ef": "percent"}, "versions": versions(),
-        **(extra or {}),
+        **({"myocardium": myocardium} if myocardium else {}), **(extra or {}),
     }
     return write_json(out / "results.json", results)
+
+
+def write_tracking_myocardium(out: Path, volumes, result, *, mask_suffix: str = ".nii.gz") -> dict:
+    """Every frame's myocardium mask ``masks/frame_TTT_myocardium<mask_suffix>``
+    of ``track(..., myocardium=True)``; returns the ``myocardium`` block of
+    ``results.json``: mass and myocardial volume per frame, the 17
+    segments' cavity volume curves (``[frame][segment - 1]``, mL), their
+    times to minimum volume and the SDI (% of the cycle, the frames being
+    one cycle), the segment convention."""
+    from .myocardium import SEGMENT_NAMES
+
+    masks = []
+    for t, (frame, volume) in enumerate(zip(result.frames, volumes)):
+        masks.append(f"masks/frame_{t:03d}_myocardium{mask_suffix}")
+        save_mask(out / masks[-1], frame.myocardium_mask(volume), volume)
+    masses = result.masses_g
+    return {"lv_mass_g": masses, "myocardial_volume_ml": [f.myocardial_volume_ml for f in result.frames],
+            "ed_es_mass_difference_percent": 100 * abs(masses[result.es_frame] / masses[result.ed_frame] - 1),
+            "segment_convention": result.frames[0].segment_convention.to_dict(), "segment_names": SEGMENT_NAMES,
+            "segment_volumes_ml": result.segment_volumes_ml, "times_to_minimum_percent": result.times_to_minimum,
+            "sdi_percent": result.sdi, "masks": masks}

@@ -161,7 +161,8 @@ class FrameQuality:
         frame fell back to the local means for ``no_speckle``."""
         if observed is not None:
             u, force, spread = observed
-            no_data, contrast = float(np.mean(~np.isfinite(u))), np.asarray(force.c_out - force.c_in, float)
+            # abs: a bright wall's term (LocalMeans.polarity -1) has c_in above c_out
+            no_data, contrast = float(np.mean(~np.isfinite(u))), np.abs(np.asarray(force.c_out - force.c_in, float))
         else:
             no_data, contrast, spread = np.nan, np.full(1, np.nan), np.nan
         if self._axis_distances is None:

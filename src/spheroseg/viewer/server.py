@@ -243,9 +243,15 @@ class ViewerHandler(BaseHTTPRequestHandler):
         self._send(HTTPStatus.OK, self.server.session.nifti(), "application/octet-stream")
 
     def surface(self, query, body) -> None:
-        session = self.server.session
-        frame = session.check_frame(_integer(query.get("frame", ["0"])[0], "frame"))
-        data = session.surface_event(frame)
+        self._frame_event(query, self.server.session.surface_event)
+
+    def epicardium(self, query, body) -> None:
+        self._frame_event(query, self.server.session.epicardium_event)
+
+    def _frame_event(self, query, event) -> None:
+        """``event(frame)`` of the query's frame, or 404 before it is segmented."""
+        frame = self.server.session.check_frame(_integer(query.get("frame", ["0"])[0], "frame"))
+        data = event(frame)
         if data is None:
             raise RequestError(HTTPStatus.NOT_FOUND, f"frame {frame} is not segmented with the current points")
         self._json(data)
@@ -310,6 +316,7 @@ ROUTES = {
     ("GET", "/api/study"): ViewerHandler.study,
     ("GET", "/api/volume.nii"): ViewerHandler.volume,
     ("GET", "/api/surface"): ViewerHandler.surface,
+    ("GET", "/api/epicardium"): ViewerHandler.epicardium,
     ("GET", "/api/events"): ViewerHandler.events,
     ("POST", "/api/points"): ViewerHandler.points,
     ("POST", "/api/find"): ViewerHandler.find,

@@ -228,6 +228,8 @@ class Session:
         self._faces = None
         # frame -> what locate() found there (or the NoVentricleError it raised)
         self._located: dict[int, object] = {}
+        # frame -> (the result, its epicardium): computed when the page asks
+        self._epicardia: dict[int, tuple] = {}
         self._worker = threading.Thread(target=self._work, name="spheroseg-viewer-worker", daemon=True)
         self._worker.start()
         if points is not None and points.complete:
@@ -271,6 +273,29 @@ class Session:
         if result is None:
             return None
         return self._surface_data(frame, result.surface, final=True, result=result, job=self._generation)
+
+    def epicardium_event(self, frame: int) -> dict | None:
+        """The epicardium of ``frame``'s result for the current points
+        (:func:`spheroseg.epicardium.segment_epicardium`, once a result):
+        its display mesh's vertices, the LV mass (g); None before the frame
+        is segmented.  Asked for by the page only when it draws the
+        myocardium, so that the endocardium's latency stays the same."""
+        from ..epicardium import segment_epicardium
+        from ..myocardium import lv_mass_g, myocardial_volume_ml
+
+        result = self._frame_result(frame)
+        if result is None:
+            return None
+        with self._lock:
+            cached = self._epicardia.get(frame)
+        if cached is None or cached[0] is not result:
+            cached = (result, segment_epicardium(self.frames[frame], result.surface).surface)
+            with self._lock:
+                self._epicardia[frame] = cached
+        epicardium = cached[1]
+        vertices = _encode(epicardium.mesh(*MESH_RESOLUTION)[0], "<f4")
+        return {"frame": frame, "job": self._generation, "vertices": vertices,
+                "lv_mass_g": lv_mass_g(myocardial_volume_ml(result.surface, epicardium))}
 
     # what the page asks for ---------------------------------------------------
 

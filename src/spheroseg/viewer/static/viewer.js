@@ -12,8 +12,8 @@
 'use strict';
 
 const $ = (id) => document.getElementById(id);
-const COLORS = { contour: '#ffd23c', apex: '#ff4d4d', base: '#4dff88', landmark: '#4de1ff', annulus: '#ff9f40',
-                 selected: '#ffffff' };
+const COLORS = { contour: '#ffd23c', epicardium: '#ff5ad2', apex: '#ff4d4d', base: '#4dff88', landmark: '#4de1ff',
+                 annulus: '#ff9f40', selected: '#ffffff' };
 const NEAR_MM = 2.0;      // a point this close to a slice is drawn full, farther ones faded
 const GRAB_PX = 9;        // how close a press must be to a point to drag it
 const DRAG_SEND_MS = 120; // the least time between two segmentations sent while a point is dragged
@@ -37,6 +37,7 @@ const state = {
   status: 'loading', job: 0, faces: null, vertices: new Map(), shown: null, shownLPS: null, pending: null,
   tracking: null, trackingRun: null, playing: null, drag: null, dragSent: 0, later3D: null, slicesQueued: false,
   timings: [],          // per job: click, first and final surface drawn on the slices, 3D drawn (ms)
+  epicardium: null,     // the shown frame's epicardium (display mm), when the myocardium is drawn
 };
 let nv = null;
 
@@ -446,6 +447,8 @@ function showPending() {
 function showSurface(lps, data) {
   state.shownLPS = lps;
   state.shown = displayVertices(lps);
+  state.epicardium = null;  // it belonged to the surface shown before
+  if (data.final) showEpicardium(data);
   drawOverlay();
   schedule3D();
   if (data.final) {  // the slices under it are drawn (a wait for the GPU: not for every intermediate)
@@ -482,7 +485,21 @@ function showQuality(data) {
   document.body.dataset.poor = data.poor ? '1' : '0';
 }
 
+// the epicardium of a final surface, asked for only while the box is ticked
+// (the endocardium's latency stays the same without it)
+async function showEpicardium(data) {
+  if (!$('myocardium').checked) return;
+  let epi;
+  try { epi = await api(`/api/epicardium?frame=${data.frame}`); } catch (error) { return; }  // points changed since
+  if (epi.frame !== state.frame || epi.job !== state.job || !state.shown) return;
+  state.epicardium = displayVertices(decode(epi.vertices, Float32Array));
+  $('volume').textContent = `${data.volume_ml.toFixed(1)} mL, LV mass ${epi.lv_mass_g.toFixed(0)} g`;
+  document.body.dataset.epicardium = String(epi.job);
+  drawOverlay();
+}
+
 function hideSurface() {
+  state.epicardium = null;
   state.shown = null;
   state.shownLPS = null;
   drawOverlay();
@@ -515,7 +532,8 @@ function drawOverlay() {
     ctx.beginPath();
     ctx.rect(l, t, w, h);
     ctx.clip();
-    if (state.shown) drawContour(ctx, tile, plane, level);
+    if (state.shown) drawContour(ctx, tile, plane, level, state.shown, COLORS.contour);
+    if (state.epicardium) drawContour(ctx, tile, plane, level, state.epicardium, COLORS.epicardium);
     for (const point of points) drawPoint(ctx, tile, plane, level, point);
     drawDirections(ctx, tile, plane);
     ctx.restore();
@@ -535,10 +553,9 @@ function drawDirections(ctx, tile, plane) {
   ctx.fillText(label(plane.u, true), l + w - 12, t + h / 2);
 }
 
-function drawContour(ctx, tile, plane, level) {
-  const v = state.shown;
+function drawContour(ctx, tile, plane, level, v, color) {
   const f = state.faces;
-  ctx.strokeStyle = COLORS.contour;
+  ctx.strokeStyle = color;
   ctx.lineWidth = 2;
   ctx.beginPath();
   const cut = [];
@@ -819,6 +836,15 @@ async function start() {
   $('play').onclick = play;
   $('track').onclick = track;
   $('save').onclick = save;
+  $('myocardium').onchange = () => {
+    const cached = state.vertices.get(state.frame);
+    if ($('myocardium').checked && cached && state.shown) showEpicardium(cached.data);
+    else {
+      state.epicardium = null;
+      if (cached && state.shown) $('volume').textContent = `${cached.data.volume_ml.toFixed(1)} mL`;
+      drawOverlay();
+    }
+  };
   $('render3d').onchange = () => {
     nv.opts.multiplanarShowRender = $('render3d').checked ? niivue.SHOW_RENDER.ALWAYS : niivue.SHOW_RENDER.NEVER;
     if ($('render3d').checked) draw3D();
