@@ -20,7 +20,9 @@ averages the speckle out):
    and narrows at the mitral orifice before the atrium widens it again: the
    base is the narrowest section (the waist) beyond the widest one, or the
    pool's far end when the atrium is not joined to it (a closed valve, an
-   atrium out of the sector);
+   atrium out of the sector); the full-resolution image across the axis
+   then moves it to where the cavity's grey level rises into the annulus
+   (the waist of the coarse pool lies a few millimetres beyond);
 5. the apex is the pool's first section along the axis from the probe side.
 
 ``confidence`` combines how well blood and tissue separate, how clear the
@@ -54,6 +56,11 @@ WALL_MIN = 1.0
 
 #: thickness (mm) of the shells of depth whose grey levels are levelled
 DEPTH_SHELL_MM = 6.0
+
+#: radius of the disc whose grey level finds the mitral plane, as a fraction
+#: of the cavity's coarse radius near its base: 0.5 left the disc inside
+#: the orifice, 1.0 reached the wall (0.9: base 0.6-2.0 mm off on the sweep)
+BASE_DISC = 0.9
 
 #: an apical view looks down the long axis: at most this angle (degrees)
 #: between the long axis and the sector's centre line (25 is a tilted view)
@@ -294,13 +301,14 @@ def locate(volume, *, spacing: float = 3.0) -> Located:
                                f"largest dark region is {largest:.0f} mL)")
     local = threshold + np.interp(np.linalg.norm(best["apex"] - probe), centres, drift)
     apex = _endocardial_apex(volume, best["apex"], best["normal"], local)
+    base = _mitral_plane(volume, best["base"], best["normal"], BASE_DISC * best["base_radius"], separation * spread)
     scores = {"separation": float(np.clip(separation - SEPARATION_MIN, 0, 1)), **best["scores"]}
     confidence = float(np.prod(list(scores.values())))
     # the scores that brought it down (the lowest, when each alone is fair)
     low = [name for name, value in scores.items() if value < 0.75] or [min(scores, key=scores.get)]
     reason = "; ".join(_REASONS[name] for name in low) if confidence < 0.5 else ""
-    normal = (apex - best["base"]) / np.linalg.norm(apex - best["base"])
-    return Located(apex=apex, base=best["base"], normal=normal, confidence=confidence, reason=reason,
+    normal = (apex - base) / np.linalg.norm(apex - base)
+    return Located(apex=apex, base=base, normal=normal, confidence=confidence, reason=reason,
                    volume_ml=best["volume_ml"], scores=scores)
 
 
@@ -390,8 +398,47 @@ def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict
         "length": float(l_lo <= length <= l_hi),
         "taper": float(np.clip((0.65 - taper) / 0.2, 0, 1)),
     }
+    # the cavity's radius within 10 mm of the base, on the ventricle's side
+    near = area[max(first, waist - int(round(10.0 / bin_mm))):waist + 1]
+    base_radius = float(np.sqrt(near.max() / np.pi))
     return {"apex": apex, "base": base, "normal": axis, "volume_ml": volume_ml, "scores": scores,
-            "middle": points[lv].mean(0), "taper": taper}
+            "base_radius": base_radius, "middle": points[lv].mean(0), "taper": taper}
+
+
+def _mitral_plane(volume, base, axis, radius: float, contrast: float, *, reach: float = 12.0) -> np.ndarray:
+    """The coarse ``base`` moved along ``axis`` to where the cavity meets the
+    mitral annulus.
+
+    The mean grey level over a disc of ``radius`` mm across the axis (rings
+    at a quarter to the whole of it, weighted by their circumference) is the
+    blood's level inside the ventricle and rises where the disc meets the
+    annulus, the closed leaflets or the narrower orifice.  The plane is where
+    that profile, smoothed over 1 mm, crosses half-way from the blood's level
+    (its median over the half of the ``reach`` on the apex side) to its peak
+    beyond, searching from the peak towards the apex.  The coarse pool's
+    narrowest section lies a few millimetres beyond it (3-4 mm voxels, and
+    the atrium widening past the orifice).  ``base`` is kept when the rise is
+    under 0.15 of ``contrast`` (the grey-level difference of tissue and
+    blood): no annulus is seen.
+    """
+    from .annulus import basal_profile
+
+    heights = np.arange(-reach, reach + 0.5, 1.0)
+    radii = np.array([0.25, 0.5, 0.75, 1.0])
+    profile = basal_profile(volume, base, axis, radius, heights=heights, radii=radii, n_angles=16)
+    if not np.isfinite(profile).all():
+        return base
+    disc = ndimage.gaussian_filter1d(np.array([0.25, 0.5, 0.75, 0.5]) @ profile / 2.0, 1.0)
+    blood = float(np.median(disc[heights >= reach / 2]))
+    peak = int(np.argmax(np.where(heights < reach / 2, disc, -np.inf)))
+    if disc[peak] - blood < 0.15 * contrast:
+        return base
+    level = 0.5 * (blood + disc[peak])
+    if not (disc[peak:] < level).any():
+        return base
+    k = peak + int(np.argmax(disc[peak:] < level)) - 1  # the last sample at or above the level
+    z = heights[k] + (disc[k] - level) / (disc[k] - disc[k + 1])
+    return base + z * axis
 
 
 def _endocardial_apex(volume, apex, axis, threshold: float, *, reach: float = 12.0, disc: float = 3.0) -> np.ndarray:
