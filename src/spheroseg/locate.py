@@ -145,7 +145,8 @@ def _missing(volume) -> np.ndarray:
 def _coarse(volume, spacing: float):
     """The image on a Cartesian grid of about ``spacing`` mm, speckle averaged:
     ``(grey levels [k, j, i] with NaN off the data, index -> world function,
-    voxel size (x, y, z) mm, probe point, whether it is known, depth direction)``."""
+    voxel size (x, y, z) mm, probe point, whether it is known, depth direction,
+    each voxel's distance from the probe in mm)``."""
     from .beamspace import BeamVolume
 
     if isinstance(volume, BeamVolume):
@@ -159,12 +160,14 @@ def _coarse(volume, spacing: float):
         start = (grid.origin - geometry.apex) @ geometry.rotation
         x, y, z = (start[d] + np.arange(n) * grid.spacing[d] for d, n in enumerate(grid.shape[::-1]))
         probe_points = np.stack(np.broadcast_arrays(x, y[:, None], z[:, None, None]), -1)  # [k, j, i, xyz]
-        beam_index = (geometry.probe_to_spherical(probe_points) - geometry.index_offset) / geometry.separations
+        spherical = geometry.probe_to_spherical(probe_points)
+        distance = spherical[..., 0]
+        beam_index = (spherical - geometry.index_offset) / geometry.separations
         beam_index[..., 0] = (beam_index[..., 0] - (f_r - 1) / 2) / f_r
-        outside = ~np.all(np.isfinite(beam_index) & (beam_index >= 0) & (beam_index <= np.array(beams.shape) - 1), -1)
-        beam_index[outside] = 0
-        grey = ndimage.map_coordinates(beams, np.moveaxis(beam_index, -1, 0), order=1)
-        grey[outside] = np.nan
+        within = np.all(np.isfinite(beam_index) & (beam_index >= 0) & (beam_index <= np.array(beams.shape) - 1), -1)
+        # read only the points in the sector (a third of the pyramid's box)
+        grey = np.full(within.shape, np.nan, np.float32)
+        grey[within] = ndimage.map_coordinates(beams, beam_index[within].T, order=1)
         origin, direction, step = grid.origin, grid.direction, grid.spacing
         probe, depth = geometry.apex, geometry.rotation[:, 2]
         probe_known = True
@@ -185,12 +188,18 @@ def _coarse(volume, spacing: float):
         if probe is None:  # no sector: the project's convention, the probe over the top face's centre
             probe = origin + direction @ (np.array([(grey.shape[2] - 1) / 2, (grey.shape[1] - 1) / 2, -0.5]) * step)
             probe_known = False
+        # the distance from the probe of every voxel, a sum of one offset along each axis
+        offset = [np.asarray(direction)[:, d] * step[d] * np.arange(n)[:, None]
+                  for d, n in enumerate(grey.shape[::-1])]  # x, y, z: (n, 3)
+        start = np.asarray(origin, float) - probe
+        distance = np.sqrt(sum((start[c] + offset[2][:, c, None, None] + offset[1][None, :, c, None]
+                                + offset[0][None, None, :, c]) ** 2 for c in range(3)))
 
     def to_world(index_zyx):
         return origin + (np.asarray(index_zyx, float)[..., ::-1] * step) @ np.asarray(direction).T
 
     return (grey, to_world, np.asarray(step, float), np.asarray(probe, float), probe_known,
-            np.asarray(depth, float) / np.linalg.norm(depth))
+            np.asarray(depth, float) / np.linalg.norm(depth), distance)
 
 
 def _otsu(values: np.ndarray) -> tuple[float, float, float]:
@@ -212,15 +221,20 @@ def _otsu(values: np.ndarray) -> tuple[float, float, float]:
     return threshold, float((bright.mean() - dark.mean()) / spread) if spread > 0 else 0.0, float(spread)
 
 
-def locate(volume, *, spacing: float = 3.0) -> Located:
+def locate(volume, *, spacing: float | None = None) -> Located:
     """Find the left ventricle of an apical 3D echo volume.
 
     Parameters
     ----------
     volume : Volume or BeamVolume
         Apical acquisition (probe at the sector's apex, blood dark).
-    spacing : float
-        Voxel size (mm) of the coarse copy the search runs on.
+    spacing : float, optional
+        Voxel size (mm) of the coarse copy the search runs on.  Default 3 mm
+        on a Cartesian volume (rounded to a whole number of its voxels: a
+        2 mm image is searched at 4 mm) and 4 mm on a beam-space one, whose
+        copy is interpolated over the whole box around the sector (three
+        times the sector's volume): 3 mm there took twice the time for the
+        same apex and base.
 
     Returns
     -------
@@ -232,9 +246,13 @@ def locate(volume, *, spacing: float = 3.0) -> Located:
     NoVentricleError
         When no dark pool of a ventricle's size is in the image.
     """
+    if spacing is None:
+        from .beamspace import BeamVolume
+
+        spacing = 4.0 if isinstance(volume, BeamVolume) else 3.0
     if not (np.isfinite(spacing) and spacing > 0):
         raise ValueError(f"spacing must be a positive number of mm, got {spacing!r}")
-    grey, to_world, step, probe, probe_known, depth = _coarse(volume, spacing)
+    grey, to_world, step, probe, probe_known, depth, distance = _coarse(volume, spacing)
     data = np.isfinite(grey)
     if data.sum() < 64:
         raise NoVentricleError("no left ventricle found: the image has too little data")
@@ -247,8 +265,7 @@ def locate(volume, *, spacing: float = 3.0) -> Located:
     inside = data & (weight > 0.5)
     # time-gain compensation leaves the grey level drifting with depth: each
     # shell of depth is brought to one level of its brighter (tissue) quartile
-    cells = np.argwhere(inside)
-    distance = np.linalg.norm(to_world(cells) - probe, axis=1)
+    distance = distance[inside]
     shell = (distance // DEPTH_SHELL_MM).astype(int)
     raw = smooth[inside]
     levels = np.full(shell.max() + 1, np.nan)
