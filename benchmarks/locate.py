@@ -6,15 +6,14 @@ against the truth, segmentation from them, the time it takes, CETUS.
 Cases: seeded random phantoms (2 mm voxels), each with its own tilt
 (0-25 degrees), long axis (60-100 mm), radius (0.26-0.38 of it), phase (ED,
 or ES: radius 0.7 as large, wall 13.5 mm instead of 9) and image formation
-(the 16 of the formation sweep in turn).  For each: ``locate`` (time, apex
-and base errors, confidence), then ``segment(volume)`` with no points (Dice
-against the true mask, volume error, whether it was flagged poor).  The
-tilted mitral scenes (the plane at 0, 15 and 30 degrees to the long axis):
-the same.  Beam-space cases (seeded likewise, every third formation):
-``locate`` on the beam-space volume (least time of two after a warm-up,
-apex and base errors).  CETUS
-Patient 7 (0.9 mm assumed): located against the clicked points, and the
-volumes without points against the clicked ones.
+(the 16 of the formation sweep in turn).  For each: ``locate`` (least time
+of two after a first call, apex and base errors, confidence), then
+``segment(volume)`` with no points (Dice against the true mask, volume
+error, whether it was flagged poor).  The tilted mitral scenes (the plane at
+0, 15 and 30 degrees to the long axis): the same.  Beam-space cases (seeded
+likewise, every third formation): ``locate`` on the beam-space volume (time,
+apex and base errors).  CETUS Patient 7 (0.9 mm assumed): located against
+the clicked points, and the volumes without points against the clicked ones.
 
 Writes docs/locate.json and regenerates docs/benchmarks.md.
 """
@@ -39,10 +38,22 @@ from spheroseg.phantom import FORMATIONS, make_phantom, tilted_mitral_scene  # n
 CETUS = Path(__file__).resolve().parents[2] / "shared" / "data" / "cetus"
 
 
-def phantom_cases(n: int, seed: int = 29) -> list[dict]:
+def _timed(function, *args):
+    """The least time (s) of two calls after a first, and the result."""
+    function(*args)
+    times = []
+    for _ in range(2):
+        t0 = time.perf_counter()
+        result = function(*args)
+        times.append(time.perf_counter() - t0)
+    return min(times), result
+
+
+def scenes(n: int, seed: int, *, every: int = 1):
+    """Seeded random ventricles: ``(formation name, phase, make_phantom keywords)``,
+    the formations taken ``every`` one of the sweep in turn."""
     rng = np.random.default_rng(seed)
     names = list(FORMATIONS)
-    rows = []
     for k in range(n):
         tilt, length = rng.uniform(0, 25), rng.uniform(60, 100)
         radius = length * rng.uniform(0.26, 0.38)
@@ -50,14 +61,18 @@ def phantom_cases(n: int, seed: int = 29) -> list[dict]:
         wall = 9.0
         if phase == "ES":
             radius, wall = 0.7 * radius, 13.5
-        name = names[k % len(names)]
-        ph = make_phantom(seed=int(rng.integers(10_000)), spacing=2.0, tilt_deg=tilt, length=length, radius=radius,
-                          wall=wall, formation=FORMATIONS[name])
-        row = {"formation": name, "phase": phase, "tilt_deg": tilt, "truth_ml": ph.truth_volume_ml}
+        name = names[(every * k) % len(names)]
+        yield name, phase, dict(seed=int(rng.integers(10_000)), spacing=2.0, tilt_deg=tilt, length=length,
+                                radius=radius, wall=wall, formation=FORMATIONS[name])
+
+
+def phantom_cases(n: int, seed: int = 29) -> list[dict]:
+    rows = []
+    for name, phase, scene in scenes(n, seed):
+        ph = make_phantom(**scene)
+        row = {"formation": name, "phase": phase, "tilt_deg": scene["tilt_deg"], "truth_ml": ph.truth_volume_ml}
         try:
-            t0 = time.perf_counter()
-            found = locate(ph.volume)
-            row["locate_s"] = time.perf_counter() - t0
+            row["locate_s"], found = _timed(locate, ph.volume)
         except NoVentricleError as error:
             row.update(refused=str(error))
             rows.append(row)
@@ -90,27 +105,14 @@ def mitral_cases(tilts=(0.0, 15.0, 30.0)) -> list[dict]:
 
 
 def beam_cases(n: int, seed: int = 7) -> list[dict]:
-    rng = np.random.default_rng(seed)
-    names = list(FORMATIONS)
     rows = []
-    for k in range(n):
-        tilt, length = rng.uniform(0, 25), rng.uniform(60, 100)
-        radius, wall = length * rng.uniform(0.26, 0.38), 9.0
-        phase = "ES" if k % 2 else "ED"
-        if phase == "ES":
-            radius, wall = 0.7 * radius, 13.5
-        name = names[(3 * k) % len(names)]
-        ph = make_phantom(seed=int(rng.integers(10_000)), spacing=2.0, tilt_deg=tilt, length=length, radius=radius,
-                          wall=wall, formation=FORMATIONS[name], beam_space=True)
-        row = {"formation": name, "phase": phase, "tilt_deg": tilt, "shape": list(ph.beam_volume.array.shape)}
+    for name, phase, scene in scenes(n, seed, every=3):
+        ph = make_phantom(**scene, beam_space=True)
+        row = {"formation": name, "phase": phase, "tilt_deg": scene["tilt_deg"],
+               "shape": list(ph.beam_volume.array.shape)}
         try:
-            locate(ph.beam_volume)
-            times = []
-            for _ in range(2):
-                t0 = time.perf_counter()
-                found = locate(ph.beam_volume)
-                times.append(time.perf_counter() - t0)
-            row.update(locate_s=min(times), apex_mm=float(np.linalg.norm(found.apex - ph.apex)),
+            row["locate_s"], found = _timed(locate, ph.beam_volume)
+            row.update(apex_mm=float(np.linalg.norm(found.apex - ph.apex)),
                        base_mm=float(np.linalg.norm(found.base - ph.base)), confidence=found.confidence)
         except NoVentricleError as error:
             row["refused"] = str(error)

@@ -38,6 +38,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from .annulus import basal_profile
+
 __all__ = ["Located", "NoVentricleError", "locate", "check_points", "initialise", "annotate", "VOLUME_RANGE_ML"]
 
 #: cavity volumes (mL, the part before the waist) a left ventricle can have
@@ -493,7 +495,7 @@ def _mitral_plane(volume, base, axis, radius: float, contrast: float, *, reach: 
     mitral annulus.
 
     The mean grey level over a disc of ``radius`` mm across the axis (rings
-    at a quarter to the whole of it, weighted by their circumference) is the
+    at a quarter to the whole of it, weighted by the area each stands for) is the
     blood's level inside the ventricle and rises where the disc meets the
     annulus, the closed leaflets or the narrower orifice.  The plane is where
     that profile, smoothed over 1 mm, crosses half-way from the blood's level
@@ -504,8 +506,6 @@ def _mitral_plane(volume, base, axis, radius: float, contrast: float, *, reach: 
     under 0.15 of ``contrast`` (the grey-level difference of tissue and
     blood): no annulus is seen.
     """
-    from .annulus import basal_profile
-
     heights = np.arange(-reach, reach + 0.5, 1.0)
     radii = np.array([0.25, 0.5, 0.75, 1.0])
     profile = basal_profile(volume, base, axis, radius, heights=heights, radii=radii, n_angles=16)
