@@ -81,29 +81,6 @@ def test_the_left_ventricle_is_chosen_over_a_dark_blob_beside_it():
     assert apex_error < 6.0 and base_error < 6.0, (apex_error, base_error)
 
 
-def test_a_cavity_run_out_through_a_faint_wall_is_followed_section_by_section():
-    from spheroseg.locate import SECTION_STOP, _cavity_by_sections
-
-    # sections across the depth axis (k): a cavity widening from its apex at
-    # k = 4 to 8 voxels, ringed by a 2-voxel wall, closed by tissue at k = 34;
-    # everything outside the wall is dark, and the wall is missing over 8
-    # sections on one side, so the cavity and the outside are one dark pool
-    k, j, i = np.meshgrid(np.arange(40), np.arange(32), np.arange(32), indexing="ij")
-    radius = 8 * np.sqrt(np.clip((k - 4) / 16, 0, 1))
-    rho = np.hypot(j - 15.5, i - 15.5)
-    cavity = (rho < radius) & (k >= 4) & (k < 34)
-    wall = (rho >= radius) & (rho < radius + 2) & (k >= 2)
-    gap = wall & (k >= 18) & (k < 26) & (i > 15.5) & (np.abs(j - 15.5) < 4)
-    dark = (~wall | gap) & (k < 34)
-    assert ndimage.label(dark)[1] == 1
-    found = _cavity_by_sections(dark, np.ones_like(dark))
-    assert not (found & ~cavity & ~gap).any()
-    areas = cavity.sum((1, 2))
-    wide = areas >= SECTION_STOP * areas.max()
-    assert (found & cavity).sum((1, 2))[wide].min() >= 0.9 * areas[wide].min()
-    assert (found & cavity)[wide].sum() >= 0.97 * cavity[wide].sum()
-
-
 def test_tissue_without_a_cavity_is_refused():
     rng = np.random.default_rng(0)
     texture = ndimage.gaussian_filter(rng.standard_normal((70, 60, 60)), 2.0)
@@ -240,7 +217,7 @@ def test_cetus_patient7_is_refused_or_its_location_is_not_trusted_when_it_is_off
         assert found.confidence < 0.5
 
 
-@pytest.mark.xfail(strict=True, reason="not met yet: located 7-16 mm off the clicks (docs/benchmarks.md)")
+@pytest.mark.xfail(strict=True, reason="not met yet: both phases are refused (docs/benchmarks.md)")
 @pytest.mark.parametrize("phase", ["ED", "ES"])
 def test_cetus_patient7_is_located_within_10_mm_and_10_percent_of_the_clicks(patient7, phase):
     volume, apex, base = patient7[phase]

@@ -11,9 +11,7 @@ averages the speckle out):
    one level of its brighter quartile (time-gain compensation leaves the
    grey level drifting with depth);
 2. its connected pools (after an opening of one coarse voxel, which cuts thin
-   bridges; when none is a ventricle, the cavity followed section by section
-   from where the tissue rings it, :func:`_cavity_by_sections`) are the
-   candidates; the left ventricle is the one of plausible
+   bridges) are the candidates; the left ventricle is the one of plausible
    size (the part before its waist, :data:`VOLUME_RANGE_ML`) scored by its
    size and its closeness to the sector's axis (the apical view centres the
    left ventricle; the right ventricle lies to one side and is smaller);
@@ -65,11 +63,6 @@ DEPTH_SHELL_MM = 6.0
 #: of the cavity's coarse radius near its base: 0.5 left the disc inside
 #: the orifice, 1.0 reached the wall (0.9: base 0.6-2.0 mm off on the sweep)
 BASE_DISC = 0.9
-
-#: where the cavity followed section by section ends: a section under this
-#: fraction of the widest (10 mm from an apex the section is a quarter to a
-#: third of the widest; the axial profile finds the apex beyond)
-SECTION_STOP = 0.25
 
 #: an apical view looks down the long axis: at most this angle (degrees)
 #: between the long axis and the sector's centre line (25 is a tilted view)
@@ -298,14 +291,29 @@ def locate(volume, *, spacing: float | None = None) -> Located:
                                f"is (dark and bright classes {separation:.1f} deviations apart, fewer than "
                                f"{SEPARATION_MIN})")
     dark = inside & (smooth < threshold)
-    search = dict(smooth=smooth, inside=inside, spread=spread, to_world=to_world, probe=probe,
-                  probe_known=probe_known, depth=depth, voxel_ml=voxel_ml, slab=float(step.max()))
+    best, largest = None, 0.0
     # a wider opening cuts wider bridges (a ventricle joined to the atrium
     # through an open valve, or to clutter out of the sector)
-    best, largest = _search((ndimage.binary_opening(dark, iterations=k) for k in (1, 2, 3)), **search)
-    if best is None or best["score"] <= 0:
-        # a cavity joined to the dark tissue around it through a faint wall
-        best, _ = _search([_cavity_by_sections(dark, inside)], **search)
+    for opening in (1, 2, 3):
+        labels, n = ndimage.label(ndimage.binary_opening(dark, iterations=opening))
+        if n == 0:
+            continue
+        sizes = ndimage.sum_labels(np.ones_like(labels), labels, np.arange(1, n + 1)) * voxel_ml
+        largest = max(largest, float(sizes.max()))
+        for label in np.flatnonzero(sizes >= VOLUME_RANGE_ML[0]) + 1:
+            mask = labels == label
+            candidate = _pool(mask, to_world, probe, probe_known, depth, voxel_ml, float(step.max()))
+            if candidate is None:
+                continue
+            # a cavity is walled by tissue brighter than its blood
+            shell = ndimage.binary_dilation(mask, iterations=2) & ~mask & inside
+            wall = (smooth[shell].mean() - smooth[mask].mean()) / spread if shell.any() else 0.0
+            candidate["scores"]["wall"] = float(np.clip((wall - WALL_MIN) / 1.0, 0, 1))
+            candidate["score"] *= candidate["scores"]["wall"]
+            if best is None or candidate["score"] > best["score"]:
+                best = candidate
+        if best is not None and best["score"] > 0:
+            break
     if best is None or best["score"] <= 0:
         raise NoVentricleError(f"no left ventricle found: no dark region of {VOLUME_RANGE_ML[0]:.0f}-"
                                f"{VOLUME_RANGE_ML[1]:.0f} mL, walled by brighter tissue, along the sector (the "
@@ -321,80 +329,6 @@ def locate(volume, *, spacing: float | None = None) -> Located:
     normal = (apex - base) / np.linalg.norm(apex - base)
     return Located(apex=apex, base=base, normal=normal, confidence=confidence, reason=reason,
                    volume_ml=best["volume_ml"], scores=scores)
-
-
-def _search(masks, *, smooth, inside, spread, to_world, probe, probe_known, depth, voxel_ml, slab):
-    """The dark pool most like a left ventricle (or None), and the largest pool's volume (mL)."""
-    best, largest = None, 0.0
-    for dark in masks:
-        labels, n = ndimage.label(dark)
-        if n == 0:
-            continue
-        sizes = ndimage.sum_labels(np.ones_like(labels), labels, np.arange(1, n + 1)) * voxel_ml
-        largest = max(largest, float(sizes.max()))
-        for label in np.flatnonzero(sizes >= VOLUME_RANGE_ML[0]) + 1:
-            mask = labels == label
-            candidate = _pool(mask, to_world, probe, probe_known, depth, voxel_ml, slab)
-            if candidate is None:
-                continue
-            # a cavity is walled by tissue brighter than its blood
-            shell = ndimage.binary_dilation(mask, iterations=2) & ~mask & inside
-            wall = (smooth[shell].mean() - smooth[mask].mean()) / spread if shell.any() else 0.0
-            candidate["scores"]["wall"] = float(np.clip((wall - WALL_MIN) / 1.0, 0, 1))
-            candidate["score"] *= candidate["scores"]["wall"]
-            if best is None or candidate["score"] > best["score"]:
-                best = candidate
-        if best is not None and best["score"] > 0:
-            break
-    return best, largest
-
-
-def _cavity_by_sections(dark, inside) -> np.ndarray:
-    """The cavity followed section by section across the depth axis, from
-    where the tissue encloses it.
-
-    In an apical view the sections of the cavity across the depth axis are
-    dark discs ringed by the wall.  Where the wall is faint the dark pool
-    runs out into the dark tissue around it; where it is whole, the section
-    is a hole in the tissue.  The largest run of such holes (the tissue
-    closed by one voxel, so that small gaps in the ring still enclose) is the
-    core; from its widest section, each next section towards the probe and
-    away is the dark region touching the previous one, or, when that region
-    is more than 1.3 times as large (it has run out through the wall), its
-    part inside the previous section.  The cavity ends where a section is
-    smaller than :data:`SECTION_STOP` of the widest: short of the apex, which
-    the axial profile then finds (:func:`_endocardial_apex`).
-    """
-    tissue = inside & ~dark
-    enclosed = np.zeros_like(dark)
-    for k in range(dark.shape[0]):
-        enclosed[k] = ndimage.binary_fill_holes(ndimage.binary_closing(tissue[k])) & dark[k]
-    core = _largest(ndimage.binary_opening(enclosed))
-    cavity = np.zeros_like(dark)
-    if not core.any():
-        return cavity
-    areas = core.sum((1, 2))
-    widest = int(np.argmax(areas))
-    cavity[widest] = core[widest]
-    for direction in (-1, 1):
-        previous, k = core[widest], widest + direction
-        while 0 <= k < dark.shape[0]:
-            labels, _ = ndimage.label(dark[k])
-            section = np.isin(labels, labels[ndimage.binary_dilation(previous) & (labels > 0)])
-            if section.sum() > 1.3 * previous.sum() + 4:
-                section = _largest(ndimage.binary_opening(dark[k] & previous))
-            if section.sum() < SECTION_STOP * areas.max():
-                break
-            cavity[k], previous, k = section, section, k + direction
-    return cavity
-
-
-def _largest(mask: np.ndarray) -> np.ndarray:
-    """The largest connected part of ``mask``."""
-    labels, n = ndimage.label(mask)
-    if n <= 1:
-        return mask
-    return labels == np.argmax(ndimage.sum_labels(np.ones_like(labels), labels, np.arange(1, n + 1))) + 1
 
 
 def _pool(mask: np.ndarray, to_world, probe, probe_known: bool, depth, voxel_ml, slab) -> dict | None:
