@@ -1,16 +1,19 @@
 """Finding the ventricle without clicks (issue 29): located apex and base
 against the truth, segmentation from them, the time it takes, CETUS.
 
-    python benchmarks/locate.py [--cases 16]
+    python benchmarks/locate.py [--cases 16] [--beam-cases 8]
 
 Cases: seeded random phantoms (2 mm voxels), each with its own tilt
 (0-25 degrees), long axis (60-100 mm), radius (0.26-0.38 of it), phase (ED,
 or ES: radius 0.7 as large, wall 13.5 mm instead of 9) and image formation
-(the 16 of the formation sweep in turn).  For each: ``locate`` (time, apex
-and base errors, confidence), then ``segment(volume)`` with no points (Dice
-against the true mask, volume error, whether it was flagged poor).  CETUS
-Patient 7 (0.9 mm assumed): located against the clicked points, and the
-volumes without points against the clicked ones.
+(the 16 of the formation sweep in turn).  For each: ``locate`` (least time
+of two after a first call, apex and base errors, confidence), then
+``segment(volume)`` with no points (Dice against the true mask, volume
+error, whether it was flagged poor).  The tilted mitral scenes (the plane at
+0, 15 and 30 degrees to the long axis): the same.  Beam-space cases (seeded
+likewise, every third formation): ``locate`` on the beam-space volume (time,
+apex and base errors).  CETUS Patient 7 (0.9 mm assumed): located against
+the clicked points, and the volumes without points against the clicked ones.
 
 Writes docs/locate.json and regenerates docs/benchmarks.md.
 """
@@ -30,15 +33,27 @@ from report import write_markdown  # noqa: E402
 
 from spheroseg import NoVentricleError, Volume, locate, segment  # noqa: E402
 from spheroseg.metrics import dice  # noqa: E402
-from spheroseg.phantom import FORMATIONS, make_phantom  # noqa: E402
+from spheroseg.phantom import FORMATIONS, make_phantom, tilted_mitral_scene  # noqa: E402
 
 CETUS = Path(__file__).resolve().parents[2] / "shared" / "data" / "cetus"
 
 
-def phantom_cases(n: int, seed: int = 29) -> list[dict]:
+def _timed(function, *args):
+    """The least time (s) of two calls after a first, and the result."""
+    function(*args)
+    times = []
+    for _ in range(2):
+        t0 = time.perf_counter()
+        result = function(*args)
+        times.append(time.perf_counter() - t0)
+    return min(times), result
+
+
+def scenes(n: int, seed: int, *, every: int = 1):
+    """Seeded random ventricles: ``(formation name, phase, make_phantom keywords)``,
+    the formations taken ``every`` one of the sweep in turn."""
     rng = np.random.default_rng(seed)
     names = list(FORMATIONS)
-    rows = []
     for k in range(n):
         tilt, length = rng.uniform(0, 25), rng.uniform(60, 100)
         radius = length * rng.uniform(0.26, 0.38)
@@ -46,14 +61,18 @@ def phantom_cases(n: int, seed: int = 29) -> list[dict]:
         wall = 9.0
         if phase == "ES":
             radius, wall = 0.7 * radius, 13.5
-        name = names[k % len(names)]
-        ph = make_phantom(seed=int(rng.integers(10_000)), spacing=2.0, tilt_deg=tilt, length=length, radius=radius,
-                          wall=wall, formation=FORMATIONS[name])
-        row = {"formation": name, "phase": phase, "tilt_deg": tilt, "truth_ml": ph.truth_volume_ml}
+        name = names[(every * k) % len(names)]
+        yield name, phase, dict(seed=int(rng.integers(10_000)), spacing=2.0, tilt_deg=tilt, length=length,
+                                radius=radius, wall=wall, formation=FORMATIONS[name])
+
+
+def phantom_cases(n: int, seed: int = 29) -> list[dict]:
+    rows = []
+    for name, phase, scene in scenes(n, seed):
+        ph = make_phantom(**scene)
+        row = {"formation": name, "phase": phase, "tilt_deg": scene["tilt_deg"], "truth_ml": ph.truth_volume_ml}
         try:
-            t0 = time.perf_counter()
-            found = locate(ph.volume)
-            row["locate_s"] = time.perf_counter() - t0
+            row["locate_s"], found = _timed(locate, ph.volume)
         except NoVentricleError as error:
             row.update(refused=str(error))
             rows.append(row)
@@ -65,6 +84,38 @@ def phantom_cases(n: int, seed: int = 29) -> list[dict]:
         result = segment(ph.volume)
         row.update(dice=float(dice(result.mask(ph.volume), ph.truth_mask)),
                    volume_error_pct=100 * (result.volume_ml / ph.truth_volume_ml - 1), poor=result.quality["poor"])
+        rows.append(row)
+        print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+    return rows
+
+
+def mitral_cases(tilts=(0.0, 15.0, 30.0)) -> list[dict]:
+    rows = []
+    for tilt in tilts:
+        scene = tilted_mitral_scene(tilt)
+        found = locate(scene.volume)
+        result = segment(scene.volume)
+        row = {"tilt_deg": tilt, "apex_mm": float(np.linalg.norm(found.apex - scene.apex)),
+               "base_mm": float(np.linalg.norm(found.base - scene.base)), "confidence": found.confidence,
+               "dice": float(dice(result.mask(scene.volume), scene.truth_mask)),
+               "volume_error_pct": 100 * (result.volume_ml / scene.truth_ml - 1), "poor": result.quality["poor"]}
+        rows.append(row)
+        print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+    return rows
+
+
+def beam_cases(n: int, seed: int = 7) -> list[dict]:
+    rows = []
+    for name, phase, scene in scenes(n, seed, every=3):
+        ph = make_phantom(**scene, beam_space=True)
+        row = {"formation": name, "phase": phase, "tilt_deg": scene["tilt_deg"],
+               "shape": list(ph.beam_volume.array.shape)}
+        try:
+            row["locate_s"], found = _timed(locate, ph.beam_volume)
+            row.update(apex_mm=float(np.linalg.norm(found.apex - ph.apex)),
+                       base_mm=float(np.linalg.norm(found.base - ph.base)), confidence=found.confidence)
+        except NoVentricleError as error:
+            row["refused"] = str(error)
         rows.append(row)
         print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
     return rows
@@ -111,10 +162,12 @@ def cetus() -> dict | None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=16)
+    ap.add_argument("--beam-cases", type=int, default=8)
     args = ap.parse_args()
     segment(make_phantom(seed=0, spacing=3.0).volume)  # compile the kernels outside the timings
-    data = {"command": f"python benchmarks/locate.py --cases {args.cases}", "machine": machine(),
-            "cases": phantom_cases(args.cases), "cetus_patient7": cetus()}
+    data = {"command": f"python benchmarks/locate.py --cases {args.cases} --beam-cases {args.beam_cases}",
+            "machine": machine(), "cases": phantom_cases(args.cases), "mitral": mitral_cases(),
+            "beam": beam_cases(args.beam_cases), "cetus_patient7": cetus()}
     write_json("locate.json", data)
     print("wrote", write_markdown())
 

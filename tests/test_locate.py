@@ -38,6 +38,26 @@ def test_random_phantoms_are_located_within_the_targets(seed, formation, tilt, l
     assert found.confidence >= 0.5 and found.reason == ""
 
 
+@pytest.mark.parametrize("seed, formation, tilt, radius, wall", [
+    (41, "default", 3.0, 26.0, 9.0), (42, "psf_wide", 12.0, 30.0, 9.0), (43, "tgc_over", 20.0, 18.0, 13.5)])
+def test_the_base_is_on_the_mitral_plane_not_in_the_orifice_beyond(seed, formation, tilt, radius, wall):
+    # the coarse pool's waist lies 1-4 mm beyond the plane (into the atrium);
+    # the grey level across the axis finds the plane itself
+    phantom = make_phantom(seed=seed, spacing=2.0, tilt_deg=tilt, length=85.0, radius=radius, wall=wall,
+                           formation=FORMATIONS[formation])
+    found = locate(phantom.volume)
+    axis = (phantom.apex - phantom.base) / np.linalg.norm(phantom.apex - phantom.base)
+    assert abs((found.base - phantom.base) @ axis) < 2.0
+
+
+def test_the_base_is_found_on_a_mitral_plane_tilted_from_the_long_axis():
+    from spheroseg.phantom import tilted_mitral_scene
+
+    scene = tilted_mitral_scene(15.0)
+    found = locate(scene.volume)
+    assert np.linalg.norm(found.base - scene.base) < 3.0
+
+
 def test_a_beam_space_volume_is_located_in_its_own_geometry():
     # a tilted scene imaged in beam space (the formation's own speckle and PSF)
     phantom = make_phantom(seed=5, spacing=2.0, tilt_deg=20.0, formation=FORMATIONS["dr_40"], beam_space=True)
