@@ -311,3 +311,14 @@ def test_end_diastole_to_end_systole_directly_gives_the_ef(six_frames):
     seeds 0 and 2: -3.0, -2.8)."""
     frames = six_frames.frames
     assert abs(tracked_ef_error([frames[0], frames[3]])) < 3.0
+
+
+def test_a_frame_whose_descent_did_not_settle_is_flagged(six_frames):
+    """Every level capped at 2 iterations: no candidate of the end-systolic
+    frame (stepped, or segmented again) settles, and the frame kept says
+    so, whichever it is."""
+    frames = six_frames.frames
+    tr = track([frames[0].volume, frames[3].volume], frames[0].apex, frames[0].base, max_iterations=2)
+    es = tr.frames[1]
+    assert not es.converged and es.quality["poor"]
+    assert "still moving" in es.quality["warnings"][0]
