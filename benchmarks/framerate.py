@@ -3,13 +3,17 @@ end-diastole to end-systole directly.
 
     python benchmarks/framerate.py               # about 15 min on 2 shared cores
     python benchmarks/framerate.py --seeds 0 1
+    python benchmarks/framerate.py --speed       # the tracking speed only (a minute)
 
 Each seed's cycle (default formation, the annulus descending 10 mm at
 end-systole) is made at 20 frames and tracked with every frame, every 2nd
 (10 a cycle) and every 5th (4 a cycle), and as the pair ED, ES; a 6-frame
 cycle of the same heart is made and tracked too.  ``spheroseg.track`` with
-default options from the first frame's apex and base.  Writes
-docs/framerate.json and regenerates docs/benchmarks.md.
+default options from the first frame's apex and base.  ``--speed``: the
+throughput of tracking the legacy 10-frame cycle (as benchmarks/speed.py
+measures it) with the re-segmentation of every frame, only of the frames
+whose wall was left behind (the default), and of none, interleaved.
+Writes docs/framerate.json and regenerates docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from report import write_markdown  # noqa: E402
 
 from spheroseg.phantom import FORMATIONS, make_sequence  # noqa: E402
 from spheroseg.segment import track  # noqa: E402
+from spheroseg.tracker import Tracker  # noqa: E402
 
 DESCENT_MM = 10.0
 
@@ -62,16 +67,66 @@ def run(seeds) -> list:
     return rows
 
 
+def speed(repeats: int = 3) -> dict:
+    """Volumes per second stepping the legacy 10-frame cycle at 5 iterations
+    a frame, and whole ``track`` runs, for each re-segmentation policy."""
+    import os
+
+    seq = make_sequence(seed=0, n_frames=10)
+    first = seq.frames[0]
+    keep, left_behind = Tracker._keep_better_start, Tracker._left_behind
+    policies = {"every frame": (keep, lambda self: True), "frames left behind": (keep, left_behind),
+                "none": (lambda self, start: None, left_behind)}
+    times = {name: [] for name in policies}
+    load = os.getloadavg()[0]
+    try:
+        for _ in range(repeats):
+            for name, (keep_better, gate) in policies.items():
+                Tracker._keep_better_start, Tracker._left_behind = keep_better, gate
+                tracker = Tracker(seq.volumes[0], first.apex, first.base)
+                tracker.run()
+                t0 = time.perf_counter()
+                for volume in seq.volumes[1:]:
+                    tracker.step(volume, max_iterations=5)
+                steps = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                result = track(seq.volumes, first.apex, first.base)
+                times[name].append((steps, time.perf_counter() - t0, result.ef))
+    finally:
+        Tracker._keep_better_start, Tracker._left_behind = keep, left_behind
+    out = {name: {"volumes_per_second_5": (len(seq.volumes) - 1) / float(np.median([t[0] for t in rows])),
+                  "track_volumes_per_second": len(seq.volumes) / float(np.median([t[1] for t in rows])),
+                  "ef": rows[0][2]} for name, rows in times.items()}
+    return {"policies": out, "truth_ef": seq.truth_ef, "load_start": load, "load_end": os.getloadavg()[0],
+            "date": time.strftime("%Y-%m-%d %H:%M")}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--speed", action="store_true", help="measure the tracking speed only")
     args = ap.parse_args(argv)
+    if args.speed:
+        import json
+
+        path = Path(__file__).resolve().parents[1] / "docs" / "framerate.json"
+        data = json.loads(path.read_text()) if path.is_file() else {}
+        data["speed"] = speed()
+        print(data["speed"], flush=True)
+        print("wrote", write_json("framerate.json", data))
+        print("wrote", write_markdown())
+        return
     t0 = time.perf_counter()
     rows = run(args.seeds)
     command = "python benchmarks/framerate.py" + ("" if args.seeds == [0] else
                                                   " --seeds " + " ".join(map(str, args.seeds)))
     data = {"command": command, "machine": machine(), "base_descent_mm": DESCENT_MM, "rows": rows,
             "wall_seconds": time.perf_counter() - t0}
+    previous = Path(__file__).resolve().parents[1] / "docs" / "framerate.json"
+    if previous.is_file():  # the speed of --speed, measured on its own
+        import json
+
+        data.update({k: v for k, v in json.loads(previous.read_text()).items() if k == "speed"})
     print("wrote", write_json("framerate.json", data))
     print("wrote", write_markdown())
 
