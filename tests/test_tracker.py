@@ -15,7 +15,7 @@ from spheroseg.dataterms import FixedInterface, GlobalMeans, IntensityInterface,
 from spheroseg.options import SegmentOptions
 from spheroseg.phantom import make_phantom, make_sequence
 from spheroseg.surface import Surface
-from spheroseg.tracker import BASE_RING_CEILING_MM, BASE_RING_MM, schedule
+from spheroseg.tracker import BASE_RING_MM, schedule
 
 DATA = Path(__file__).parent / "data"
 SRC = Path(spheroseg.__file__).parent
@@ -257,33 +257,6 @@ def test_a_low_contrast_base_stays_a_ring():
     r = segment(low_contrast_base(ph), ph.apex, ph.base, init=pinched)
     assert r.surface.base_radii().min() > 0.95 * BASE_RING_MM[0]
     assert abs(r.volume_ml / ph.truth_volume_ml - 1) < 0.08
-
-
-def test_a_low_contrast_base_stays_no_wider_than_an_annulus():
-    """Started from a surface flaring towards the base (ring 44 mm) on an
-    image with no contrast over the basal 20 mm, the base stayed 41-42 mm
-    wide (volume +28 %, not flagged); held at the ceiling it ends there
-    (30 mm, +6 %), and at five quarters of a clicked annulus's radius."""
-    ph = make_phantom(seed=0, spacing=1.5)
-    start = Surface.from_apex_base(ph.apex, ph.base)
-    lo, hi = start.grid.v2_range
-    apex_end = lo if start.base_v2 == hi else hi
-
-    def flaring(v2):
-        return start.evaluate(np.zeros_like(v2), v2) * (1 + 0.6 * ((v2 - apex_end) / (start.base_v2 - apex_end)) ** 6)
-
-    flared = Surface.from_function(start.system, start.pose, start.grid, flaring)
-    assert flared.base_radii().min() > 1.4 * BASE_RING_CEILING_MM
-    image = low_contrast_base(ph)
-    r = segment(image, ph.apex, ph.base, init=flared)
-    assert r.surface.base_radii().max() < 1.02 * BASE_RING_CEILING_MM
-    assert abs(r.volume_ml / ph.truth_volume_ml - 1) < 0.08
-    # a clicked annulus of radius 18 mm in the base plane: at most 22.5 mm
-    angles = np.linspace(0, 2 * np.pi, 6, endpoint=False)
-    frame = start.pose.rotation
-    annulus = ph.base + 18.0 * (np.outer(np.cos(angles), frame[:, 1]) + np.outer(np.sin(angles), frame[:, 2]))
-    r = segment(image, ph.apex, annulus=annulus, init=flared)
-    assert r.surface.base_radii().max() < 1.02 * 1.25 * 18.0
 
 
 @pytest.fixture(scope="module")

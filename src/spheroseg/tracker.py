@@ -32,15 +32,10 @@ from .quality import axis_distances, landmark_residuals, quality_report, wall_bu
 from .results import STATUS_MESSAGES, Intermediate, SegmentationResult
 from .surface import Surface
 
-__all__ = ["Tracker", "Level", "schedule", "BASE_RING_MM", "BASE_RING_CEILING_MM"]
+__all__ = ["Tracker", "Level", "schedule", "BASE_RING_MM"]
 
 #: plausible radii of the mitral annulus in adults, mm (the base ring's range)
 BASE_RING_MM = (10.0, 20.0)
-#: the base ring's greatest radius without a clicked annulus, mm: beyond
-#: BASE_RING_MM (a dilated annulus reaches 25 mm; the phantoms' cavities
-#: meet the mitral plane at 22-30 mm, and a 20 mm bound took 1-3.5 % of
-#: their volume)
-BASE_RING_CEILING_MM = 30.0
 #: a frame segmented again replaces the stepped one when its data energy is
 #: lower by more than this fraction of the stepped one's: below it the
 #: candidates differ by the descent's own noise (0.0001-0.3 % on phantom
@@ -431,11 +426,10 @@ class Tracker:
     def run(self, iter_callback=None) -> SegmentationResult:
         """Iterate until the current frame stops; ``iter_callback(intermediate)``
         is called after every iteration and may raise ``StopIteration``.
-        A frame whose base ring came out narrower or wider than an annulus
-        runs its finest level again with the ring held in its range
-        (:meth:`_hold_base_ring`)."""
+        A frame whose base ring came out narrower than an annulus runs its
+        finest level again with the ring held open (:meth:`_widen_base_ring`)."""
         self._iterate_until_stopped(iter_callback)
-        if self.status in (0, 1) and self._hold_base_ring():
+        if self.status in (0, 1) and self._widen_base_ring():
             self._iterate_until_stopped(iter_callback)
         return self.result()
 
@@ -445,41 +439,27 @@ class Tracker:
         mean distance from their centre."""
         if self.annulus is None:
             return BASE_RING_MM[0]
-        return 0.75 * self._annulus_radius()
+        return 0.75 * float(np.mean(np.linalg.norm(self.annulus - self.annulus.mean(axis=0), axis=1)))
 
-    def base_ring_ceiling(self) -> float:
-        """The greatest radius (mm) of the base ring:
-        :data:`BASE_RING_CEILING_MM`, or with a clicked annulus five quarters
-        of its points' mean distance from their centre."""
-        if self.annulus is None:
-            return BASE_RING_CEILING_MM
-        return 1.25 * self._annulus_radius()
-
-    def _annulus_radius(self) -> float:
-        return float(np.mean(np.linalg.norm(self.annulus - self.annulus.mean(axis=0), axis=1)))
-
-    def _hold_base_ring(self, n: int = 32) -> bool:
-        """Hold the base ring within :meth:`base_ring_floor` and
-        :meth:`base_ring_ceiling`: landmarks on the base plane at the bound,
-        at the angles where the ring passes it, then the finest level runs
-        again.
+    def _widen_base_ring(self, n: int = 32) -> bool:
+        """Hold the base ring open where it is narrower than
+        :meth:`base_ring_floor`: landmarks on the base plane at that radius,
+        at the angles where it is narrower, then the finest level runs again.
 
         The mitral annulus is a ring (10-20 mm in radius in adults); in low
         contrast at the base nothing stops the smoothing prior and the bright
         mitral apparatus from closing the cavity into a cusp about the base
-        point, nor the cavity from spreading into a dim atrium or wall.
-        Returns whether it held it (the frame then continues)."""
+        point.  Returns whether it held it (the frame then continues)."""
         surface = self.surface
-        floor, ceiling = self.base_ring_floor(), self.base_ring_ceiling()
-        radii = surface.base_radii(n)
-        held = (radii < floor) | (radii > ceiling)
-        if not held.any():
+        floor = self.base_ring_floor()
+        narrow = surface.base_radii(n) < floor
+        if not narrow.any():
             return False
-        v1 = np.linspace(0, 2 * np.pi, n, endpoint=False)[held]
+        v1 = np.linspace(0, 2 * np.pi, n, endpoint=False)[narrow]
         direction = surface.system.to_cartesian(np.ones_like(v1), v1, np.full_like(v1, surface.base_v2))
         direction[:, 0] = 0.0  # in the base plane, away from the axis
         direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-        ring = surface.pose.to_world(np.clip(radii[held], floor, ceiling)[:, None] * direction)
+        ring = surface.pose.to_world(floor * direction)
         points, weights = self._held_points(surface.pose)
         weight = np.full(len(ring), self.options.landmark_weight)
         points = ring if points is None else np.concatenate([points, ring])
