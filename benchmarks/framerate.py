@@ -11,8 +11,8 @@ end-systole) is made at 20 frames and tracked with every frame, every 2nd
 cycle of the same heart is made and tracked too.  ``spheroseg.track`` with
 default options from the first frame's apex and base.  ``--speed``: the
 throughput of tracking the legacy 10-frame cycle (as benchmarks/speed.py
-measures it) with the re-segmentation of every frame, only of the frames
-whose wall was left behind (the default), and of none, interleaved.
+measures it) with every frame segmented again (the default) and with none,
+interleaved.
 Writes docs/framerate.json and regenerates docs/benchmarks.md.
 """
 
@@ -74,15 +74,14 @@ def speed(repeats: int = 3) -> dict:
 
     seq = make_sequence(seed=0, n_frames=10)
     first = seq.frames[0]
-    keep, left_behind = Tracker._keep_better_start, Tracker._left_behind
-    policies = {"every frame": (keep, lambda self: True), "frames left behind": (keep, left_behind),
-                "none": (lambda self, start: None, left_behind)}
+    keep = Tracker._keep_better_start
+    policies = {"every frame": keep, "none": lambda self, start: None}
     times = {name: [] for name in policies}
     load = os.getloadavg()[0]
     try:
         for _ in range(repeats):
-            for name, (keep_better, gate) in policies.items():
-                Tracker._keep_better_start, Tracker._left_behind = keep_better, gate
+            for name, keep_better in policies.items():
+                Tracker._keep_better_start = keep_better
                 tracker = Tracker(seq.volumes[0], first.apex, first.base)
                 tracker.run()
                 t0 = time.perf_counter()
@@ -93,7 +92,7 @@ def speed(repeats: int = 3) -> dict:
                 result = track(seq.volumes, first.apex, first.base)
                 times[name].append((steps, time.perf_counter() - t0, result.ef))
     finally:
-        Tracker._keep_better_start, Tracker._left_behind = keep, left_behind
+        Tracker._keep_better_start = keep
     out = {name: {"volumes_per_second_5": (len(seq.volumes) - 1) / float(np.median([t[0] for t in rows])),
                   "track_volumes_per_second": len(seq.volumes) / float(np.median([t[1] for t in rows])),
                   "ef": rows[0][2]} for name, rows in times.items()}

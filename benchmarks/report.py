@@ -758,11 +758,9 @@ def _framerate(data) -> list[str]:
            "Cycles of the default formation whose annulus descends "
            f"{data['base_descent_mm']:g} mm at end-systole, made at 20 frames a cycle and tracked with every "
            "frame, every 2nd and every 5th, and as the pair end-diastole, end-systole; a cycle made at 6 frames. "
-           "`spheroseg.track` with default options: each frame is stepped from the previous surface; when the "
-           "stepped surface holds the frame's blood less well than 0.87 of the first frame's surface held its "
-           "own (`spheroseg.tracker.blood_fit`, `RESEGMENT_FIT`: the wall moved further than the finest levels "
-           "followed) it is also segmented again through the coarse data term (from the frame's start surface, "
-           "and from the initial shape), the stepped one kept unless another's data energy is lower by 1 %. "
+           "`spheroseg.track` with default options: each frame is stepped from the previous surface and also "
+           "segmented again through the coarse data term (from the frame's start surface, and from the initial "
+           "shape), the stepped one kept unless another's data energy is lower by 1 %. "
            "Poor: frames whose quality report warns; least base radius over the frames.", "",
            "| seed | frames | true EF % | tracked EF % | EF error points | EDV error % | ESV error % | poor frames | "
            "least base radius mm | s per frame |", "| --- |" + " --- |" * 9]
@@ -777,18 +775,16 @@ def _framerate(data) -> list[str]:
             "stays near the end-diastolic wall (ESV +48 %, EF about 19 points low); with a fresh start kept by "
             "energy but the annulus searched +-8 mm (it descends 10 mm), -4.0 points. The legacy image's 6-frame "
             "cycles (seeds 0-2, 1.5 mm) from end-diastole to end-systole: -16.7, -24.8, -11.7 points before, "
-            "-3.0, -2.3, -2.8 now; their 6-frame tracking unchanged (-2.0, -1.6, -1.7). On those cycles the "
-            "stepped frames of 4 and 6 frames a cycle, which no candidate replaced, hold 0.92-1.00 of the first "
-            "frame's fit, the end-systolic frames from end-diastole directly, which a candidate replaced, "
-            "0.73-0.81. Seconds per frame include the frames segmented again, "
-            "on a shared machine."]
+            "-3.0, -2.3, -2.8 now; their 6-frame tracking unchanged (-2.0, -1.6, -1.7). Seconds per frame "
+            "include the two extra segmentations of every frame, on a shared machine."]
     sp = data.get("speed")
     if sp:
         out += ["", "Tracking speed (`python benchmarks/framerate.py --speed`, " + sp["date"] + ", load average "
                 f"{sp['load_start']:.1f} at the start and {sp['load_end']:.1f} at the end: on a busy machine the "
-                "ratios hold, not the rates): the legacy 10-frame cycle of benchmarks/speed.py's tracking line, "
-                "stepped at 5 iterations a frame and tracked whole (`spheroseg.track`), the policies interleaved, "
-                "medians of 3.", "", "| frames segmented again | volumes per second at 5 iterations a frame | "
+                "ratios hold, not the rates): the legacy 10-frame cycle of benchmarks/speed.py's tracking line "
+                "(406 volumes per second at 5 iterations a frame, measured before frames were segmented again), "
+                "stepped at 5 iterations a frame and tracked whole (`spheroseg.track`), with every frame segmented "
+                "again (now) and with none, interleaved, medians of 3.", "", "| frames segmented again | volumes per second at 5 iterations a frame | "
                 "whole tracking, volumes per second | EF % |", "| --- | --- | --- | --- |"]
         for name, row in sp["policies"].items():
             out.append(f"| {name} | {row['volumes_per_second_5']:.1f} | {row['track_volumes_per_second']:.1f} | "

@@ -41,12 +41,6 @@ BASE_RING_MM = (10.0, 20.0)
 #: candidates differ by the descent's own noise (0.0001-0.3 % on phantom
 #: cycles of 4-20 frames), a stepped wall left behind by 3 % and more
 RESEGMENT_MARGIN = 0.01
-#: a stepped frame is segmented again only when its cavity holds the frame's
-#: blood less well than this fraction of the first frame's
-#: (:func:`blood_fit`): 0.92-1.00 on phantom cycles of 4 and 6 frames,
-#: whose stepped frames no candidate replaced, 0.73-0.81 from end-diastole
-#: to end-systole directly, where one did
-RESEGMENT_FIT = 0.87
 
 
 @dataclass(frozen=True)
@@ -84,20 +78,6 @@ def schedule(options: SegmentOptions, *, coarse_to_fine: bool | None = None) -> 
     if term is IntensityInterface:  # found by the local means first, then moved to the interface
         levels.insert(-1, Level(levels[-1].patches, LocalMeans, options.max_iterations, options.tol))
     return levels
-
-
-def blood_fit(model, surface: Surface, volume, c_in: float, c_out: float) -> float:
-    """How well a cavity holds blood alone: the Chan-Vese data energy (paper
-    eq. 14) ``int_cavity (u - c_in)^2 - (u - c_out)^2 dV`` over ``V (c_out -
-    c_in)^2``, i.e. ``(2 m - c_in - c_out) / (c_out - c_in)`` for the
-    cavity's mean grey level ``m``: -1 when it is ``c_in``, lower the
-    darker, higher as tissue enters the cavity.  Samples off the data are
-    half way."""
-    def sample(world):
-        return volume.sample(world, fill_value=(c_in + c_out) / 2)
-
-    energy = data_energy(model, model.parameters(surface.coefficients), sample, c_in, c_out, n_radial=8)
-    return energy / (1000 * surface.volume_ml() * (c_out - c_in) ** 2)
 
 
 def _check_volume(volume) -> None:
@@ -500,8 +480,6 @@ class Tracker:
             self.run()  # the current frame first
         started = time.perf_counter()
         self._threads = kernel_thread_count(self.options.threads)  # the machine's load, at each frame
-        if getattr(self, "_first_fit", None) is None:  # the first frame's, before the first step
-            self._first_fit = blood_fit(self._descent.model, self.surface, self.volume, *self.interface_levels())
         if follow_base:
             self._follow_base(volume)
         surface = self.surface
@@ -531,18 +509,9 @@ class Tracker:
         self._seconds = time.perf_counter() - started
         self._frame_options = {"max_iterations": cap, "coarse_to_fine": False}
         self.run(iter_callback)
-        if self.options.coarse_to_fine and self.status != 2 and self._left_behind():  # not when stopped from outside
+        if self.options.coarse_to_fine and self.status != 2:  # not when stopped from outside
             self._keep_better_start(surface)
         return self.result()
-
-    def _left_behind(self) -> bool:
-        """Whether the stepped surface holds its frame's blood less well
-        than :data:`RESEGMENT_FIT` of the first frame's surface held its own
-        (:func:`blood_fit`): the wall moved further than the finest levels
-        followed, tissue entered the cavity, and the frame is segmented again
-        (:meth:`_keep_better_start`)."""
-        fit = blood_fit(self._descent.model, self.surface, self.volume, *self.interface_levels())
-        return not (self._first_fit < 0 and fit <= RESEGMENT_FIT * self._first_fit)
 
     def _keep_better_start(self, start: Surface) -> None:
         """Segment the current frame again through the coarse data term, from
