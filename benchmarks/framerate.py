@@ -69,35 +69,34 @@ def run(seeds) -> list:
 
 def speed(repeats: int = 3) -> dict:
     """Volumes per second stepping the legacy 10-frame cycle at 5 iterations
-    a frame, and whole ``track`` runs, for each re-segmentation policy."""
+    a frame, with every frame segmented again (the default) and with none
+    (the tracker's options without ``coarse_to_fine`` after the first
+    frame, which the re-segmentation needs); and whole ``track`` runs."""
     import os
+    from dataclasses import replace
 
     seq = make_sequence(seed=0, n_frames=10)
     first = seq.frames[0]
-    keep = Tracker._keep_better_start
-    policies = {"every frame": keep, "none": lambda self, start: None}
-    times = {name: [] for name in policies}
+    times = {"every frame": [], "none": []}
     load = os.getloadavg()[0]
-    try:
-        for _ in range(repeats):
-            for name, keep_better in policies.items():
-                Tracker._keep_better_start = keep_better
-                tracker = Tracker(seq.volumes[0], first.apex, first.base)
-                tracker.run()
-                t0 = time.perf_counter()
-                for volume in seq.volumes[1:]:
-                    tracker.step(volume, max_iterations=5)
-                steps = time.perf_counter() - t0
-                t0 = time.perf_counter()
-                result = track(seq.volumes, first.apex, first.base)
-                times[name].append((steps, time.perf_counter() - t0, result.ef))
-    finally:
-        Tracker._keep_better_start = keep
-    out = {name: {"volumes_per_second_5": (len(seq.volumes) - 1) / float(np.median([t[0] for t in rows])),
-                  "track_volumes_per_second": len(seq.volumes) / float(np.median([t[1] for t in rows])),
-                  "ef": rows[0][2]} for name, rows in times.items()}
-    return {"policies": out, "truth_ef": seq.truth_ef, "load_start": load, "load_end": os.getloadavg()[0],
-            "date": time.strftime("%Y-%m-%d %H:%M")}
+    for _ in range(repeats):
+        for name, rows in times.items():
+            tracker = Tracker(seq.volumes[0], first.apex, first.base)
+            tracker.run()
+            if name == "none":
+                tracker.options = replace(tracker.options, coarse_to_fine=False)
+            t0 = time.perf_counter()
+            steps = [tracker.step(volume, max_iterations=5) for volume in seq.volumes[1:]]
+            seconds = time.perf_counter() - t0
+            volumes = np.array([s.volume_ml for s in steps])
+            rows.append((seconds, volumes))
+    t0 = time.perf_counter()
+    whole = track(seq.volumes, first.apex, first.base)
+    out = {name: {"volumes_per_second_5": (len(seq.volumes) - 1) / float(np.median([r[0] for r in rows])),
+                  "esv_ml": float(rows[0][1].min())} for name, rows in times.items()}
+    return {"policies": out, "track_volumes_per_second": len(seq.volumes) / (time.perf_counter() - t0),
+            "ef": whole.ef, "truth_ef": seq.truth_ef, "truth_esv_ml": float(seq.truth_volumes_ml.min()),
+            "load_start": load, "load_end": os.getloadavg()[0], "date": time.strftime("%Y-%m-%d %H:%M")}
 
 
 def main(argv=None):
