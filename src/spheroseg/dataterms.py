@@ -575,7 +575,7 @@ def speckle_smoothing_mm(samples: np.ndarray, neighbours: np.ndarray, patch: np.
     return float(np.sqrt(min(widths) / 2)) if widths else 0.0
 
 
-#: Gauss-Hermite nodes and weights (probabilists', weights summing to 1) of the edge's expectation
+#: Gauss-Hermite nodes and weights (probabilists': weight exp(-z^2 / 2)) of the edge's expectation
 _HERMITE = np.polynomial.hermite_e.hermegauss(48)
 
 
