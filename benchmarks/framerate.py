@@ -3,13 +3,17 @@ end-diastole to end-systole directly.
 
     python benchmarks/framerate.py               # about 15 min on 2 shared cores
     python benchmarks/framerate.py --seeds 0 1
+    python benchmarks/framerate.py --speed       # the tracking speed only (a minute)
 
 Each seed's cycle (default formation, the annulus descending 10 mm at
 end-systole) is made at 20 frames and tracked with every frame, every 2nd
 (10 a cycle) and every 5th (4 a cycle), and as the pair ED, ES; a 6-frame
 cycle of the same heart is made and tracked too.  ``spheroseg.track`` with
-default options from the first frame's apex and base.  Writes
-docs/framerate.json and regenerates docs/benchmarks.md.
+default options from the first frame's apex and base.  ``--speed``: the
+throughput of tracking the legacy 10-frame cycle (as benchmarks/speed.py
+measures it) with every frame segmented again (the default) and with none,
+interleaved.
+Writes docs/framerate.json and regenerates docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from report import write_markdown  # noqa: E402
 
 from spheroseg.phantom import FORMATIONS, make_sequence  # noqa: E402
 from spheroseg.segment import track  # noqa: E402
+from spheroseg.tracker import Tracker  # noqa: E402
 
 DESCENT_MM = 10.0
 
@@ -62,16 +67,64 @@ def run(seeds) -> list:
     return rows
 
 
+def speed(repeats: int = 3) -> dict:
+    """Volumes per second stepping the legacy 10-frame cycle at 5 iterations
+    a frame, with every frame segmented again (the default) and with none
+    (the tracker's options without ``coarse_to_fine`` after the first
+    frame, which the re-segmentation needs); and whole ``track`` runs."""
+    import os
+    from dataclasses import replace
+
+    seq = make_sequence(seed=0, n_frames=10)
+    first = seq.frames[0]
+    times = {"every frame": [], "none": []}
+    load = os.getloadavg()[0]
+    for _ in range(repeats):
+        for name, rows in times.items():
+            tracker = Tracker(seq.volumes[0], first.apex, first.base)
+            tracker.run()
+            if name == "none":
+                tracker.options = replace(tracker.options, coarse_to_fine=False)
+            t0 = time.perf_counter()
+            steps = [tracker.step(volume, max_iterations=5) for volume in seq.volumes[1:]]
+            seconds = time.perf_counter() - t0
+            volumes = np.array([s.volume_ml for s in steps])
+            rows.append((seconds, volumes))
+    t0 = time.perf_counter()
+    whole = track(seq.volumes, first.apex, first.base)
+    out = {name: {"volumes_per_second_5": (len(seq.volumes) - 1) / float(np.median([r[0] for r in rows])),
+                  "esv_ml": float(rows[0][1].min())} for name, rows in times.items()}
+    return {"policies": out, "track_volumes_per_second": len(seq.volumes) / (time.perf_counter() - t0),
+            "ef": whole.ef, "truth_ef": seq.truth_ef, "truth_esv_ml": float(seq.truth_volumes_ml.min()),
+            "load_start": load, "load_end": os.getloadavg()[0], "date": time.strftime("%Y-%m-%d %H:%M")}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--speed", action="store_true", help="measure the tracking speed only")
     args = ap.parse_args(argv)
+    if args.speed:
+        import json
+
+        path = Path(__file__).resolve().parents[1] / "docs" / "framerate.json"
+        data = json.loads(path.read_text()) if path.is_file() else {}
+        data["speed"] = speed()
+        print(data["speed"], flush=True)
+        print("wrote", write_json("framerate.json", data))
+        print("wrote", write_markdown())
+        return
     t0 = time.perf_counter()
     rows = run(args.seeds)
     command = "python benchmarks/framerate.py" + ("" if args.seeds == [0] else
                                                   " --seeds " + " ".join(map(str, args.seeds)))
     data = {"command": command, "machine": machine(), "base_descent_mm": DESCENT_MM, "rows": rows,
             "wall_seconds": time.perf_counter() - t0}
+    previous = Path(__file__).resolve().parents[1] / "docs" / "framerate.json"
+    if previous.is_file():  # the speed of --speed, measured on its own
+        import json
+
+        data.update({k: v for k, v in json.loads(previous.read_text()).items() if k == "speed"})
     print("wrote", write_json("framerate.json", data))
     print("wrote", write_markdown())
 

@@ -1,15 +1,17 @@
-"""Accuracy on echo post-processed as a scanner exports it, for choices of
-the bound that holds the intensity interface's log compression.
+"""Accuracy on echo post-processed as a scanner exports it, with and
+without the intensity interface's model of the smoothing.
 
-    python benchmarks/postprocessing.py                 # about 15 min on 2 cores
+    python benchmarks/postprocessing.py                 # about 30 min on 2 cores
     python benchmarks/postprocessing.py --seeds 0       # a smoke run
 
 Every setting of ``spheroseg.phantom.POSTPROCESSINGS`` (and the raw
-formations with the strongest contrasts, where a bound could bind wrongly)
-images the scenes ``speckle`` and ``tilted`` of the formation sweep; each is
-segmented with default options under each bound of :data:`BOUNDS_DB`
-(``max_contrast_db`` of :func:`spheroseg.dataterms.interface_nepers`).
-Writes docs/postprocessing.json and regenerates docs/benchmarks.md.
+formations with the strongest contrasts, where the contrast bound binds,
+and the narrow and wide point-spread functions, which the edge model's
+nominal width :data:`spheroseg.dataterms.EDGE_PSF_MM` misses) images the
+scenes ``speckle`` and ``tilted`` of the formation sweep; each is segmented
+with default options, and again with the smoothing's estimate held at 0
+(the contrast bound alone, as before).  Writes docs/postprocessing.json and
+regenerates docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -19,51 +21,58 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
 from spheroseg import dataterms  # noqa: E402
+from spheroseg.dataterms import IntensityInterface  # noqa: E402
 from spheroseg.metrics import dice  # noqa: E402
 from spheroseg.phantom import FAMILIES, FORMATIONS, POSTPROCESSINGS, make_phantom  # noqa: E402
 from spheroseg.segment import segment  # noqa: E402
 
-#: the contrast bounds compared, dB: 50 the bound before, 40 the default
-BOUNDS_DB = (50.0, 40.0)
-#: raw formations with the most contrast (43 and 42 dB), where a 40 dB bound binds
-STRONG = ("blood_low", "contrast_high")
+#: raw formations with the most contrast (43 and 42 dB), where the contrast bound binds,
+#: and the point-spread functions narrower and wider than the edge model's
+RAW = ("blood_low", "contrast_high", "psf_narrow", "psf_wide")
+#: the variants compared: the contrast bound alone (the smoothing's estimate held at 0), and now
+VARIANTS = ("bound", "edge")
 
 
 def settings():
     for name, options in POSTPROCESSINGS.items():
         yield name, dict(formation=FORMATIONS["default"], **options)
-    for name in STRONG:
+    for name in RAW:
         yield name, dict(formation=FORMATIONS[name])
 
 
 def run(seeds) -> list:
     rows = []
-    defaults = dataterms.interface_nepers.__kwdefaults__
-    default_bound = defaults["max_contrast_db"]
+    estimate = IntensityInterface.estimate_smoothing
+    smoothing = {}
+
+    def recorded(self, backend, volume, obs):
+        smoothing["mm"] = estimate(self, backend, volume, obs)
+        return smoothing["mm"] if smoothing["variant"] == "edge" else 0.0
+
+    IntensityInterface.estimate_smoothing = recorded
     try:
         for name, options in settings():
             for k, family in enumerate(("speckle", "tilted")):
                 for seed in seeds:
                     ph = make_phantom(seed=seed + 10 * k, **FAMILIES[family], **options)
                     row = {"setting": name, "family": family, "seed": seed + 10 * k, "truth_ml": ph.truth_volume_ml}
-                    for bound in BOUNDS_DB:
-                        defaults["max_contrast_db"] = bound
+                    for variant in VARIANTS:
+                        smoothing["variant"] = variant
                         r = segment(ph.volume, ph.apex, ph.base)
-                        row[f"{bound:g}"] = {"dice": dice(r.mask(ph.volume), ph.truth_mask),
-                                             "volume_error_pct": 100 * (r.volume_ml / ph.truth_volume_ml - 1)}
+                        row[variant] = {"dice": dice(r.mask(ph.volume), ph.truth_mask),
+                                        "volume_error_pct": 100 * (r.volume_ml / ph.truth_volume_ml - 1)}
+                    row["smoothing_mm"] = smoothing["mm"]
                     rows.append(row)
-                    print(name, family, seed + 10 * k,
-                          {b: round(row[f"{b:g}"]["volume_error_pct"], 2) for b in BOUNDS_DB}, flush=True)
+                    print(name, family, seed + 10 * k, round(row["smoothing_mm"], 2),
+                          {v: round(row[v]["volume_error_pct"], 2) for v in VARIANTS}, flush=True)
     finally:
-        defaults["max_contrast_db"] = default_bound
+        IntensityInterface.estimate_smoothing = estimate
     return rows
 
 
@@ -75,8 +84,9 @@ def main(argv=None):
     rows = run(args.seeds)
     command = "python benchmarks/postprocessing.py" + ("" if args.seeds == [0, 1] else
                                                        " --seeds " + " ".join(map(str, args.seeds)))
-    data = {"command": command, "machine": machine(), "bounds_db": list(BOUNDS_DB),
-            "default_bound_db": dataterms.MAX_CONTRAST_DB, "cases": rows, "wall_seconds": time.perf_counter() - t0}
+    data = {"command": command, "machine": machine(), "variants": list(VARIANTS),
+            "max_contrast_db": dataterms.MAX_CONTRAST_DB, "edge_psf_mm": dataterms.EDGE_PSF_MM, "cases": rows,
+            "wall_seconds": time.perf_counter() - t0}
     print("wrote", write_json("postprocessing.json", data))
     print("wrote", write_markdown())
 

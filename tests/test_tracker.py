@@ -323,3 +323,14 @@ def test_step_is_a_deprecated_alias_of_next_frame(phantom):
         result = trackers[1].step(phantom.volume, max_iterations=3)
     assert result.iterations == expected.iterations
     np.testing.assert_array_equal(result.surface.coefficients, expected.surface.coefficients)
+
+
+def test_a_frame_whose_descent_did_not_settle_is_flagged(six_frames):
+    """Every level capped at 2 iterations: no candidate of the end-systolic
+    frame (stepped, or segmented again) settles, and the frame kept says
+    so, whichever it is."""
+    frames = six_frames.frames
+    tr = track([frames[0].volume, frames[3].volume], frames[0].apex, frames[0].base, max_iterations=2)
+    es = tr.frames[1]
+    assert not es.converged and es.quality["poor"]
+    assert "still moving" in es.quality["warnings"][0]
