@@ -9,7 +9,7 @@ Chan-Vese dense level set), plus real CETUS Patient 7 (no truth).
 
 Writes docs/accuracy.json and regenerates docs/benchmarks.md.  ``--sweep``
 segments the phantom scenes imaged by every named image formation
-(``spheroseg.phantom.FORMATIONS``) and tracks sequences with base descent,
+(``spheroseg.synthetic.phantom.FORMATIONS``) and tracks sequences with base descent,
 with spheroseg's default options, and stores the run under ``--label`` in
 docs/accuracy_sweep.json beside the runs already there (so 'before' and
 'after' a change of method sit side by side).
@@ -34,7 +34,7 @@ from common import (  # noqa: E402
 from report import write_markdown  # noqa: E402
 
 from spheroseg.metrics import mask_volume_ml  # noqa: E402
-from spheroseg.phantom import FAMILIES, FORMATIONS, make_phantom, make_sequence, sweep_cases  # noqa: E402
+from spheroseg.synthetic.phantom import FAMILIES, FORMATIONS, make_phantom, make_sequence, sweep_cases  # noqa: E402
 from spheroseg.options import MODES as spheroseg_modes  # noqa: E402
 from spheroseg.options import SegmentOptions  # noqa: E402
 from spheroseg.segment import segment, track  # noqa: E402

@@ -21,7 +21,7 @@ from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
 from spheroseg.metrics import dice  # noqa: E402
-from spheroseg.phantom import FAMILIES, FORMATIONS, make_phantom  # noqa: E402
+from spheroseg.synthetic.phantom import FAMILIES, FORMATIONS, make_phantom  # noqa: E402
 from spheroseg.segment import segment  # noqa: E402
 
 ANATOMY = {"plain": {}, "papillary muscles": dict(papillary=True),

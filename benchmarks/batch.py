@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import DOCS, machine, write_json  # noqa: E402
 from report import batch_section  # noqa: E402
 
-from spheroseg.phantom import make_phantom  # noqa: E402
+from spheroseg.synthetic.phantom import make_phantom  # noqa: E402
 
 SPACING = 1.5  # mm: volumes of about 90 x 60 x 60 voxels
 

@@ -6,7 +6,7 @@ agreement of the two routes on phantoms.
 
 The agreement uses the phantom's echo formed in beam space
 (``make_phantom(formation=..., beam_space=True)``) and the legacy phantom
-resampled on a sector.  The speed figures use phantoms (``spheroseg.phantom``, 1 mm voxels)
+resampled on a sector.  The speed figures use phantoms (``spheroseg.synthetic.phantom``, 1 mm voxels)
 resampled on a sector from the phantom's probe with ``to_beam_space``
 (150 samples of 1 mm x 57 x 57 beams 1 degree apart); "scan-converted" is
 that sector resampled back on the Cartesian grid covering it
@@ -30,7 +30,7 @@ from report import write_markdown  # noqa: E402
 
 from spheroseg import _kernels  # noqa: E402
 from spheroseg.beamspace import scan_convert, to_beam_space  # noqa: E402
-from spheroseg.phantom import FORMATIONS, make_phantom, make_sequence, probe_sector  # noqa: E402
+from spheroseg.synthetic.phantom import FORMATIONS, make_phantom, make_sequence, probe_sector  # noqa: E402
 from spheroseg.segment import segment, track  # noqa: E402
 
 ITERATIONS_PER_FRAME = 5

@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import DOCS, PEER_PARAMS, run_sitk, run_skimage  # noqa: E402
 
 from spheroseg.metrics import dice  # noqa: E402
-from spheroseg.phantom import FAMILIES, make_phantom  # noqa: E402
+from spheroseg.synthetic.phantom import FAMILIES, make_phantom  # noqa: E402
 from spheroseg.segment import segment  # noqa: E402
 from spheroseg.volume import Volume  # noqa: E402
 

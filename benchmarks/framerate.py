@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
-from spheroseg.phantom import FORMATIONS, make_sequence  # noqa: E402
+from spheroseg.synthetic.phantom import FORMATIONS, make_sequence  # noqa: E402
 from spheroseg.segment import track  # noqa: E402
 from spheroseg.tracker import Tracker  # noqa: E402
 

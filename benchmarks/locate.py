@@ -33,7 +33,7 @@ from report import write_markdown  # noqa: E402
 
 from spheroseg import NoVentricleError, Volume, locate, segment  # noqa: E402
 from spheroseg.metrics import dice  # noqa: E402
-from spheroseg.phantom import FORMATIONS, make_phantom, tilted_mitral_scene  # noqa: E402
+from spheroseg.synthetic.phantom import FORMATIONS, make_phantom, tilted_mitral_scene  # noqa: E402
 
 CETUS = Path(__file__).resolve().parents[2] / "shared" / "data" / "cetus"
 

@@ -5,7 +5,7 @@ phantoms with exact truth.
     python benchmarks/myocardium.py --sequences  # the tracked cycles only
     python benchmarks/myocardium.py --figure     # docs/segments.png only
 
-1. Across image formations (`spheroseg.phantom.sweep_cases`, the upright
+1. Across image formations (`spheroseg.synthetic.phantom.sweep_cases`, the upright
    and the tilted ventricle, 1 mm voxels): myocardial Dice against the
    phantom's wall below the mitral plane, LV mass error against its exact
    volume at 1.05 g/mL, and the wall time of `segment(..., myocardium=True)`
@@ -36,7 +36,7 @@ from report import write_markdown  # noqa: E402
 from spheroseg import Pose, segment, track  # noqa: E402
 from spheroseg.metrics import dice  # noqa: E402
 from spheroseg.myocardium import segment_labels, systolic_dyssynchrony_index, times_to_minimum  # noqa: E402
-from spheroseg.phantom import FORMATIONS, LateRegion, make_phantom, make_sequence, sweep_cases  # noqa: E402
+from spheroseg.synthetic.phantom import FORMATIONS, LateRegion, make_phantom, make_sequence, sweep_cases  # noqa: E402
 
 SWEEP = ("default", "psf_wide", "dr_40", "gain_+6", "tgc_over", "contrast_high", "contrast_low", "clutter_strong")
 

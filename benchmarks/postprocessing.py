@@ -4,7 +4,7 @@ without the intensity interface's model of the smoothing.
     python benchmarks/postprocessing.py                 # about 30 min on 2 cores
     python benchmarks/postprocessing.py --seeds 0       # a smoke run
 
-Every setting of ``spheroseg.phantom.POSTPROCESSINGS`` (and the raw
+Every setting of ``spheroseg.synthetic.phantom.POSTPROCESSINGS`` (and the raw
 formations with the strongest contrasts, where the contrast bound binds,
 and the narrow and wide point-spread functions, which the edge model's
 nominal width :data:`spheroseg.dataterms.EDGE_PSF_MM` misses) images the
@@ -29,7 +29,7 @@ from report import write_markdown  # noqa: E402
 from spheroseg import dataterms  # noqa: E402
 from spheroseg.dataterms import IntensityInterface  # noqa: E402
 from spheroseg.metrics import dice  # noqa: E402
-from spheroseg.phantom import FAMILIES, FORMATIONS, POSTPROCESSINGS, make_phantom  # noqa: E402
+from spheroseg.synthetic.phantom import FAMILIES, FORMATIONS, POSTPROCESSINGS, make_phantom  # noqa: E402
 from spheroseg.segment import segment  # noqa: E402
 
 #: raw formations with the most contrast (43 and 42 dB), where the contrast bound binds,

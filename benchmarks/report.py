@@ -32,7 +32,7 @@ def _machine(m):
 def _accuracy(acc) -> list[str]:
     out = ["## Accuracy on phantoms", "",
            f"Command: `{acc['command']}` ({acc['wall_seconds'] / 60:.0f} min). Machine: {_machine(acc['machine'])}.", "",
-           "Synthetic apical 3D echo volumes (`spheroseg.phantom`, 1 mm voxels) with exact truth; every method starts "
+           "Synthetic apical 3D echo volumes (`spheroseg.synthetic.phantom`, 1 mm voxels) with exact truth; every method starts "
            "from the same half-ellipsoid placed by the true apex and base points and is closed at the same base plane. "
            "Dice on the voxel grid; mean surface distance (MSD, the average of the two directed means) and Hausdorff "
            "distance (HD) between the wall surfaces, open at the mitral plane as in CETUS; volume error relative to the "
@@ -130,11 +130,11 @@ def _formation_sweep(sweep) -> list[str]:
                    "from other jobs, so seconds are indicative only.")
         out.append("")
     n_fam = len(first["summary"]["family"])
-    out += [f"The scenes of `spheroseg.phantom` ({', '.join(first['summary']['family'])}; 1 mm voxels, exact truth) "
-            "imaged by each named image formation of `spheroseg.phantom.FORMATIONS` "
+    out += [f"The scenes of `spheroseg.synthetic.phantom` ({', '.join(first['summary']['family'])}; 1 mm voxels, exact truth) "
+            "imaged by each named image formation of `spheroseg.synthetic.phantom.FORMATIONS` "
             f"({len(first['summary']['formation'])} settings, {n_fam} scenes each, the same scenes for every setting): beam-space speckle with a "
             "point-spread function widening with depth, attenuation, noise, TGC, log compression and scan conversion "
-            "(`spheroseg.echo`). 'default' resembles an adult apical scan (axial PSF 0.8 mm, lateral 3 mm at 80 mm, "
+            "(`spheroseg.synthetic.echo`). 'default' resembles an adult apical scan (axial PSF 0.8 mm, lateral 3 mm at 80 mm, "
             "55 dB); every other setting changes one thing (see docs/accuracy_sweep.json for all parameters). "
             "`spheroseg.segment` with its default options from the true apex and base points. Per setting: median "
             "Dice (worst), median mean surface distance, median volume error in % and mL (the bias), median "
@@ -499,7 +499,7 @@ def _mitral(data) -> list[str]:
            "by the ring's centre (the centroid of the 6 points, not the phantom's base point).", "",
            f"| family | {head} |", rule,
            f"| tilted | {cells(data['phantom_tilted'])} |", "",
-           "A scene with a mitral plane tilted from the apex-base line (`spheroseg.phantom.tilted_mitral_scene`: an "
+           "A scene with a mitral plane tilted from the apex-base line (`spheroseg.synthetic.phantom.tilted_mitral_scene`: an "
            "ellipsoid cut by a tilted plane through its centre, a dark atrium beyond, Gaussian noise, not "
            "log-compressed speckle; 3 seeds per tilt; annulus: 8 points of the true ring). Posed by the apex-base "
            "line the cavity is closed on the wrong plane: a wedge of atrium in, a wedge of ventricle out (the "
@@ -708,8 +708,8 @@ def _postprocessing(data) -> list[str]:
            f"`{data['command']}` ({data['wall_seconds'] / 60:.0f} min, phantom generation included). Machine: "
            f"{_machine(data['machine'])}.", "",
            "The scenes `speckle` and `tilted` (seeds " + ", ".join(map(str, seeds)) + ") imaged by the default "
-           "formation and post-processed as a scanner exports them (`spheroseg.phantom.POSTPROCESSINGS`, "
-           "`spheroseg.echo.postprocess`: Gaussian smoothing of 1 and 2 mm (sigma), the median of a cube of "
+           "formation and post-processed as a scanner exports them (`spheroseg.synthetic.phantom.POSTPROCESSINGS`, "
+           "`spheroseg.synthetic.echo.postprocess`: Gaussian smoothing of 1 and 2 mm (sigma), the median of a cube of "
            "half width 1 and 2 mm, 10 iterations of Perona-Malik diffusion, persistence over 3 images, and the "
            "Cartesian export at 0.7 and 1.5 mm instead of 1 mm), plus four raw formations: the two of the most "
            "contrast (`blood_low` 43 dB, `contrast_high` 42 dB) and the narrow and wide point-spread functions "

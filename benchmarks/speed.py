@@ -38,7 +38,7 @@ import spheroseg  # noqa: E402
 from spheroseg.backends import compiled_available, kernel_thread_count  # noqa: E402
 from spheroseg.dataterms import IntensityInterface, LocalMeans  # noqa: E402
 from spheroseg.descent import Descent  # noqa: E402
-from spheroseg.phantom import FORMATIONS, make_phantom, make_sequence  # noqa: E402
+from spheroseg.synthetic.phantom import FORMATIONS, make_phantom, make_sequence  # noqa: E402
 from spheroseg.segment import segment as _segment, track  # noqa: E402
 from spheroseg.surface import Surface  # noqa: E402
 from spheroseg.tracker import Tracker  # noqa: E402
@@ -119,7 +119,7 @@ def intensity_iteration_us(volume, apex, base, repeats=300) -> float:
 FIRST_CALL = r"""
 import json, time
 import spheroseg
-from spheroseg.phantom import make_phantom
+from spheroseg.synthetic.phantom import make_phantom
 ph = make_phantom(seed=0, spacing=2.0)
 t = time.perf_counter(); spheroseg.segment(ph.volume, ph.apex, ph.base, patches=(6, 6), check=False); fresh = time.perf_counter() - t
 t = time.perf_counter(); spheroseg.segment(ph.volume, ph.apex, ph.base, check=False); first = time.perf_counter() - t

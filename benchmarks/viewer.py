@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from spheroseg.io import save_volume
-from spheroseg.phantom import make_sequence
+from spheroseg.synthetic.phantom import make_sequence
 from spheroseg.viewer import open_viewer
 from spheroseg.viewer.browser import launch, screen_xy, wait_done
 

@@ -5,7 +5,7 @@ import pytest
 
 from spheroseg.backends import CompiledBackend, NumpyBackend, compiled_available, select_backend
 from spheroseg.energy import SampledSurface
-from spheroseg.phantom import make_phantom
+from spheroseg.synthetic.phantom import make_phantom
 from spheroseg.surface import Surface
 
 pytestmark = pytest.mark.skipif(not compiled_available(), reason="numba not installed")

@@ -19,7 +19,7 @@ from spheroseg import segment_many
 from spheroseg.batch import (SUMMARY_FIELDS, ManifestError, Study, read_manifest, select_shard,
                              study_checksum)
 from spheroseg.io import load, load_sequence
-from spheroseg.phantom import make_phantom, make_sequence
+from spheroseg.synthetic.phantom import make_phantom, make_sequence
 from spheroseg.segment import segment, track
 
 # faults a worker meets (tests/faults/sitecustomize.py, imported by every process Python starts)

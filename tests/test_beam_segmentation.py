@@ -7,7 +7,7 @@ from scipy.spatial import cKDTree
 
 from spheroseg import _kernels, segment, track
 from spheroseg.beamspace import beam_mask, beam_mask_volume_ml, scan_convert, to_beam_space
-from spheroseg.phantom import FORMATIONS, make_phantom, make_sequence, probe_sector
+from spheroseg.synthetic.phantom import FORMATIONS, make_phantom, make_sequence, probe_sector
 
 
 def mean_distance(a, b):

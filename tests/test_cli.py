@@ -12,7 +12,7 @@ import SimpleITK as sitk
 
 from spheroseg.fit import annulus_of_open_mesh
 from spheroseg.io import load, write_markups
-from spheroseg.phantom import make_phantom, make_sequence
+from spheroseg.synthetic.phantom import make_phantom, make_sequence
 from spheroseg.segment import segment
 
 

@@ -9,7 +9,7 @@ import spheroseg
 from spheroseg.backends import compiled_available
 from spheroseg.dataterms import DataTerm, Force
 from spheroseg.metrics import dice
-from spheroseg.phantom import make_phantom
+from spheroseg.synthetic.phantom import make_phantom
 
 
 class Rayleigh(DataTerm):

@@ -335,8 +335,8 @@ def test_a_smoothed_phantom_keeps_its_volume():
     the edge's level fell with the smoothing and the volume came out
     +6.6 %; with the smoothing estimated from the speckle's correlation
     (1.9 mm) and the edge's level lowered by as much, +1.4 %."""
-    from spheroseg.echo import PostProcessing
-    from spheroseg.phantom import FORMATIONS, make_phantom
+    from spheroseg.synthetic.echo import PostProcessing
+    from spheroseg.synthetic.phantom import FORMATIONS, make_phantom
 
     ph = make_phantom(seed=0, formation=FORMATIONS["default"], postprocessing=PostProcessing(gaussian_mm=2.0))
     r = segment(ph.volume, ph.apex, ph.base)

@@ -11,7 +11,7 @@ from spheroseg.dataterms import FixedInterface, GlobalMeans, IntensityInterface,
 from spheroseg.descent import Descent
 from spheroseg.discretisation import ROUGHNESS_SCALE
 from spheroseg.epicardium import wall_term
-from spheroseg.phantom import make_phantom
+from spheroseg.synthetic.phantom import make_phantom
 from spheroseg.surface import Surface
 
 

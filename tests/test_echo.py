@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from spheroseg.beamspace import BeamGeometry, BeamVolume, scan_convert
-from spheroseg.echo import (
+from spheroseg.synthetic.echo import (
     RAYLEIGH_DB_STD, TOP_DB, ImageFormation, PostProcessing, form_image, log_compress, postprocess, sector_geometry,
     speckle_envelope,
 )

@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 HEAVY = ("numba", "matplotlib")
@@ -147,3 +149,24 @@ def test_no_module_reaches_the_package_init():
     # ``from . import __version__`` would load every front end (batch, io)
     graph = import_graph()
     assert [m for m, edges in graph.items() if "spheroseg" in edges and m != "spheroseg.__main__"] == []
+
+
+def test_the_method_never_imports_the_synthetic_data():
+    # the phantom is the ground truth the method is measured on, not a part of
+    # it: only the demo's front ends and the deprecated aliases reach it
+    graph = import_graph()
+    users = sorted(m for m, edges in graph.items() if not m.startswith("spheroseg.synthetic")
+                   and any(t.startswith("spheroseg.synthetic") for t in edges))
+    assert users == ["spheroseg.batch", "spheroseg.cli", "spheroseg.echo", "spheroseg.phantom"]
+
+
+@pytest.mark.parametrize("name", ["phantom", "echo"])
+def test_the_old_names_of_the_synthetic_modules_are_deprecated_aliases(name):
+    code = (f"import warnings\nwarnings.simplefilter('error')\ntry:\n    import spheroseg.{name}\n"
+            f"except DeprecationWarning as w:\n    print(w)\nwarnings.simplefilter('ignore')\n"
+            f"import spheroseg.{name}, spheroseg.synthetic.{name}\n"
+            f"print(spheroseg.{name} is spheroseg.synthetic.{name})")
+    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.split("\n")[:2] == [f"spheroseg.{name} moved to spheroseg.synthetic.{name}; the old name "
+                                          "goes in the next release", "True"]

@@ -226,7 +226,7 @@ def test_load_finds_the_sector_padding(tmp_path):
 
 def test_load_frames_tells_a_volume_from_a_sequence(tmp_path):
     from spheroseg.io import load_frames
-    from spheroseg.phantom import make_sequence
+    from spheroseg.synthetic.phantom import make_sequence
 
     seq = make_sequence(seed=1, n_frames=3, spacing=3.0)
     spheroseg.save_volume(tmp_path / "cine.nrrd", list(seq.volumes))

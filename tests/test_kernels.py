@@ -8,7 +8,7 @@ from spheroseg.backends import MIN_COS, CompiledBackend, NumpyBackend, Observati
 from spheroseg.beamspace import to_beam_space
 from spheroseg.discretisation import discretise
 from spheroseg.energy import SampledSurface
-from spheroseg.phantom import make_phantom, probe_sector
+from spheroseg.synthetic.phantom import make_phantom, probe_sector
 from spheroseg.surface import Surface
 
 pytestmark = pytest.mark.skipif(not _kernels.AVAILABLE, reason="numba not installed")

@@ -13,7 +13,7 @@ from scipy import ndimage
 
 from spheroseg import Located, NoVentricleError, Volume, locate, save_volume, segment
 from spheroseg.locate import check_points
-from spheroseg.phantom import FORMATIONS, make_phantom
+from spheroseg.synthetic.phantom import FORMATIONS, make_phantom
 
 
 def _errors(found, phantom):
@@ -51,7 +51,7 @@ def test_the_base_is_on_the_mitral_plane_not_in_the_orifice_beyond(seed, formati
 
 
 def test_the_base_is_found_on_a_mitral_plane_tilted_from_the_long_axis():
-    from spheroseg.phantom import tilted_mitral_scene
+    from spheroseg.synthetic.phantom import tilted_mitral_scene
 
     scene = tilted_mitral_scene(15.0)
     found = locate(scene.volume)
@@ -169,7 +169,7 @@ def test_cli_segment_without_points_records_the_located_points(tmp_path, p157):
 
 def test_track_without_points_locates_in_the_first_frame():
     from spheroseg import track
-    from spheroseg.phantom import make_sequence
+    from spheroseg.synthetic.phantom import make_sequence
 
     sequence = make_sequence(n_frames=2, seed=4, spacing=2.0)
     result = track(sequence.volumes)

@@ -7,7 +7,7 @@ import pytest
 import SimpleITK as sitk
 
 from spheroseg.outputs import write_segmentation_outputs, write_tracking_outputs
-from spheroseg.phantom import make_phantom, make_sequence
+from spheroseg.synthetic.phantom import make_phantom, make_sequence
 from spheroseg.segment import segment, track
 from spheroseg.surface_io import read_surface_json
 

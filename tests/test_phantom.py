@@ -3,7 +3,7 @@ import hashlib
 import numpy as np
 import pytest
 
-from spheroseg.phantom import FAMILIES, make_phantom, make_sequence
+from spheroseg.synthetic.phantom import FAMILIES, make_phantom, make_sequence
 from spheroseg.surface import signed_volume
 
 
@@ -57,7 +57,7 @@ def test_sequence_volume_curve():
 
 @pytest.mark.parametrize("formation", [None, "psf_wide"])
 def test_sequence_frames_do_not_depend_on_the_workers(formation):
-    from spheroseg.phantom import FORMATIONS
+    from spheroseg.synthetic.phantom import FORMATIONS
 
     kwargs = dict(seed=4, n_frames=3, spacing=3.0, base_descent=6.0,
                   formation=None if formation is None else FORMATIONS[formation])
@@ -132,8 +132,8 @@ def test_legacy_sequence_unchanged():
 from dataclasses import replace  # noqa: E402
 
 from spheroseg.beamspace import BeamVolume  # noqa: E402
-from spheroseg.echo import ImageFormation  # noqa: E402
-from spheroseg.phantom import FORMATIONS, sweep_cases  # noqa: E402
+from spheroseg.synthetic.echo import ImageFormation  # noqa: E402
+from spheroseg.synthetic.phantom import FORMATIONS, sweep_cases  # noqa: E402
 
 # coarse voxels keep these fast; a wide PSF keeps the beam grid small
 COARSE = dict(seed=4, spacing=2.5)
@@ -298,7 +298,7 @@ def test_sequence_with_formation_keeps_the_truth():
 
 def test_tilted_mitral_scene_truth():
     from spheroseg.coords import annulus_plane
-    from spheroseg.phantom import tilted_mitral_scene
+    from spheroseg.synthetic.phantom import tilted_mitral_scene
 
     scene = tilted_mitral_scene(10.0)
     # 1 mm voxels: the mask's voxel count is the analytic half-ellipsoid's volume
@@ -367,7 +367,7 @@ def test_epicardial_truth_mask_has_the_analytic_volume():
 
 
 def test_late_region_moves_its_wall_later():
-    from spheroseg.phantom import LateRegion
+    from spheroseg.synthetic.phantom import LateRegion
 
     plain = make_sequence(n_frames=4, seed=1, spacing=3.0, speckle=False)
     on_time = make_sequence(n_frames=4, seed=1, spacing=3.0, speckle=False, late_region=LateRegion(delay=0.0))

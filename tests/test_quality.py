@@ -1,11 +1,11 @@
-"""The quality report, and robustness on image formations that broke round 1."""
+"""The quality report, and robustness on image formations that broke the first method."""
 
 import numpy as np
 import pytest
 
 from spheroseg import segment
 from spheroseg.metrics import dice
-from spheroseg.phantom import FORMATIONS, make_phantom
+from spheroseg.synthetic.phantom import FORMATIONS, make_phantom
 from spheroseg.quality import FrameQuality, landmark_residuals, quality_report
 from spheroseg.surface import Surface
 
@@ -41,7 +41,7 @@ def test_a_click_5_mm_off_is_survived():
 
 
 def test_a_collapse_is_reported():
-    """With the apex free to move (round 1's weak hold, and its tolerance on
+    """With the apex free to move (the first method's weak hold, and its tolerance on
     every level), strong clutter pulls the surface towards the base: the
     report says so."""
     ph = make_phantom(seed=0, spacing=1.5, formation=FORMATIONS["clutter_strong"])

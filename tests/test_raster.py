@@ -9,7 +9,7 @@ import spheroseg
 from spheroseg._raster import (FRESH_ZEROS_BYTES, SLOPE_MARGIN, SLOPE_SAMPLES, fresh_zeros, gradient_bound,
                                hermite_at, patch_slopes, status)
 from spheroseg.hermite import global_basis
-from spheroseg.phantom import make_phantom
+from spheroseg.synthetic.phantom import make_phantom
 from spheroseg.surface import ImageGrid, Surface
 from spheroseg.volume import outside_sector
 

@@ -35,7 +35,7 @@ def test_bullseye_places_and_colours_the_segments_as_defined():
 def test_the_report_draws_the_epicardium_beside_the_endocardium():
     """The slices carry the epicardium's region; the figure draws one
     contour more for it (blue), and none without it."""
-    from spheroseg.phantom import make_phantom
+    from spheroseg.synthetic.phantom import make_phantom
     from spheroseg.report import parts_figure, report_parts
     from spheroseg.surface import Surface
 

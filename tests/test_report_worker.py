@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import spheroseg
-from spheroseg.phantom import make_phantom
+from spheroseg.synthetic.phantom import make_phantom
 from spheroseg.report import report_parts, save_parts
 from spheroseg.report_worker import ReportWorker
 

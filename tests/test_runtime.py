@@ -81,7 +81,7 @@ def test_kernel_thread_count_defaults_to_the_idle_cores(monkeypatch):
 CONCURRENT = """
 import threading, time
 import spheroseg
-from spheroseg.phantom import make_phantom
+from spheroseg.synthetic.phantom import make_phantom
 ph = make_phantom(seed=0, spacing=2.0)
 result = spheroseg.segment(ph.volume, ph.apex, ph.base)
 done = threading.Event()

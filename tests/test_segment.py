@@ -10,7 +10,7 @@ from spheroseg.backends import compiled_available
 from spheroseg.coords import annulus_plane
 from spheroseg.fit import annulus_of_open_mesh
 from spheroseg.metrics import dice, surface_distances
-from spheroseg.phantom import make_phantom, make_sequence, tilted_mitral_scene
+from spheroseg.synthetic.phantom import make_phantom, make_sequence, tilted_mitral_scene
 from spheroseg.segment import segment, track
 from spheroseg.volume import Volume
 
@@ -392,7 +392,7 @@ def test_tracking_follows_the_annulus_and_recovers_ejection_fraction():
     """Image formation of a scanner (speckle with a depth-dependent PSF, log
     compression), a mitral annulus descending 12 mm towards the apex in
     systole: the tracked base plane follows it and EF is within 3 points."""
-    from spheroseg.phantom import FORMATIONS
+    from spheroseg.synthetic.phantom import FORMATIONS
 
     seq = make_sequence(seed=1, n_frames=8, spacing=1.5, base_descent=12.0, formation=FORMATIONS["default"])
     first = seq.frames[0]

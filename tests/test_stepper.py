@@ -6,7 +6,7 @@ import pytest
 from spheroseg import Tracker
 from spheroseg.dataterms import GlobalMeans, LocalMeans
 from spheroseg.options import SegmentOptions
-from spheroseg.phantom import make_phantom
+from spheroseg.synthetic.phantom import make_phantom
 from spheroseg.stepper import Level, held_points, schedule
 from spheroseg.coords import Pose
 

@@ -1,4 +1,4 @@
-"""The stepper: the restructured descent reproduces round 1's results, and
+"""The stepper: the restructured descent reproduces the pinned results, and
 segment()/track() are loops over it."""
 
 import ast
@@ -13,7 +13,7 @@ import spheroseg
 from spheroseg import Tracker, segment, track
 from spheroseg.dataterms import FixedInterface, GlobalMeans, IntensityInterface, LocalMeans
 from spheroseg.options import SegmentOptions
-from spheroseg.phantom import make_phantom, make_sequence
+from spheroseg.synthetic.phantom import make_phantom, make_sequence
 from spheroseg.surface import Surface
 from spheroseg.tracker import BASE_RING_MM, schedule
 

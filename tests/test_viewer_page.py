@@ -21,7 +21,7 @@ import spheroseg
 from spheroseg.fit import point_to_surface_distance
 from spheroseg.io import save_volume
 from spheroseg.metrics import dice
-from spheroseg.phantom import make_phantom, make_sequence, tilted_mitral_scene
+from spheroseg.synthetic.phantom import make_phantom, make_sequence, tilted_mitral_scene
 from spheroseg.viewer import open_viewer
 from spheroseg.viewer.browser import launch, screen_xy, wait_done
 

@@ -20,7 +20,7 @@ from conftest import interruptible
 
 import spheroseg
 from spheroseg.io import save_volume, write_markups
-from spheroseg.phantom import make_phantom, make_sequence
+from spheroseg.synthetic.phantom import make_phantom, make_sequence
 from spheroseg.viewer import open_viewer
 from spheroseg.viewer.server import MAX_BODY
 from spheroseg.viewer.session import Points
@@ -319,7 +319,7 @@ def test_vendored_niivue_is_the_recorded_one():
 
 def test_a_beam_space_study_is_shown_scan_converted_and_segmented_in_its_beams(tmp_path):
     from spheroseg.beamspace import scan_convert
-    from spheroseg.phantom import FORMATIONS
+    from spheroseg.synthetic.phantom import FORMATIONS
 
     ph = make_phantom(seed=1, spacing=2.0, formation=FORMATIONS["default"], beam_space=True)
     path = tmp_path / "beams.mha"

@@ -13,7 +13,7 @@ RUN = """
 import json
 import threading
 from spheroseg._raster import compilations
-from spheroseg.phantom import make_phantom
+from spheroseg.synthetic.phantom import make_phantom
 from spheroseg.surface import Surface
 from spheroseg.volume import outside_sector
 from spheroseg.warmup import load_kernels
@@ -58,7 +58,7 @@ STEP = """
 import json
 import sys
 from spheroseg import _kernels
-from spheroseg.phantom import make_phantom
+from spheroseg.synthetic.phantom import make_phantom
 from spheroseg.segment import segment
 from spheroseg.warmup import load_step_kernels
 if sys.argv[1] == "step":

@@ -261,7 +261,7 @@ def run_study(study: Study, out: str | os.PathLike, *, options: dict | None = No
 def warm_up() -> None:
     """Load the compiled kernels in this process (a tiny segmentation), so
     a worker pays for it once, not on its first study."""
-    from .phantom import make_phantom
+    from .synthetic.phantom import make_phantom
     from .segment import segment
 
     phantom = make_phantom(seed=0, spacing=4.0)

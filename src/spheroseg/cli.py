@@ -573,7 +573,7 @@ def _fresh_demo_folder() -> Path:
 def cmd_demo(args) -> int:
     from .metrics import dice, surface_distances
     from .outputs import versions, write_frame_files, write_json
-    from .phantom import make_sequence
+    from .synthetic.phantom import make_sequence
     from .report import save_report
     from .segment import track
 

@@ -141,7 +141,7 @@ def segment(volume, apex=None, base=None, *, annulus=None, landmarks=None, init:
     Examples
     --------
     >>> from spheroseg import segment
-    >>> from spheroseg.phantom import make_phantom
+    >>> from spheroseg.synthetic.phantom import make_phantom
     >>> ph = make_phantom(seed=3, spacing=2.0)
     >>> res = segment(ph.volume, ph.apex, ph.base)
     >>> res.status, res.converged

@@ -86,7 +86,7 @@ class Tracker:
     Examples
     --------
     >>> from spheroseg import Tracker
-    >>> from spheroseg.phantom import make_phantom
+    >>> from spheroseg.synthetic.phantom import make_phantom
     >>> ph = make_phantom(seed=1, spacing=2.0)
     >>> tracker = Tracker(ph.volume, ph.apex, ph.base)
     >>> while tracker.status is None:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from spheroseg.phantom import FAMILIES, make_phantom, make_sequence
+from spheroseg.synthetic.phantom import FAMILIES, make_phantom, make_sequence
 from spheroseg.segment import segment, track
 
 MODES = ("local", "chan-vese", "fast")
