@@ -207,11 +207,10 @@ class Tracker:
                 continue
             if callback_every == 1 or not self.run_level(callback_every):
                 self.iterate()
-            if iter_callback is not None:
-                try:
-                    iter_callback(self.intermediate())
-                except StopIteration:
-                    self.stop(2)
+            try:
+                iter_callback(self.intermediate())
+            except StopIteration:
+                self.stop(2)
 
     def run(self, iter_callback=None, *, callback_every: int = 1) -> SegmentationResult:
         """Iterate until the current frame stops; ``iter_callback(intermediate)``
