@@ -2,8 +2,10 @@
 
 import numpy as np
 
-from spheroseg.frames import BASE_RING_MM, base_ring_floor, base_ring_points
+from spheroseg import Tracker
+from spheroseg.frames import BASE_RING_MM, LEFT_BEHIND, WALL_SECTORS, base_ring_floor, base_ring_points, wall_sides
 from spheroseg.surface import Surface
+from spheroseg.volume import ImageGrid, Volume
 
 APEX, BASE = np.array([10.0, -5.0, 90.0]), np.array([12.0, 3.0, 15.0])
 
@@ -27,3 +29,26 @@ def test_ring_points_lie_on_the_base_plane_at_the_floor():
     np.testing.assert_allclose(np.hypot(local[:, 1], local[:, 2]), floor, rtol=1e-12)
     everywhere = base_ring_points(surface, float(radii.max()) + 1.0)
     assert len(everywhere) == 32
+
+
+def step_image(surface: Surface, *, c_in: float, c_out: float) -> Volume:
+    """A noise-free image on 1 mm voxels: ``c_in`` inside ``surface``,
+    ``c_out`` outside."""
+    grid = ImageGrid((100, 60, 60), origin=(-18.0, -27.0, 5.0))
+    return Volume(np.where(surface.mask(grid), c_in, c_out), origin=grid.origin)
+
+
+def test_the_wall_sides_read_blood_inside_and_wall_outside():
+    """On the wall of a step image the inner band reads the blood's level
+    (0) and the outer band the wall's (1), to the trilinear blur of the
+    1 mm samples nearest the step.  Around a cavity drawn two thirds as
+    wide (the base radius 15 mm against 23), the surface reads wall on both
+    sides: the wall left behind."""
+    image = step_image(Surface.from_apex_base(APEX, BASE), c_in=20.0, c_out=120.0)
+    on_wall = Tracker(image, APEX, BASE).stepper.descent
+    sides = wall_sides(on_wall, image, (20.0, 120.0), width=4.0)
+    assert sides.shape == (WALL_SECTORS[0] * WALL_SECTORS[1], 2)
+    assert np.all(sides[:, 0] < 0.1) and np.all(sides[:, 1] > 0.9)
+    smaller = step_image(Surface.from_apex_base(APEX, BASE, radius_ratio=0.2), c_in=20.0, c_out=120.0)
+    behind = wall_sides(Tracker(smaller, APEX, BASE).stepper.descent, smaller, (20.0, 120.0), width=4.0)
+    assert np.all(behind[:, 0] > LEFT_BEHIND) and np.all(behind[:, 1] > 0.9)

@@ -316,6 +316,27 @@ def test_end_diastole_to_end_systole_directly_gives_the_ef(six_frames):
     assert abs(tracked_ef_error([frames[0], frames[3]])) < 3.0
 
 
+def test_only_a_frame_whose_wall_was_left_behind_is_segmented_again(six_frames, monkeypatch):
+    """Consecutive frames of a six-frame cycle are followed by the stepped
+    descent; end-systole reached from end-diastole directly (the base
+    plane followed, as :func:`spheroseg.track` does) leaves the
+    basal wall behind and is segmented again (and then within 3 EF points,
+    the test above)."""
+    import spheroseg.tracker as tracker_module
+
+    again = []
+    keep_better_start = tracker_module.keep_better_start
+    monkeypatch.setattr(tracker_module, "keep_better_start",
+                        lambda tracker, start: again.append(1) or keep_better_start(tracker, start))
+    frames = six_frames.frames
+    tracker = Tracker(frames[0].volume, frames[0].apex, frames[0].base)
+    tracker.next_frame(frames[1].volume, max_iterations=20, follow_base=True)
+    assert again == []
+    tracker = Tracker(frames[0].volume, frames[0].apex, frames[0].base)
+    tracker.next_frame(frames[3].volume, max_iterations=20, follow_base=True)
+    assert again == [1]
+
+
 def test_step_is_a_deprecated_alias_of_next_frame(phantom):
     trackers = [Tracker(phantom.volume, phantom.apex, phantom.base, mode="local", coarse_to_fine=False)
                 for _ in range(2)]

@@ -21,8 +21,8 @@ from .options import SegmentOptions
 from .stepper import Level, schedule
 from .surface import Surface
 
-__all__ = ["BASE_RING_MM", "RESEGMENT_MARGIN", "base_ring_floor", "base_ring_points", "followed_base",
-           "keep_better_start"]
+__all__ = ["BASE_RING_MM", "RESEGMENT_MARGIN", "LEFT_BEHIND", "base_ring_floor", "base_ring_points", "followed_base",
+           "keep_better_start", "wall_sides", "followed_the_wall"]
 
 #: plausible radii of the mitral annulus in adults, mm (the base ring's range)
 BASE_RING_MM = (10.0, 20.0)
@@ -31,6 +31,20 @@ BASE_RING_MM = (10.0, 20.0)
 #: candidates differ by the descent's own noise (0.0001-0.3 % on phantom
 #: cycles of 4-20 frames), a stepped wall left behind by 3 % and more
 RESEGMENT_MARGIN = 0.01
+#: a sector of a stepped frame's wall is left behind when the band just
+#: inside the surface is this much of the way from the blood's grey level to
+#: the wall's, or the band just outside no more than this (0 blood, 1 wall):
+#: on frames the stepped descent followed the inner band reads -0.2 to 0.1
+#: and the outer 0.45 to 0.7; where the basal wall moved past half the local
+#: means' band, 0.55 to 0.7 inside (phantom cycles of 4 to 20 frames, and
+#: end-diastole to end-systole directly, across the image formations)
+LEFT_BEHIND = 0.25
+#: sectors of the wall the sides are read in, around the axis and along
+#: it, over this span of the ``v2`` range from the apex: the basal wall,
+#: which moves most over a cycle (the annulus descends towards an apex that
+#: barely moves); the apical cavity is where near-field clutter reads bright
+WALL_SECTORS = (4, 3)
+WALL_SPAN = (0.55, 1.0)
 
 
 def base_ring_floor(annulus: np.ndarray | None) -> float:
@@ -91,6 +105,62 @@ def followed_base(surface: Surface, volume, next_volume, *, apex: np.ndarray, an
     fitted = fit_surface(surface.points(v1.ravel(), v2.ravel()), system=start.system, pose=start.pose,
                          patches=patches, v2_range=start.grid.v2_range, smoothness=1e-5)
     return base, annulus, fitted
+
+
+def wall_sides(descent, volume, levels, *, width: float) -> np.ndarray:
+    """Where the grey levels either side of a descent's surface lie between
+    the blood's and the wall's, sector by sector of the wall.
+
+    ``volume`` is read along the outward normals at the sample points of the
+    ``descent`` (a :class:`spheroseg.descent.Descent`, through its backend),
+    at 1 mm steps over ``width`` mm inside and outside, and each sample is
+    scaled as ``(u - c_in) / (c_out - c_in)`` with ``levels = (c_in,
+    c_out)``.  Returns an array ``(sectors, 2)``: the mean scaled level of
+    the inner and of the outer band in each of :data:`WALL_SECTORS` (NaN
+    where no sample has image data).
+    """
+    model, backend = descent.model, descent.backend
+    observation = backend.observe(descent.p, volume)
+    offsets = np.concatenate([-np.arange(1.0, width + 0.5), np.arange(1.0, width + 0.5)])
+    samples = backend.samples_along(volume, observation, offsets, np.arange(model.n_samples))
+    c_in, c_out = levels
+    scaled = (samples - c_in) / (c_out - c_in)
+    inner = offsets < 0
+    lo, hi = model.grid.v2_range
+    around, along = WALL_SECTORS
+    sector_1 = np.minimum((model.v1 % (2 * np.pi)) * (around / (2 * np.pi)), around - 1).astype(int)
+    t2 = ((model.v2 - lo) / (hi - lo) - WALL_SPAN[0]) / (WALL_SPAN[1] - WALL_SPAN[0])
+    read = (t2 >= 0) & (t2 < 1)
+    sector = (sector_1 * along + np.floor(t2 * along).astype(int))[read]
+    sides = np.empty((around * along, 2))
+    for side, band in enumerate((scaled[read][:, inner], scaled[read][:, ~inner])):
+        finite = np.isfinite(band)
+        total = np.bincount(sector, np.where(finite, band, 0.0).sum(axis=1), minlength=around * along)
+        count = np.bincount(sector, finite.sum(axis=1), minlength=around * along)
+        sides[:, side] = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    return sides
+
+
+def followed_the_wall(tracker) -> bool:
+    """Whether ``tracker``'s stepped frame settled on the wall: its finest
+    level converged, and in every sector of the wall the band just inside
+    the surface (half the local means' band, ``options.band / 2`` mm) reads
+    as blood and the band just outside as wall (:data:`LEFT_BEHIND`, on
+    the interface's levels).
+
+    A wall that moved by more than the finest levels' bands can follow is
+    left with tissue on the surface's inner side (systole) or blood on its
+    outer side (diastole), where the local means balance on the wrong side
+    of it; only then is the frame segmented again
+    (:func:`keep_better_start`), which costs some thirty steps.
+    """
+    if tracker.status != 0:
+        return False
+    with np.errstate(invalid="ignore", divide="ignore"):  # a sector without image data: NaN, not left behind
+        sides = wall_sides(tracker.stepper.descent, tracker.volume, tracker.interface_levels(),
+                           width=tracker.options.band / 2)
+    inner, outer = sides[:, 0], sides[:, 1]
+    return not (np.any(inner > LEFT_BEHIND) or np.any(outer < LEFT_BEHIND))
 
 
 def keep_better_start(tracker, start: Surface) -> None:

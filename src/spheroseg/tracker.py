@@ -23,7 +23,7 @@ import warnings
 
 import numpy as np
 
-from .frames import BASE_RING_MM, base_ring_floor, base_ring_points, followed_base, keep_better_start
+from .frames import BASE_RING_MM, base_ring_floor, base_ring_points, followed_base, followed_the_wall, keep_better_start
 from .initial import check_landmarks, check_volume, initial_model
 from .dataterms import nanmedian
 from .options import SegmentOptions
@@ -260,8 +260,10 @@ class Tracker:
         ``max_iterations`` (default: the options') until the surface stops
         moving.  With ``follow_base``, the mitral plane first moves along the
         long axis with the annulus (:func:`spheroseg.frames.followed_base`)
-        and the model is posed there.  With ``coarse_to_fine`` the frame is
-        then segmented again from afar and the better segmentation kept
+        and the model is posed there.  With ``coarse_to_fine``, a frame
+        whose stepped surface did not settle on the wall
+        (:func:`spheroseg.frames.followed_the_wall`) is then segmented again
+        from afar and the better segmentation kept
         (:func:`spheroseg.frames.keep_better_start`).  ``iter_callback``
         and ``callback_every`` as in :meth:`run`.
         """
@@ -283,8 +285,8 @@ class Tracker:
         stepper.start_frame(volume, self.options.max_iterations if max_iterations is None else int(max_iterations))
         stepper.seconds = time.perf_counter() - started
         self.run(iter_callback, callback_every=callback_every)
-        if self.options.coarse_to_fine and self.status != 2:  # not when stopped from outside
-            keep_better_start(self, start)
+        if self.options.coarse_to_fine and self.status != 2 and not followed_the_wall(self):
+            keep_better_start(self, start)  # (not when stopped from outside)
         return self.result()
 
     def step(self, volume, *, max_iterations: int | None = None, iter_callback=None,
