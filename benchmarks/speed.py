@@ -25,6 +25,7 @@ from __future__ import annotations
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -65,12 +66,12 @@ def iteration_parts(d, volume, repeats=300) -> dict:
 
     def project():
         d.p = p0.copy()
-        d.iterate(obs, term.force(d.backend, volume, obs))
+        d.iterate(obs, term.force(obs))
 
     def whole():
         d.p = p0.copy()
         o = d.observe(volume, term)
-        d.iterate(o, term.force(d.backend, volume, o))
+        d.iterate(o, term.force(o))
 
     backend, rows = d.backend, d.discretisation.band_rows
     out = {"sampling_us": 1e6 * median_time(lambda: d.observe(volume, term), repeats),
@@ -81,7 +82,8 @@ def iteration_parts(d, volume, repeats=300) -> dict:
         out["surface_and_samples_us"] = 1e6 * median_time(lambda: backend.observe(d.p, volume), repeats)
         out["band_samples_us"] = 2e6 * median_time(lambda: backend.mean_along(volume, obs, term.band_offsets, rows),
                                                    repeats)
-        out["local_means_us"] = 1e6 * median_time(lambda: term.force(backend, volume, obs), repeats)
+        out["local_means_us"] = 1e6 * median_time(lambda: term.force(replace(obs, band_means=backend.band_means(obs))),
+                                                  repeats)
         out["image_samples"] = d.model.n_samples + 2 * len(rows) * len(term.band_offsets)
     d.p = p0
     return out
@@ -95,7 +97,8 @@ def last_stage(volume, apex, base):
     d = Descent(s, s, order=8, step=1.0, landmarks=apex[None], landmark_weights=[10.0], nu=0.0, smoothness=1.0)
     probe = d.backend.observe(d.p, volume)
     term = IntensityInterface(probe.u[np.isfinite(probe.u)])
-    term.force(d.backend, volume, d.observe(volume, term))  # measures and freezes the region means
+    obs = d.observe(volume, term)
+    term.freeze(d.backend, volume, obs, *obs.band_means)  # measures and freezes the region means
     return d, term, d.p.copy()
 
 

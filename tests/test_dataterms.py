@@ -35,14 +35,14 @@ def test_global_means_are_the_region_values(two_regions, backend):
     volume, model, p, _, _ = two_regions
     b = NumpyBackend(model) if backend == "numpy" else select_backend(model)
     term = GlobalMeans(np.array([C_IN, C_OUT]), band_out=15.0)
-    c_in, c_out, scale = term.force(b, volume, b.observe(p, volume))[1:4]
+    c_in, c_out, scale = term.force(b.observe_term(p, volume, term))[1:4]
     # the cavity along the rays (to 0.95 f) and the shell 3 to 15 mm outside
     assert c_in == pytest.approx(C_IN, abs=0.5)
     assert c_out == pytest.approx(C_OUT, abs=0.5)
     assert scale == pytest.approx((c_out - c_in) ** 2)
     # inside brighter than outside: no force, the least scale; the means as measured
     flipped = Volume(C_IN + C_OUT - volume.array)
-    force = term.force(b, flipped, b.observe(p, flipped))
+    force = term.force(b.observe_term(p, flipped, term))
     assert force.c_out == force.c_in == pytest.approx(C_OUT, abs=0.5) and force.scale == term.min_scale
     assert force.grey_means[1] == pytest.approx(C_IN, abs=0.5)
 
@@ -57,8 +57,8 @@ def test_a_data_term_keeps_nothing_of_what_it_measures(two_regions, term_class, 
     b = NumpyBackend(model) if backend == "numpy" else select_backend(model)
     term = term_class(np.array([C_IN, C_OUT]))
     before = dict(vars(term))
-    obs = b.observe(p, volume, band_offsets=term.band_offsets if term.needs_bands else None)
-    force = term.force(b, volume, obs)
+    obs = b.observe_term(p, volume, term)
+    force = term.force(obs)
     assert vars(term).keys() == before.keys()
     assert all(vars(term)[name] is value for name, value in before.items())
     c_in, c_out = force.grey_means
@@ -80,20 +80,18 @@ def test_local_means_are_the_band_values_and_respect_polarity(two_regions):
     volume, model, p, inner, p_inner = two_regions
     b = NumpyBackend(model)
     term = LocalMeans(np.array([C_IN, C_OUT]), band=8.0)
-    obs = b.observe(p, volume, band_offsets=term.band_offsets)
-    c_in, c_out, scale = term.force(b, volume, obs)[1:4]
+    c_in, c_out, scale = term.force(b.observe_term(p, volume, term))[1:4]
     # on the interface: blood in the inner band, tissue in the outer one
     assert np.median(c_in) == pytest.approx(C_IN, abs=1.0) and np.median(c_out) == pytest.approx(C_OUT, abs=1.0)
     assert scale == pytest.approx(np.median(c_out - c_in) ** 2)
     # 4 mm inside: the outer band (2 to 8 mm) is part blood, so its mean lies between
     b = NumpyBackend(inner)
-    c_in, c_out = term.band_means(b, b.observe(p_inner, volume, band_offsets=term.band_offsets))
+    c_in, c_out = b.observe_term(p_inner, volume, term).band_means
     assert np.median(c_in) == pytest.approx(C_IN, abs=1.0) and C_IN + 20 < np.median(c_out) < C_OUT - 20
     # inside brighter than outside: no contrast, no force, the least scale
     b = NumpyBackend(model)
     flipped = Volume(C_IN + C_OUT - volume.array)
-    obs = b.observe(p, flipped, band_offsets=term.band_offsets)
-    c_in, c_out, scale = term.force(b, flipped, obs)[1:4]
+    c_in, c_out, scale = term.force(b.observe_term(p, flipped, term))[1:4]
     np.testing.assert_allclose(c_out, c_in)
     assert scale == term.min_scale
 
@@ -122,17 +120,14 @@ def test_a_bright_inside_is_the_dark_inside_reflected(two_regions, backend):
     flipped = Volume(-volume.array)
     bright = type("Bright", (LocalMeans,), {"polarity": -1.0})(np.array([C_IN, C_OUT]), band=8.0)
     dark = LocalMeans(np.array([C_IN, C_OUT]), band=8.0)
-    obs = b.observe(p, flipped, band_offsets=dark.band_offsets)
-    wall = bright.force(b, flipped, obs)
-    obs = b.observe(p, volume, band_offsets=dark.band_offsets)
-    cavity = dark.force(b, volume, obs)
+    wall = bright.force(b.observe_term(p, flipped, bright))
+    cavity = dark.force(b.observe_term(p, volume, dark))
     for a, c in [(wall.c_in, cavity.c_in), (wall.c_out, cavity.c_out), *zip(wall.grey_means, cavity.grey_means)]:
         np.testing.assert_allclose(a, -c, rtol=1e-12)
     assert wall.scale == pytest.approx(cavity.scale, rel=1e-12) and np.median(wall.c_in) > np.median(wall.c_out)
     k = 15.0
     bright = type("Bright", (LocalMeans,), {"polarity": -1.0, "boundary_nepers": k})(np.array([C_IN, C_OUT]), band=8.0)
-    obs = b.observe(p, flipped, band_offsets=dark.band_offsets)
-    force = bright.force(b, flipped, obs)
+    force = bright.force(b.observe_term(p, flipped, bright))
     c_in, c_out = force.grey_means
     middle = (force.c_in + force.c_out) / 2
     np.testing.assert_allclose(np.exp(middle / k), (np.exp(c_in / k) + np.exp(c_out / k)) / 2, rtol=1e-9)
@@ -147,7 +142,7 @@ def test_fixed_interface_levels():
     given = FixedInterface(samples, interface=60.0)
     assert (given.c_in, given.c_out) == (10.0, 110.0)  # the class means' half gap about the given level
     obs = type("Obs", (), {"u": np.zeros(3)})()
-    assert given.force(None, None, obs)[1:5] == (10.0, 110.0, 100.0**2, 1.0)
+    assert given.force(obs)[1:5] == (10.0, 110.0, 100.0**2, 1.0)
 
 
 def test_modes_map_to_one_class_each():
@@ -293,10 +288,14 @@ def test_the_interface_reads_the_bands_only_until_its_means_are_frozen(two_regio
     term = IntensityInterface(np.array([C_IN, C_OUT]))
     term.nepers = 10.0  # not speckle: k given
     assert term.needs_bands
-    force = term.force(backend, volume, backend.observe(p_on, volume, band_offsets=term.band_offsets))
+    obs = backend.observe_term(p_on, volume, term)
+    with pytest.raises(RuntimeError, match="freeze"):  # its levels come from band means, set by its stage
+        term.force(obs)
+    term.freeze(backend, volume, obs, *obs.band_means)
+    force = term.force(obs)
     assert not term.needs_bands
-    obs = backend.observe(p_on, volume)  # no bands: the frozen means are used
-    assert obs.inside is None and term.force(backend, volume, obs)[1:5] == force[1:5]
+    obs = backend.observe_term(p_on, volume, term)  # no bands: the frozen means are used
+    assert obs.inside is None and obs.band_means is None and term.force(obs)[1:5] == force[1:5]
     term.reset()
     assert term.needs_bands
 

@@ -42,7 +42,7 @@ def test_step_solves_the_least_squares_system(phantom, backend):
                 landmark_weights=weights, backend=backend)
     term = LocalMeans(np.linspace(0, 100, 50))
     obs = d.observe(ph.volume, term)
-    force = term.force(d.backend, ph.volume, obs)
+    force = term.force(obs)
     p = d.p.copy()
     motion = d.iterate(obs, force)
 
@@ -76,7 +76,7 @@ def _stepped(descent, volume, term, *, tol, max_iterations):
     """The reference of :meth:`Descent.run`: observe, force, iterate."""
     for iteration in range(1, max_iterations + 1):
         obs = descent.observe(volume, term)
-        force = term.force(descent.backend, volume, obs)
+        force = term.force(obs)
         motion = descent.iterate(obs, force)
         if motion < tol:
             break
@@ -116,7 +116,8 @@ def test_a_level_in_one_compiled_loop_equals_its_iterations(phantom, term_class,
             term = term_class(samples)
             if term_class is IntensityInterface:  # frozen on a first observation, as its stage does
                 obs = d.observe(ph.volume, term)
-                d.iterate(obs, term.force(d.backend, ph.volume, obs))
+                term.freeze(d.backend, ph.volume, obs, *obs.band_means)
+                d.iterate(obs, term.force(obs))
             runs.append((d, term))
         (d, term), (d_ref, term_ref) = runs
         before = dict(vars(term))

@@ -261,7 +261,7 @@ def test_compiled_path_matches_numpy_reference(phantoms):
         for name in ("f", "h0", "cos", "u", "inside", "outside"):
             np.testing.assert_allclose(getattr(o_fast, name), getattr(o_ref, name), rtol=1e-9, atol=1e-9)
         for d, o in ((fast, o_fast), (ref, o_ref)):
-            force = term.force(d.backend, ph.volume, o)
+            force = term.force(o)
             d.iterate(o, force._replace(scale=400.0))
     np.testing.assert_allclose(fast.p, ref.p, atol=1e-6)
 

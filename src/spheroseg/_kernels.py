@@ -607,7 +607,7 @@ def _select(a, k):
 
 def _global_means(image, f, area_element, world, normal, trig, focal_length, rotation, origin, weights, band_rows,
                   fractions, shell_offsets, scratch):
-    """:meth:`spheroseg.dataterms.DataTerm.global_means`: the cavity's
+    """:meth:`spheroseg.backends.NumpyBackend.region_means`: the cavity's
     volume-weighted mean and the shell's area-weighted mean (NaN without
     weight); ``scratch``: three rows at least as long as the band rows."""
     nb = band_rows.shape[0]
@@ -629,7 +629,7 @@ def _global_means(image, f, area_element, world, normal, trig, focal_length, rot
 
 
 def _band_means(inside, outside, surface, out_c_in, out_c_out):
-    """:meth:`spheroseg.dataterms.LocalMeans.band_means`: the band means
+    """:meth:`spheroseg.backends.NumpyBackend.band_means`: the band means
     (a missing one replaced by its band's mean) projected on the Hermite
     space, at every sample point; False when a band has no finite mean."""
     band_weights, mass_inverse = surface.band_weights, surface.mass_inverse

@@ -15,6 +15,9 @@ The methods, for a model of ``n`` sample points and parameters ``p``:
 - :meth:`~NumpyBackend.observe`: the surface at the samples (``f``, the scale
   factor ``h0``, ``A_K``, world points, outward normals) and the grey level
   there; optionally the mean grey levels in bands along the normals;
+- :meth:`~NumpyBackend.observe_term`: that, and what a data term reads (the
+  band means smoothed over the surface, the global region means, samples at
+  its own offsets): the data term is then a function of the observation;
 - :meth:`~NumpyBackend.samples_along`, :meth:`~NumpyBackend.mean_along`:
   samples along the normals, raw or averaged;
 - :meth:`~NumpyBackend.cavity_sums`: samples inside the cavity along the
@@ -37,6 +40,7 @@ from ._runtime import (PARALLEL_LOCK, compiled_available, idle_cores, kernel_thr
                        usable_cores)
 from .beamspace import BeamVolume
 from .coords import ProlateSpheroidal
+from .dataterms import CAVITY_FRACTIONS, DataTerm
 from .energy import Geometry, SampledSurface, normal_speed
 
 __all__ = ["Observation", "NumpyBackend", "CompiledBackend", "select_backend", "compiled_available",
@@ -66,6 +70,15 @@ class Observation:
     inside: np.ndarray | None = None  #: mean grey level in the inner band, on the band rows
     outside: np.ndarray | None = None  #: the same in the outer band
     geometry: Geometry | None = None  #: the full geometry, when asked for
+    #: ``(c_in, c_out)``: the band means smoothed over the surface, at every sample point
+    band_means: tuple | None = None
+    #: ``(cavity, shell)``: the global region means (grey levels)
+    region_means: tuple | None = None
+    along: np.ndarray | None = None  #: grey levels at a data term's own offsets, on the band rows
+
+
+def _ratio(numerator: float, denominator: float) -> float:
+    return float(numerator / denominator) if denominator > 0 else np.nan
 
 
 def row_nanmean(values: np.ndarray) -> np.ndarray:
@@ -103,6 +116,57 @@ class NumpyBackend:
             obs.inside = row_nanmean(self.samples_along(volume, obs, -band_offsets, rows, exponent=exponent))
             obs.outside = row_nanmean(self.samples_along(volume, obs, band_offsets, rows, exponent=exponent))
         return obs
+
+    def observe_term(self, p, volume, term: DataTerm, *, geometry: bool = False) -> Observation:
+        """:meth:`observe` with what the data term ``term`` reads: the band
+        means smoothed over the surface (:meth:`band_means`, while
+        ``term.needs_bands``), the global region means
+        (:meth:`region_means`, with ``term.needs_region_means``) and the
+        samples at its own ``term.offsets`` on the band rows."""
+        obs = self.observe(p, volume, band_offsets=term.band_offsets if term.needs_bands else None,
+                           geometry=geometry, exponent=term.exponent or 0.0)
+        if term.needs_bands:
+            obs.band_means = self.band_means(obs)
+        if term.needs_region_means:
+            obs.region_means = self.region_means(volume, obs, term.shell_offsets)
+        if term.offsets is not None:
+            obs.along = self.samples_along(volume, obs, np.asarray(term.offsets, dtype=float),
+                                           self.discretisation.band_rows)
+        return obs
+
+    def band_means(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
+        """The band means ``obs.inside``, ``obs.outside`` (a missing one
+        replaced by its band's mean) projected on the Hermite space (the
+        band rows' quadrature: ``M^-1 B_b^T W_b m``) and evaluated at every
+        sample point: ``(c_in, c_out)``."""
+        d = self.discretisation
+        fields = np.stack([obs.inside, obs.outside])
+        ok = np.isfinite(fields)
+        if not ok[0].any() or not ok[1].any():
+            raise ValueError("no image data around the surface (is it inside the image's sector?)")
+        if not ok.all():
+            fields = np.where(ok, fields, np.nanmean(fields, axis=1)[:, None])
+        rhs = self.scatter(d.band_weights * fields, band=True)
+        # both fields in one product: one pass over the inverse, not two
+        smooth = d.mass_inverse @ rhs
+        c_in, c_out = self.gather(smooth)
+        return c_in, c_out
+
+    def region_means(self, volume, obs: Observation, shell_offsets) -> tuple[float, float]:
+        """The global means: the cavity's, weighted by the volume element
+        along the rays of the band rows (at :data:`CAVITY_FRACTIONS` of
+        ``f``), and the area-weighted mean of a shell outside the surface
+        (at ``shell_offsets`` mm); NaN without weight."""
+        d = self.discretisation
+        rows = d.band_rows
+        cavity, volume_sum = self.cavity_sums(volume, obs, CAVITY_FRACTIONS, rows)
+        shell, count = self.mean_along(volume, obs, shell_offsets, rows)
+        # per ray: cavity = sum of V u, volume = sum of V over the finite samples
+        weights = d.weights[rows]
+        w_in = weights * obs.f[rows]
+        w_out = weights * obs.area[rows] * count
+        shell[count == 0] = 0.0  # no sample, no weight (np.nan_to_num costs five times this)
+        return _ratio(w_in @ cavity, w_in @ volume_sum), _ratio(w_out @ shell, w_out.sum())
 
     def samples_along(self, volume, obs: Observation, offsets, rows=slice(None), *, exponent: float = 0.0,
                       order: int = 1) -> np.ndarray:

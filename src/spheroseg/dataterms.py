@@ -31,7 +31,9 @@ A data term of one's own
     observation (the grey levels at the surface and the samples along the
     normals) to a :class:`Force`; pass the class as ``mode``.  It reads no
     backend and keeps no state: the iteration samples the image, calls it,
-    and keeps what a result reports.  Such a term runs iteration by
+    and keeps what a result reports (as for the built-in terms, whose
+    :meth:`DataTerm.force` reads the band means or the region means that the
+    observation carries).  Such a term runs iteration by
     iteration on either backend (the compiled level loop computes only the
     built-in terms).  For example, a Rayleigh likelihood of the echo
     amplitude in each band (Sarti et al. 2005)::
@@ -159,10 +161,6 @@ class Force(NamedTuple):
         return (self.c_in, self.c_out) if self.measured is None else self.measured
 
 
-def _ratio(numerator: float, denominator: float) -> float:
-    return float(numerator / denominator) if denominator > 0 else np.nan
-
-
 class DataTerm:
     """Region statistics for the force of eq. 22.
 
@@ -179,7 +177,10 @@ class DataTerm:
     Attributes
     ----------
     needs_bands : bool
-        Whether :meth:`force` reads the observation's band means.
+        Whether :meth:`force` reads the observation's band means
+        (``Observation.band_means``).
+    needs_region_means : bool
+        Whether it reads the global region means (``Observation.region_means``).
     band_offsets : array or None
         Their distances along the normal (mm).
     exponent : float or None
@@ -197,7 +198,7 @@ class DataTerm:
     loop_kind : {"fixed", "global", "local"} or None
         How a level run in one compiled loop computes this force
         (:meth:`spheroseg.descent.Descent.run`): from :meth:`fixed_force`,
-        as :meth:`global_means`, as :meth:`LocalMeans.band_means`; None: it
+        as the region means, as the band means; None: it
         cannot (the level then runs iteration by iteration).
     offsets : array or None
         A term of one's own: the distances (mm along the outward normal,
@@ -205,6 +206,7 @@ class DataTerm:
     """
 
     needs_bands = False
+    needs_region_means = False
     exponent: float | None = 0.0
     step_factor = 1.0
     hands_over_bands = False
@@ -219,18 +221,17 @@ class DataTerm:
         self.band_offsets = band_offsets(band) if self.needs_bands else None
         self.shell_offsets = shell_offsets(band_out)
 
-    def force(self, backend, volume, obs) -> Force:
-        """The :class:`Force` for the observation ``obs``; the term keeps
-        nothing of it (the tracker keeps what a result reports,
-        :attr:`Force.grey_means`).
+    def force(self, obs) -> Force:
+        """The :class:`Force` for the observation ``obs``
+        (:meth:`spheroseg.backends.NumpyBackend.observe_term`): a function
+        of it and of the term's constants; the term keeps nothing of it (the
+        tracker keeps what a result reports, :attr:`Force.grey_means`).
 
         Here: :meth:`statistics` of the samples at :attr:`offsets` along
         the normals of the band rows (the built-in terms override this)."""
         if self.offsets is None:
             raise NotImplementedError(f"{type(self).__name__} defines neither force() nor offsets and statistics()")
-        along = backend.samples_along(volume, obs, np.asarray(self.offsets, dtype=float),
-                                      backend.discretisation.band_rows)
-        return self.statistics(obs.u, along)
+        return self.statistics(obs.u, obs.along)
 
     def statistics(self, u: np.ndarray, along: np.ndarray) -> Force:
         """A term of one's own: the force from what the iteration observed.
@@ -268,20 +269,6 @@ class DataTerm:
         not change in a level (``loop_kind`` "fixed")."""
         raise NotImplementedError
 
-    def global_means(self, backend, volume, obs) -> tuple[float, float]:
-        """Volume-weighted cavity mean and area-weighted shell mean, from the
-        rays of the band rows."""
-        d = backend.discretisation
-        rows = d.band_rows
-        cavity, volume_sum = backend.cavity_sums(volume, obs, CAVITY_FRACTIONS, rows)
-        shell, count = backend.mean_along(volume, obs, self.shell_offsets, rows)
-        # per ray: cavity = sum of V u, volume = sum of V over the finite samples
-        weights = d.weights[rows]
-        w_in = weights * obs.f[rows]
-        w_out = weights * obs.area[rows] * count
-        shell[count == 0] = 0.0  # no sample, no weight (np.nan_to_num costs five times this)
-        return _ratio(w_in @ cavity, w_in @ volume_sum), _ratio(w_out @ shell, w_out.sum())
-
 
 class FixedInterface(DataTerm):
     """The paper's fast mode: ``c_in``, ``c_out`` fixed from the samples
@@ -297,7 +284,7 @@ class FixedInterface(DataTerm):
         half = (hi.mean() - lo.mean()) / 2 if lo.size and hi.size else self.spread
         self.c_in, self.c_out = mid - half, mid + half
 
-    def force(self, backend, volume, obs) -> Force:
+    def force(self, obs) -> Force:
         return self.fixed_force(obs.u)
 
     def fixed_force(self, u=None) -> Force:
@@ -317,9 +304,10 @@ class GlobalMeans(DataTerm):
     """
 
     loop_kind = "global"
+    needs_region_means = True
 
-    def force(self, backend, volume, obs) -> Force:
-        c_in, measured_out = self.global_means(backend, volume, obs)
+    def force(self, obs) -> Force:
+        c_in, measured_out = obs.region_means
         c_out = max(measured_out, c_in)
         return Force(obs.u, c_in, c_out, max((c_out - c_in) ** 2, self.min_scale), measured=(c_in, measured_out))
 
@@ -343,10 +331,10 @@ class LocalMeans(DataTerm):
     #: boundary; inf: the grey levels' midpoint
     boundary_nepers = np.inf
 
-    def force(self, backend, volume, obs) -> Force:
-        c_in, c_out = self.band_means(backend, obs)
+    def force(self, obs) -> Force:
+        c_in, c_out = obs.band_means
         sign = self.polarity
-        contrast = np.maximum(sign * (c_out - c_in), 0.0)
+        contrast = np.maximum(sign * (c_out - c_in), 0.0)  # the wrong polarity: no force
         force_in, force_out = c_in, c_in + sign * contrast
         if np.isfinite(self.boundary_nepers):
             dark, bright = (force_in, force_out) if sign > 0 else (force_out, force_in)
@@ -354,25 +342,6 @@ class LocalMeans(DataTerm):
             force_in, force_out = level - sign * contrast / 2, level + sign * contrast / 2
         return Force(obs.u, force_in, force_out, max(nanmedian(contrast) ** 2, self.min_scale),
                      measured=(c_in, c_out))
-
-    def band_means(self, backend, obs):
-        """The band means projected on the Hermite space (the band rows'
-        quadrature: ``M^-1 B_b^T W_b m``) and evaluated at every sample
-        point.  Inside brighter than outside (wrong polarity) gives no force."""
-        d = backend.discretisation
-        fields = np.stack([obs.inside, obs.outside])
-        ok = np.isfinite(fields)
-        if not ok[0].any() or not ok[1].any():
-            raise ValueError("no image data around the surface (is it inside the image's sector?)")
-        if not ok.all():
-            fields = np.where(ok, fields, np.nanmean(fields, axis=1)[:, None])
-        rhs = backend.scatter(d.band_weights * fields, band=True)
-        # both fields in one product: one pass over the inverse, not two
-        smooth = d.mass_inverse @ rhs
-        c_in, c_out = backend.gather(smooth)
-        return c_in, c_out
-
-
 
 
 class IntensityInterface(LocalMeans):
@@ -475,9 +444,14 @@ class IntensityInterface(LocalMeans):
         (and the log compression) iteration by iteration."""
         return None if self._frozen is None else "fixed"
 
-    def force(self, backend, volume, obs) -> Force:
+    @property
+    def frozen(self) -> bool:
+        """Whether its levels are set (:meth:`freeze`)."""
+        return self._frozen is not None
+
+    def force(self, obs) -> Force:
         if self._frozen is None:
-            self.freeze(backend, volume, obs, *self.band_means(backend, obs))
+            raise RuntimeError("the intensity interface's levels are not set: freeze() them from band means first")
         return self.fixed_force(obs.u)
 
     def fixed_force(self, u=None) -> Force:
@@ -485,7 +459,7 @@ class IntensityInterface(LocalMeans):
 
     def freeze(self, backend, volume, obs, c_in, c_out) -> None:
         """Set the frozen levels from the band means ``c_in``, ``c_out``
-        (fields at the sample points, :meth:`LocalMeans.band_means`) about
+        (fields at the sample points, ``Observation.band_means``) about
         the surface of ``obs`` (an observation with its bands).  The
         schedule hands over the local means' last ones, measured about the
         wall they settled on, so that this stage's first observation needs

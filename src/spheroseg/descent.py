@@ -135,10 +135,9 @@ class Descent:
 
     def observe(self, volume, data_term) -> Observation:
         """The surface and the image at the sample points, with what the
-        data term reads (band means) and, with an area term, the geometry."""
-        offsets = data_term.band_offsets if data_term.needs_bands else None
-        return self.backend.observe(self.p, volume, band_offsets=offsets, geometry=self.nu > 0,
-                                    exponent=data_term.exponent or 0.0)
+        data term reads (:meth:`~spheroseg.backends.NumpyBackend.observe_term`)
+        and, with an area term, the geometry."""
+        return self.backend.observe_term(self.p, volume, data_term, geometry=self.nu > 0)
 
     def iterate(self, obs: Observation, force: Force) -> float:
         """One step with the data term's force; returns the RMS motion of

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._runtime import kernel_thread_count, kernel_threads
-from .dataterms import DataTerm, GlobalMeans, IntensityInterface, LocalMeans, NoSpeckleError, band_offsets, nanmedian
+from .dataterms import (DataTerm, GlobalMeans, IntensityInterface, LocalMeans, NoSpeckleError, band_offsets, nanmedian,
+                        shell_offsets)
 from .descent import Descent
 from .options import SegmentOptions
 from .results import STATUS_MESSAGES
@@ -174,11 +175,11 @@ class Stepper:
         scale of the contrast, the fast mode's levels."""
         d, opts = self.descent, self.options
         obs = d.backend.observe(d.p, self.volume)
-        probe = GlobalMeans(np.zeros(1), band=opts.band, band_out=opts.band_out)
-        self.start_means = probe.global_means(d.backend, self.volume, obs)
+        shell = shell_offsets(opts.band_out)
+        self.start_means = d.backend.region_means(self.volume, obs, shell)
         # the inner band's samples, then the shell's, in one call
         inner = band_offsets(opts.band)
-        along = d.backend.samples_along(self.volume, obs, np.concatenate([-inner, probe.shell_offsets]),
+        along = d.backend.samples_along(self.volume, obs, np.concatenate([-inner, shell]),
                                         d.discretisation.band_rows)
         samples = np.concatenate([along[:, :len(inner)].ravel(), along[:, len(inner):].ravel()])
         samples = samples[np.isfinite(samples)]
@@ -229,7 +230,9 @@ class Stepper:
         term = self.terms[self.levels[self.level].data_term]
         with kernel_threads(self.threads):
             obs = self.descent.observe(self.volume, term)
-            force = term.force(self.descent.backend, self.volume, obs)
+            if term.starts_from_bands and not term.frozen:  # no band means handed over: its own
+                term.freeze(self.descent.backend, self.volume, obs, *obs.band_means)
+            force = term.force(obs)
             motion = self.descent.iterate(obs, force)
         self._advance(term, obs, force, motion, 1)
         self.seconds += time.perf_counter() - started
