@@ -33,7 +33,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .volume import INDEX_TOLERANCE, ImageGrid, Volume
+from .volume import INDEX_TOLERANCE, ImageGrid, Volume, sample_at_index
 
 __all__ = ["BeamGeometry", "BeamVolume", "BeamSamplingView", "CONVENTIONS", "scan_convert", "to_beam_space",
            "beam_mask", "beam_mask_volume_ml"]
@@ -385,29 +385,9 @@ class BeamVolume:
         if order not in (0, 1):
             raise ValueError(f"order must be 0 (nearest sample) or 1 (trilinear), got {order!r}")
         world = np.asarray(world, dtype=float)
-        shape = world.shape[:-1]
-        idx = self.geometry.world_to_index(world.reshape(-1, 3))
-        upper = self.geometry.upper
-        with np.errstate(invalid="ignore"):
-            valid = np.all((idx >= -INDEX_TOLERANCE) & (idx <= upper + INDEX_TOLERANCE), axis=1)
-        idx = np.clip(np.nan_to_num(idx), 0, upper)
-        if order == 0:
-            out = self._flat[np.rint(idx).astype(np.int64) @ self._strides].astype(float)
-        else:
-            base = np.minimum(np.floor(idx), upper - 1).astype(np.int64)
-            t = idx - base
-            flat0 = base @ self._strides
-            out = np.zeros(len(idx))
-            for dr in (0, 1):
-                wr = t[:, 0] if dr else 1 - t[:, 0]
-                for de in (0, 1):
-                    we = t[:, 1] if de else 1 - t[:, 1]
-                    for da in (0, 1):
-                        wa = t[:, 2] if da else 1 - t[:, 2]
-                        off = dr * self._strides[0] + de * self._strides[1] + da * self._strides[2]
-                        out += wr * we * wa * self._flat[flat0 + off]
-        out[~valid | np.isnan(out)] = fill_value
-        return out.reshape(shape)
+        out = sample_at_index(self._flat, self._strides, self.geometry.upper,
+                              self.geometry.world_to_index(world.reshape(-1, 3)), order=order, fill_value=fill_value)
+        return out.reshape(world.shape[:-1])
 
     def sampling_view(self) -> BeamSamplingView:
         """The arrays :meth:`sample` reads (read-only views), for the compiled kernel."""

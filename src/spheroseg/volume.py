@@ -7,7 +7,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["Volume", "ImageGrid", "SamplingView", "INDEX_TOLERANCE", "outside_sector"]
+__all__ = ["Volume", "ImageGrid", "SamplingView", "INDEX_TOLERANCE", "outside_sector", "sample_at_index"]
 
 #: points this close (in voxels) outside the first or last voxel centre count
 #: as on it: world -> index round-off must not lose the image's edge
@@ -174,29 +174,9 @@ class Volume:
         if order not in (0, 1):
             raise ValueError(f"order must be 0 (nearest voxel) or 1 (trilinear), got {order!r}")
         world = np.asarray(world, dtype=float)
-        shape = world.shape[:-1]
-        idx = self.world_to_index(world.reshape(-1, 3))
-        within = (idx >= -INDEX_TOLERANCE) & (idx <= self._upper + INDEX_TOLERANCE)
-        valid = within[:, 0] & within[:, 1] & within[:, 2]  # (np.all(axis=1) is slower)
-        idx = np.clip(idx, 0, self._upper)
-        if order == 0:
-            out = self._flat[np.rint(idx).astype(np.int64) @ self._strides].astype(float)
-            out[~valid | np.isnan(out)] = fill_value
-            return out.reshape(shape)
-        base = np.minimum(np.floor(idx), np.maximum(self._upper - 1, 0)).astype(np.int64)
-        t = idx - base
-        flat0 = base @ self._strides
-        out = np.zeros(len(idx))
-        for dz in (0, 1):
-            wz = t[:, 2] if dz else 1 - t[:, 2]
-            for dy in (0, 1):
-                wy = t[:, 1] if dy else 1 - t[:, 1]
-                for dx in (0, 1):
-                    wx = t[:, 0] if dx else 1 - t[:, 0]
-                    flat = flat0 + (dx * self._strides[0] + dy * self._strides[1] + dz * self._strides[2])
-                    out += wx * wy * wz * self._flat[flat]
-        out[~valid | np.isnan(out)] = fill_value
-        return out.reshape(shape)
+        out = sample_at_index(self._flat, self._strides, self._upper, self.world_to_index(world.reshape(-1, 3)),
+                              order=order, fill_value=fill_value)
+        return out.reshape(world.shape[:-1])
 
     def sampling_view(self) -> SamplingView:
         """The arrays :meth:`sample` reads (views, not copies; read-only)."""
@@ -211,6 +191,39 @@ class Volume:
 
     def __repr__(self) -> str:
         return f"Volume(shape={self.shape}, spacing={tuple(self.spacing.round(4))}, origin={tuple(self.origin.round(3))})"
+
+
+def sample_at_index(flat: np.ndarray, strides: np.ndarray, upper: np.ndarray, index: np.ndarray, *,
+                    order: int = 1, fill_value: float = np.nan) -> np.ndarray:
+    """Trilinear interpolation (``order=1``) or the nearest sample
+    (``order=0``) of an image stored as ``flat`` (``flat[index @ strides]``
+    for integer ``index``), at continuous indices ``index`` ``(n, 3)``.
+
+    ``fill_value`` where an index lies beyond ``[0, upper]`` (by more than
+    :data:`INDEX_TOLERANCE`), is NaN, or touches a NaN (no-data) sample.
+    A :class:`Volume`'s voxels and a beam-space volume's samples are both
+    read this way.
+    """
+    with np.errstate(invalid="ignore"):
+        within = (index >= -INDEX_TOLERANCE) & (index <= upper + INDEX_TOLERANCE)
+    valid = within[:, 0] & within[:, 1] & within[:, 2]  # (np.all(axis=1) is slower)
+    index = np.clip(np.nan_to_num(index), 0, upper)
+    if order == 0:
+        out = flat[np.rint(index).astype(np.int64) @ strides].astype(float)
+    else:
+        base = np.minimum(np.floor(index), np.maximum(upper - 1, 0)).astype(np.int64)
+        t = index - base
+        flat0 = base @ strides
+        out = np.zeros(len(index))
+        for d2 in (0, 1):
+            w2 = t[:, 2] if d2 else 1 - t[:, 2]
+            for d1 in (0, 1):
+                w1 = t[:, 1] if d1 else 1 - t[:, 1]
+                for d0 in (0, 1):
+                    w0 = t[:, 0] if d0 else 1 - t[:, 0]
+                    out += w0 * w1 * w2 * flat[flat0 + (d0 * strides[0] + d1 * strides[1] + d2 * strides[2])]
+    out[~valid | np.isnan(out)] = fill_value
+    return out
 
 
 def outside_sector(array: np.ndarray, *, min_fraction: float = 0.01) -> np.ndarray | None:
