@@ -422,8 +422,9 @@ class IntensityInterface(LocalMeans):
     hands_over_bands = False
     starts_from_bands = True
 
+    _frozen = None  # the levels, once set (:meth:`freeze`)
+
     def __init__(self, samples, *, band=8.0, band_out=15.0, interface=None):
-        self.reset()  # first: the base class reads needs_bands
         super().__init__(samples, band=band, band_out=band_out)
         self.nepers = None  #: grey levels per neper of intensity, once estimated
         self.smoothing_mm = 0.0  #: the grey levels' smoothing (mm), estimated with ``nepers``

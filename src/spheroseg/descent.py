@@ -89,7 +89,7 @@ class Descent:
         self.model = SampledSurface(surface.system, surface.pose, surface.grid, order)
         self.discretisation = self.model.discretisation
         self.backend = select_backend(self.model, compiled=backend != "numpy")
-        self.like = surface
+        self.template = surface  # the system, pose and grid of the surfaces it returns
         self.p = self.model.parameters(surface.coefficients)
         self.step, self.nu, self.smoothness = step, nu, smoothness
         self.adaptive_step = adaptive_step
@@ -106,7 +106,7 @@ class Descent:
     @property
     def surface(self) -> Surface:
         """The current surface."""
-        return self.like.with_coefficients(self.model.coefficients(self.p))
+        return self.template.with_coefficients(self.model.coefficients(self.p))
 
     def set_surface(self, surface: Surface) -> None:
         """Continue from ``surface`` (same grid and pose)."""
