@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -35,14 +36,22 @@ print(json.dumps({**loaded, "raster_compiled": compilations(), "said": len(said)
 """
 
 
-def test_a_first_run_compiles_the_rasteriser_in_a_second_process(tmp_path):
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "PYTHONWARNINGS": "ignore"}
+@pytest.fixture(scope="module")
+def first_run(tmp_path_factory):
+    """``RUN`` twice in one numba cache, empty at first: the cache (every
+    kernel of a command, compiled) and the two runs' reports."""
+    cache = tmp_path_factory.mktemp("first-run") / "numba"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONWARNINGS": "ignore"}
     runs = []
     for _ in range(2):
         proc = subprocess.run([sys.executable, "-c", RUN], capture_output=True, text=True, env=env, timeout=600)
         assert proc.returncode == 0, proc.stderr
         runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
-    first, later = runs
+    return cache, runs
+
+
+def test_a_first_run_compiles_the_rasteriser_in_a_second_process(first_run):
+    _, (first, later) = first_run
     # a first run is said once, and both callers learn it compiled
     assert first["compiled"] and first["said"] == 1 and first["both_compiled"] == [True, True]
     if (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()) >= 2:
@@ -54,6 +63,7 @@ def test_a_first_run_compiles_the_rasteriser_in_a_second_process(tmp_path):
     assert later["said"] == 0 and later["both_compiled"] == [False, False]
 
 
+STEP_KERNELS = ("gather", "scatter", "normal_displacement", "samples_at")
 STEP = """
 import json
 import sys
@@ -67,19 +77,27 @@ else:
     ph = make_phantom(seed=0, spacing=3.0)
     segment(ph.volume, ph.apex, ph.base, max_iterations=2)
 print(json.dumps({name: sum(getattr(_kernels, name).stats.cache_misses.values())
-                  for name in ("gather", "scatter", "normal_displacement", "samples_at")}))
+                  for name in sys.argv[2:]}))
 """
 
 
-def test_the_helpers_step_kernels_are_those_a_segmentation_calls(tmp_path):
-    """What the second process of a first run compiles first: with an
-    empty cache it compiles each of these kernels, and a segmentation after
-    it compiles none of them (the signatures are a segmentation's)."""
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "PYTHONWARNINGS": "ignore"}
+def test_the_helpers_step_kernels_are_those_a_segmentation_calls(first_run, tmp_path):
+    """What the second process of a first run compiles first: with none of
+    these kernels in the cache it compiles each of them, and a segmentation
+    after it compiles none of them (the signatures are a segmentation's).
+    The cache is the first run's less these kernels' files, so that the
+    segmentation finds the rest of its kernels compiled."""
+    cache = tmp_path / "numba"
+    shutil.copytree(first_run[0], cache)
+    removed = [path for name in STEP_KERNELS for path in cache.rglob(f"_kernels.{name}-*")]
+    assert {path.name.split("-")[0] for path in removed} == {f"_kernels.{name}" for name in STEP_KERNELS}
+    for path in removed:
+        path.unlink()
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONWARNINGS": "ignore"}
     compiled = []
     for role in ("step", "segmentation"):
-        proc = subprocess.run([sys.executable, "-c", STEP, role], capture_output=True, text=True, env=env,
-                              timeout=600)
+        proc = subprocess.run([sys.executable, "-c", STEP, role, *STEP_KERNELS], capture_output=True, text=True,
+                              env=env, timeout=600)
         assert proc.returncode == 0, proc.stderr
         compiled.append(json.loads(proc.stdout.strip().splitlines()[-1]))
     step, segmentation = compiled
