@@ -208,17 +208,19 @@ def test_track_with_the_myocardium(tmp_path):
 
 
 def test_demo(tmp_path):
-    proc = run("demo", "--out", tmp_path / "demo")
-    assert proc.returncode == 0, proc.stderr
-    assert "EF" in proc.stdout
-    summary = json.loads((tmp_path / "demo" / "results.json").read_text())
-    assert abs(summary["ef_percent"] - summary["truth"]["ef_percent"]) < 5
     # without --out: a new folder beside an earlier demo's, nothing overwritten
     (tmp_path / "spheroseg-demo").mkdir()
     (tmp_path / "spheroseg-demo" / "results.json").write_text("earlier")
-    assert run("demo", "--quiet", cwd=tmp_path).returncode == 0
+    proc = run("demo", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "EF" in proc.stdout
     assert (tmp_path / "spheroseg-demo" / "results.json").read_text() == "earlier"
-    assert (tmp_path / "spheroseg-demo-2" / "results.json").exists()
+    summary = json.loads((tmp_path / "spheroseg-demo-2" / "results.json").read_text())
+    assert abs(summary["ef_percent"] - summary["truth"]["ef_percent"]) < 5
+    # --out is the folder written: an existing one is refused before any work, and left as it was
+    before = (tmp_path / "spheroseg-demo-2" / "results.json").read_bytes()
+    assert_one_line_error(run("demo", "--out", tmp_path / "spheroseg-demo-2", "--quiet"), "--force")
+    assert (tmp_path / "spheroseg-demo-2" / "results.json").read_bytes() == before
 
 
 def test_refuses_to_overwrite_without_force(case, tmp_path):
