@@ -2,55 +2,17 @@
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 
 import pytest
+from conftest import numba_cache_without
 
 pytest.importorskip("numba")
 
-RUN = """
-import json
-import threading
-from spheroseg._raster import compilations
-from spheroseg.synthetic.phantom import make_phantom
-from spheroseg.surface import Surface
-from spheroseg.volume import outside_sector
-from spheroseg.warmup import load_kernels
-# two threads at once, as the viewer's worker and its command: one loads
-said, results = [], []
-threads = [threading.Thread(target=lambda: results.append(load_kernels(on_compile=lambda: said.append(1))))
-           for _ in range(2)]
-for thread in threads:
-    thread.start()
-for thread in threads:
-    thread.join()
-loaded = max(results, key=lambda r: r["seconds"])  # the one that loaded
-# a mask and a padding search as a command makes them, after the loading
-ph = make_phantom(seed=0, spacing=3.0)
-Surface.from_apex_base(ph.apex, ph.base).mask(ph.volume.grid)
-outside_sector(ph.volume.array)
-print(json.dumps({**loaded, "raster_compiled": compilations(), "said": len(said),
-                  "both_compiled": [r["compiled"] for r in results]}))
-"""
-
-
-@pytest.fixture(scope="module")
-def first_run(tmp_path_factory):
-    """``RUN`` twice in one numba cache, empty at first: the cache (every
-    kernel of a command, compiled) and the two runs' reports."""
-    cache = tmp_path_factory.mktemp("first-run") / "numba"
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONWARNINGS": "ignore"}
-    runs = []
-    for _ in range(2):
-        proc = subprocess.run([sys.executable, "-c", RUN], capture_output=True, text=True, env=env, timeout=600)
-        assert proc.returncode == 0, proc.stderr
-        runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
-    return cache, runs
-
 
 def test_a_first_run_compiles_the_rasteriser_in_a_second_process(first_run):
+    """``conftest.RUN`` in an empty numba cache, then again in that cache."""
     _, (first, later) = first_run
     # a first run is said once, and both callers learn it compiled
     assert first["compiled"] and first["said"] == 1 and first["both_compiled"] == [True, True]
@@ -87,12 +49,7 @@ def test_the_helpers_step_kernels_are_those_a_segmentation_calls(first_run, tmp_
     after it compiles none of them (the signatures are a segmentation's).
     The cache is the first run's less these kernels' files, so that the
     segmentation finds the rest of its kernels compiled."""
-    cache = tmp_path / "numba"
-    shutil.copytree(first_run[0], cache)
-    removed = [path for name in STEP_KERNELS for path in cache.rglob(f"_kernels.{name}-*")]
-    assert {path.name.split("-")[0] for path in removed} == {f"_kernels.{name}" for name in STEP_KERNELS}
-    for path in removed:
-        path.unlink()
+    cache = numba_cache_without(first_run, tmp_path / "numba", [f"_kernels.{name}-*" for name in STEP_KERNELS])
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONWARNINGS": "ignore"}
     compiled = []
     for role in ("step", "segmentation"):
