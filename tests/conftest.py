@@ -1,3 +1,8 @@
+import json
+import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -28,3 +33,62 @@ def interruptible() -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+RUN = """
+import json
+import threading
+from spheroseg._raster import compilations
+from spheroseg.synthetic.phantom import make_phantom
+from spheroseg.surface import Surface
+from spheroseg.volume import outside_sector
+from spheroseg.warmup import load_kernels
+# two threads at once, as the viewer's worker and its command: one loads
+said, results = [], []
+threads = [threading.Thread(target=lambda: results.append(load_kernels(on_compile=lambda: said.append(1))))
+           for _ in range(2)]
+for thread in threads:
+    thread.start()
+for thread in threads:
+    thread.join()
+loaded = max(results, key=lambda r: r["seconds"])  # the one that loaded
+# a mask and a padding search as a command makes them, after the loading
+ph = make_phantom(seed=0, spacing=3.0)
+Surface.from_apex_base(ph.apex, ph.base).mask(ph.volume.grid)
+outside_sector(ph.volume.array)
+print(json.dumps({**loaded, "raster_compiled": compilations(), "said": len(said),
+                  "both_compiled": [r["compiled"] for r in results]}))
+"""
+
+
+@pytest.fixture(scope="session")
+def first_run(tmp_path_factory):
+    """``RUN`` twice in one numba cache, empty at first: the cache (every
+    kernel of a command, compiled) and the two runs' reports.  The session's
+    one compilation from nothing (``tests/test_warmup.py``); tests of a
+    first run elsewhere start from this cache less the kernels they need
+    compiled (:func:`numba_cache_without`)."""
+    pytest.importorskip("numba")
+    cache = tmp_path_factory.mktemp("first-run") / "numba"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONWARNINGS": "ignore"}
+    runs = []
+    for _ in range(2):
+        proc = subprocess.run([sys.executable, "-c", RUN], capture_output=True, text=True, env=env, timeout=600)
+        assert proc.returncode == 0, proc.stderr
+        runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    return cache, runs
+
+
+def numba_cache_without(first_run, folder: Path, patterns) -> Path:
+    """A copy in ``folder`` of the first run's numba cache less the files
+    matching each glob of ``patterns`` (``"_kernels.gather-*"``): a cache
+    in which just those kernels are compiled again, the rest loaded.  Each
+    pattern must match, so that a renamed kernel cannot leave the cache
+    whole."""
+    shutil.copytree(first_run[0], folder)
+    for pattern in patterns:
+        files = list(folder.rglob(pattern))
+        assert files, f"no {pattern} in the first run's cache"
+        for path in files:
+            path.unlink()
+    return folder

@@ -9,6 +9,7 @@ import meshio
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from conftest import numba_cache_without
 
 from spheroseg.fit import annulus_of_open_mesh
 from spheroseg.io import load, write_markups
@@ -208,17 +209,19 @@ def test_track_with_the_myocardium(tmp_path):
 
 
 def test_demo(tmp_path):
-    proc = run("demo", "--out", tmp_path / "demo")
-    assert proc.returncode == 0, proc.stderr
-    assert "EF" in proc.stdout
-    summary = json.loads((tmp_path / "demo" / "results.json").read_text())
-    assert abs(summary["ef_percent"] - summary["truth"]["ef_percent"]) < 5
     # without --out: a new folder beside an earlier demo's, nothing overwritten
     (tmp_path / "spheroseg-demo").mkdir()
     (tmp_path / "spheroseg-demo" / "results.json").write_text("earlier")
-    assert run("demo", "--quiet", cwd=tmp_path).returncode == 0
+    proc = run("demo", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "EF" in proc.stdout
     assert (tmp_path / "spheroseg-demo" / "results.json").read_text() == "earlier"
-    assert (tmp_path / "spheroseg-demo-2" / "results.json").exists()
+    summary = json.loads((tmp_path / "spheroseg-demo-2" / "results.json").read_text())
+    assert abs(summary["ef_percent"] - summary["truth"]["ef_percent"]) < 5
+    # --out is the folder written: an existing one is refused before any work, and left as it was
+    before = (tmp_path / "spheroseg-demo-2" / "results.json").read_bytes()
+    assert_one_line_error(run("demo", "--out", tmp_path / "spheroseg-demo-2", "--quiet"), "--force")
+    assert (tmp_path / "spheroseg-demo-2" / "results.json").read_bytes() == before
 
 
 def test_refuses_to_overwrite_without_force(case, tmp_path):
@@ -359,13 +362,17 @@ def test_profile_and_seconds_block(case, tmp_path):
     assert "report" not in json.loads((tmp_path / "quiet" / "results.json").read_text())["seconds"]
 
 
-def test_first_run_says_once_that_it_compiles(case, tmp_path):
-    # an empty numba cache is a first run on a new machine
+def test_first_run_says_once_that_it_compiles(case, first_run, tmp_path):
+    # a cache without the rasteriser's kernels is a first run (as an empty
+    # one on a new machine: tests/test_warmup.py); the rest of a command's
+    # kernels are the first run's, so a kernel that load_kernels misses is
+    # compiled in the segment stage, as it would be from nothing
     folder, image, ph = case
     path = folder / "first.mha"
     sitk.WriteImage(image, str(path))
     args = ["segment", path, *points_args(ph, np.array(image.GetOrigin())), "--no-report", "--force"]
-    env = {**os.environ, "PYTHONWARNINGS": "ignore", "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    cache = numba_cache_without(first_run, tmp_path / "numba", ["_raster.*"])
+    env = {**os.environ, "PYTHONWARNINGS": "ignore", "NUMBA_CACHE_DIR": str(cache)}
     runs = [subprocess.run([sys.executable, "-m", "spheroseg", *map(str, args), "--out", tmp_path / f"out{k}"],
                            capture_output=True, text=True, env=env, timeout=600) for k in range(2)]
     assert all(r.returncode == 0 for r in runs), runs[0].stderr

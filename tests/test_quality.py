@@ -1,5 +1,7 @@
 """The quality report, and robustness on image formations that broke the first method."""
 
+from functools import cache
+
 import numpy as np
 import pytest
 
@@ -8,6 +10,13 @@ from spheroseg.metrics import dice
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom
 from spheroseg.quality import FrameQuality, landmark_residuals, quality_report
 from spheroseg.surface import Surface
+
+
+@cache
+def formed_phantom(formation: str):
+    """The seed-0 phantom at 1.5 mm under one of ``FORMATIONS``, built once
+    for the tests that share it (read only)."""
+    return make_phantom(seed=0, spacing=1.5, formation=FORMATIONS[formation])
 
 
 def test_report_flags_what_is_out_of_the_ordinary():
@@ -24,7 +33,7 @@ def test_report_flags_what_is_out_of_the_ordinary():
 def test_no_collapse_on_hard_image_formations(formation):
     """Strong near-field clutter in the cavity, a dim myocardium, a dark wall
     region: a ventricle-shaped result (Dice >= 0.85), the apex where clicked."""
-    ph = make_phantom(seed=0, spacing=1.5, formation=FORMATIONS[formation])
+    ph = formed_phantom(formation)
     r = segment(ph.volume, ph.apex, ph.base)
     assert dice(r.mask(ph.volume), ph.truth_mask) >= 0.85
     assert r.quality["apex_shift_mm"] < 5.0
@@ -44,7 +53,7 @@ def test_a_collapse_is_reported():
     """With the apex free to move (the first method's weak hold, and its tolerance on
     every level), strong clutter pulls the surface towards the base: the
     report says so."""
-    ph = make_phantom(seed=0, spacing=1.5, formation=FORMATIONS["clutter_strong"])
+    ph = formed_phantom("clutter_strong")
     weak = segment(ph.volume, ph.apex, ph.base, apex_weight=1.0, coarse_tol=0.05)
     assert weak.quality["poor"] and weak.quality["apex_shift_mm"] > 10
     held = segment(ph.volume, ph.apex, ph.base)

@@ -394,7 +394,7 @@ def test_tracking_follows_the_annulus_and_recovers_ejection_fraction():
     systole: the tracked base plane follows it and EF is within 3 points."""
     from spheroseg.synthetic.phantom import FORMATIONS
 
-    seq = make_sequence(seed=1, n_frames=8, spacing=1.5, base_descent=12.0, formation=FORMATIONS["default"])
+    seq = make_sequence(seed=1, n_frames=6, spacing=1.5, base_descent=12.0, formation=FORMATIONS["default"])
     first = seq.frames[0]
     axis = (first.apex - first.base) / np.linalg.norm(first.apex - first.base)
     tr = track(seq.volumes, first.apex, first.base)
