@@ -60,3 +60,30 @@ def test_the_helpers_step_kernels_are_those_a_segmentation_calls(first_run, tmp_
     step, segmentation = compiled
     assert all(count >= 1 for count in step.values()), step
     assert not any(segmentation.values()), segmentation
+
+
+TRACK = """
+import json
+from spheroseg import _kernels
+from spheroseg.segment import track
+from spheroseg.synthetic.phantom import make_sequence
+seq = make_sequence(seed=0, n_frames=4, spacing=3.0)
+first = seq.frames[0]
+track(seq.volumes, first.apex, first.base)
+print(json.dumps({name: sum(kernel.stats.cache_misses.values()) for name, kernel in vars(_kernels).items()
+                  if hasattr(kernel, "stats")}))
+"""
+
+
+def test_tracking_compiles_nothing_a_first_run_left_out(first_run, tmp_path):
+    """After a first run (:func:`spheroseg.warmup.load_kernels` in an empty
+    cache), tracking a sequence finds every kernel it calls compiled: a
+    frame's checks call them with a segmentation's signatures (a writable
+    row index, where a segmentation's are read-only, compiled another
+    specialisation on every first tracking)."""
+    cache = numba_cache_without(first_run, tmp_path / "numba", [])
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONWARNINGS": "ignore"}
+    proc = subprocess.run([sys.executable, "-c", TRACK], capture_output=True, text=True, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    compiled = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert compiled and not any(compiled.values()), compiled

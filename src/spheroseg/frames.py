@@ -122,7 +122,9 @@ def wall_sides(descent, volume, levels, *, width: float) -> np.ndarray:
     model, backend = descent.model, descent.backend
     observation = backend.observe(descent.p, volume)
     offsets = np.concatenate([-np.arange(1.0, width + 0.5), np.arange(1.0, width + 0.5)])
-    samples = backend.samples_along(volume, observation, offsets, np.arange(model.n_samples))
+    rows = np.arange(model.n_samples)
+    rows.flags.writeable = False  # as the band rows: the kernel's signature a segmentation compiled
+    samples = backend.samples_along(volume, observation, offsets, rows)
     c_in, c_out = levels
     scaled = (samples - c_in) / (c_out - c_in)
     inner = offsets < 0
