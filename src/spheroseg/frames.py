@@ -34,10 +34,11 @@ RESEGMENT_MARGIN = 0.01
 #: a sector of a stepped frame's wall is left behind when the band just
 #: inside the surface is this much of the way from the blood's grey level to
 #: the wall's, or the band just outside no more than this (0 blood, 1 wall):
-#: on frames the stepped descent followed the inner band reads -0.2 to 0.1
-#: and the outer 0.45 to 0.7; where the basal wall moved past half the local
-#: means' band, 0.55 to 0.7 inside (phantom cycles of 4 to 20 frames, and
-#: end-diastole to end-systole directly, across the image formations)
+#: on frames the stepped descent followed, the inner band reads -0.4 to 0.1
+#: and the outer 0.44 to 0.6 (0.23 where the wall lost its echo); where the
+#: basal wall moved past half the local means' band, 0.57 to 0.7 inside
+#: (phantom cycles of 4 to 20 frames, and end-diastole to end-systole
+#: directly, across the image formations: docs/benchmarks.md)
 LEFT_BEHIND = 0.25
 #: sectors of the wall the sides are read in, around the axis and along
 #: it, over this span of the ``v2`` range from the apex: the basal wall,
@@ -154,7 +155,7 @@ def followed_the_wall(tracker) -> bool:
     left with tissue on the surface's inner side (systole) or blood on its
     outer side (diastole), where the local means balance on the wrong side
     of it; only then is the frame segmented again
-    (:func:`keep_better_start`), which costs some thirty steps.
+    (:func:`keep_better_start`: two more segmentations and their energies).
     """
     if tracker.status != 0:
         return False
