@@ -7,7 +7,7 @@ from spheroseg.coords import Pose
 from spheroseg.dataterms import GlobalMeans
 from spheroseg.initial import check_landmarks, initial_model, start_surface
 from spheroseg.options import SegmentOptions
-from spheroseg.stepper import Level, schedule
+from spheroseg.stepper import schedule
 from spheroseg.surface import Surface
 from spheroseg.volume import Volume
 

@@ -306,8 +306,13 @@ class CompiledBackend(NumpyBackend):
 
     def samples_along(self, volume, obs: Observation, offsets, rows=slice(None), *, exponent: float = 0.0,
                       order: int = 1) -> np.ndarray:
+        if isinstance(rows, slice) and rows == slice(None):
+            rows = self._all_rows
         if isinstance(volume, BeamVolume) or exponent or isinstance(rows, slice) or order not in (0, 1):
             return super().samples_along(volume, obs, offsets, rows, exponent=exponent, order=order)
+        if rows.flags.writeable:  # read-only as the band rows: one kernel signature whoever calls
+            rows = rows.view()
+            rows.flags.writeable = False
         offsets = np.ascontiguousarray(offsets, dtype=float)
         out = np.empty((len(rows), len(offsets)))
         image = self._sampling(volume)

@@ -38,7 +38,7 @@ RESEGMENT_MARGIN = 0.01
 #: and the outer 0.44 to 0.6 (0.23 where the wall lost its echo); where the
 #: basal wall moved past half the local means' band, 0.57 to 0.7 inside
 #: (phantom cycles of 4 to 20 frames, and end-diastole to end-systole
-#: directly, across the image formations: docs/benchmarks.md)
+#: directly, across the image formations and post-processings: docs/benchmarks.md)
 LEFT_BEHIND = 0.25
 #: sectors of the wall the sides are read in, around the axis and along
 #: it, over this span of the ``v2`` range from the apex: the basal wall,
@@ -123,9 +123,7 @@ def wall_sides(descent, volume, levels, *, width: float) -> np.ndarray:
     model, backend = descent.model, descent.backend
     observation = backend.observe(descent.p, volume)
     offsets = np.concatenate([-np.arange(1.0, width + 0.5), np.arange(1.0, width + 0.5)])
-    rows = np.arange(model.n_samples)
-    rows.flags.writeable = False  # as the band rows: the kernel's signature a segmentation compiled
-    samples = backend.samples_along(volume, observation, offsets, rows)
+    samples = backend.samples_along(volume, observation, offsets)
     c_in, c_out = levels
     scaled = (samples - c_in) / (c_out - c_in)
     inner = offsets < 0
