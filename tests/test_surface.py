@@ -223,6 +223,10 @@ def test_grid_points_are_the_points_on_the_grid(system):
     full_v1, full_v2 = np.meshgrid(v1, v2)
     np.testing.assert_allclose(s.grid_points(v1, v2), s.points(full_v1, full_v2), rtol=1e-13, atol=1e-11)
     np.testing.assert_allclose(s.grid_points(v1, lo)[0], s.points(v1, np.full_like(v1, lo)), rtol=1e-13, atol=1e-11)
+    # and the radius alone, clamped at 0 as radius() is (a surface dipping below the axis)
+    dipped = s.with_coefficients(s.coefficients - np.median(s.coefficients[..., 0]) * (np.arange(4) == 0))
+    assert (dipped.radius(full_v1, full_v2) == 0).any() and (dipped.radius(full_v1, full_v2) > 0).any()
+    np.testing.assert_allclose(dipped.radius_grid(v1, v2), dipped.radius(full_v1, full_v2), rtol=1e-13, atol=1e-13)
 
 
 @pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])

@@ -165,11 +165,10 @@ def wall_thickness(endocardium: Surface, epicardium: Surface, v1, v2, *, order: 
 def wall_thickness_grid(endocardium: Surface, epicardium: Surface, v1, v2, *, order: int = 8) -> np.ndarray:
     """:func:`wall_thickness` on the tensor grid of the ``v2`` values (rows)
     by the ``v1`` values (columns), shape ``(len(v2), len(v1))``, the
-    surfaces evaluated by :meth:`HermiteGrid.evaluate_grid`."""
+    surfaces evaluated by :meth:`Surface.radius_grid`."""
     _check_pair(endocardium, epicardium)
     v1, v2 = np.ravel(v1).astype(float), np.ravel(v2).astype(float)
-    lo = np.maximum(endocardium.grid.evaluate_grid(endocardium.coefficients, v1, v2), 0.0)  # as radius()
-    hi = np.maximum(epicardium.grid.evaluate_grid(epicardium.coefficients, v1, v2), 0.0)
+    lo, hi = endocardium.radius_grid(v1, v2), epicardium.radius_grid(v1, v2)
     return _arc_length(endocardium.system, lo, hi, v1[None, :], v2[:, None], order)
 
 
@@ -298,7 +297,7 @@ def segment_table(endocardium: Surface, epicardium: Surface | None = None, *,
     v1 = (np.arange(n) + 0.5) * (2 * np.pi / n)
     v2 = lo + (np.arange(n) + 0.5) * ((hi - lo) / n)
     thickness = wall_thickness_grid(endocardium, epicardium, v1, v2)
-    f = np.maximum(endocardium.grid.evaluate_grid(endocardium.coefficients, v1, v2), 0.0)
+    f = endocardium.radius_grid(v1, v2)
     _, h1, h2 = endocardium.system.scale_factors(f, v1[None, :], v2[:, None])
     labels = segment_labels(endocardium.grid_points(v1, v2, local=True), length=length, convention=convention)
     apex_thickness = float(wall_thickness(endocardium, epicardium, 0.0, lo))

@@ -226,6 +226,13 @@ class Surface:
         (the focal segment for prolate coordinates) and encloses nothing."""
         return np.maximum(self.evaluate(v1, v2), 0.0)
 
+    def radius_grid(self, v1, v2) -> np.ndarray:
+        """:meth:`radius` on the tensor grid of the ``v2`` values (rows) by
+        the ``v1`` values (columns), shape ``(len(v2), len(v1))``, by
+        :meth:`HermiteGrid.evaluate_grid` (equal to rounding, in a fraction
+        of the time)."""
+        return np.maximum(self.grid.evaluate_grid(self.coefficients, np.ravel(v1), np.ravel(v2)), 0.0)
+
     def points(self, v1, v2) -> np.ndarray:
         """World points (mm) of the surface at ``(v1, v2)``, shape ``(..., 3)``."""
         return self.pose.to_world(self.system.to_cartesian(self.radius(v1, v2), v1, v2))
@@ -237,7 +244,7 @@ class Surface:
         (equal to rounding, in a third of the time).  With ``local``, in
         the model's frame instead (:meth:`Pose.to_local` of them)."""
         v1, v2 = np.ravel(v1), np.ravel(v2)
-        f = np.maximum(self.grid.evaluate_grid(self.coefficients, v1, v2), 0.0)  # as radius()
+        f = self.radius_grid(v1, v2)
         points = self.system.to_cartesian(f, v1, v2[:, None])
         return points if local else self.pose.to_world(points)
 
