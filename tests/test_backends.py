@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from spheroseg.backends import CompiledBackend, NumpyBackend, compiled_available, select_backend
+from spheroseg.backends import CompiledBackend, NumpyBackend, compiled_available, sample_points, select_backend
 from spheroseg.energy import SampledSurface
 from spheroseg.synthetic.phantom import make_phantom
 from spheroseg.surface import Surface
@@ -63,3 +63,19 @@ def test_geometry_observation_falls_back_to_the_reference(case):
     obs = CompiledBackend(model).observe(p, volume, geometry=True)
     assert obs.geometry is not None
     np.testing.assert_allclose(obs.f, NumpyBackend(model).observe(p, volume).f)
+
+
+@pytest.mark.parametrize("order", [0, 1])
+def test_sample_points_is_volume_sample(case, order):
+    """The compiled sampler at any world points (the image's dropout and
+    points off it included: NaN where the reference's are) equals
+    Volume.sample, trilinear to rounding and the nearest voxel exactly."""
+    volume = case[0]
+    lo, hi = volume.index_to_world(np.zeros(3)), volume.index_to_world(np.array(volume.shape[::-1]) - 1.0)
+    points = lo - 4 + (hi - lo + 8) * np.random.default_rng(1).random((300, 5, 3))
+    fast, ref = sample_points(volume, points, order=order), volume.sample(points, order=order)
+    assert fast.shape == (300, 5)
+    assert 0.05 < np.isnan(ref).mean() < 0.95  # both kinds of point are there
+    np.testing.assert_array_equal(np.isnan(fast), np.isnan(ref))
+    np.testing.assert_allclose(fast, ref, rtol=0, atol=0 if order == 0 else 1e-10)
+

@@ -43,7 +43,7 @@ from .coords import ProlateSpheroidal
 from .dataterms import CAVITY_FRACTIONS, DataTerm
 from .energy import Geometry, SampledSurface, normal_speed
 
-__all__ = ["Observation", "NumpyBackend", "CompiledBackend", "select_backend", "compiled_available",
+__all__ = ["Observation", "NumpyBackend", "CompiledBackend", "select_backend", "sample_points", "compiled_available",
            "kernel_threads", "kernel_thread_count", "idle_cores", "usable_cores", "MIN_COS"]
 
 #: least cosine between the normal and the v0 direction when converting a
@@ -400,3 +400,24 @@ def select_backend(model: SampledSurface, *, compiled: bool = True) -> NumpyBack
     if compiled and isinstance(model.system, ProlateSpheroidal) and compiled_available():
         return CompiledBackend(model)
     return NumpyBackend(model)
+
+
+def sample_points(volume, points, *, order: int = 1) -> np.ndarray:
+    """``volume.sample(points, order=order)`` (world mm, shape ``(..., 3)``),
+    in the compiled sampler where it applies (numba installed, a Cartesian
+    volume, ``order`` 0 or 1): equal to rounding, without the reference's
+    temporary arrays."""
+    points = np.asarray(points, dtype=float)
+    if isinstance(volume, BeamVolume) or order not in (0, 1) or not compiled_available() or points.ndim < 1 \
+            or points.shape[-1] != 3:
+        return volume.sample(points, order=order)
+    from . import _kernels
+
+    world = np.ascontiguousarray(points.reshape(-1, 3).T)
+    rows = np.arange(world.shape[1])
+    rows.flags.writeable = False  # as the band rows: one kernel signature for both
+    out = np.empty((world.shape[1], 1))
+    _kernels.samples_at(*_kernels.sampler(volume.sampling_view()), world, np.zeros_like(world), rows,
+                        _SURFACE_OFFSETS, order == 0, out)
+    return out.reshape(points.shape[:-1])
+
