@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from spheroseg import Tracker
-from spheroseg.dataterms import GlobalMeans, LocalMeans
+from spheroseg.dataterms import GlobalMeans, LocalMeans, shell_offsets
 from spheroseg.options import SegmentOptions
 from spheroseg.synthetic.phantom import make_phantom
 from spheroseg.stepper import Level, held_points, schedule
@@ -45,3 +45,18 @@ def test_held_points_keep_the_cavity_side_and_the_apex():
     np.testing.assert_array_equal(points, [[10.0, 0, 20], [0.0, 0, 80]])
     np.testing.assert_array_equal(weights, [3.0, 2.0])
     assert held_points(pose, landmarks[1:], np.zeros(3), SegmentOptions(apex_weight=0.0)) == (None, None)
+
+
+def test_a_result_before_any_iteration_reports_the_start_region_means(phantom):
+    """Stopped before its first iteration, a frame's levels are the region
+    means about its initial surface (measured only then): the cavity's
+    below the blood's grey-level ceiling, the shell's above it."""
+    tracker = Tracker(phantom.volume, phantom.apex, phantom.base)
+    tracker.stop()
+    result = tracker.result()
+    descent = tracker.stepper.descent  # still at its start
+    obs = descent.backend.observe(descent.p, phantom.volume)
+    means = descent.backend.region_means(phantom.volume, obs, shell_offsets(tracker.options.band_out))
+    assert (result.c_in, result.c_out) == means == tracker.stepper.start_means
+    assert result.iterations == 0 and result.status == 2 and result.c_in < result.c_out
+

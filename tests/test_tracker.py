@@ -103,6 +103,8 @@ def test_a_callback_every_k_iterations_runs_the_compiled_loop_between(phantom):
     compiled loop, cut into pieces), and a StopIteration still stops it."""
     tracker = Tracker(phantom.volume, phantom.apex, phantom.base)
     whole = tracker.run()
+    assert whole.quality is not None and tracker.result(report=False).quality is None
+    assert tracker.result(report=False).volume_ml == whole.volume_ml  # only the report left out
     seen = []
     chunked = Tracker(phantom.volume, phantom.apex, phantom.base).run(
         lambda it: seen.append((it.iteration, it.level)), callback_every=4)

@@ -23,7 +23,8 @@ from .io import save_mask, write_atomically
 __all__ = ["write_segmentation_outputs", "write_tracking_outputs", "write_surface_files", "write_frame_files",
            "write_json", "versions", "default_mask_suffix", "write_myocardium_files", "write_tracking_myocardium"]
 
-_UNITS = {"points": "mm, LPS (ITK physical space)", "volume": "mL"}
+_UNITS = {"points": "mm, LPS (ITK physical space)", "volume": "mL",
+          "log_compression": "grey levels per neper of echo intensity"}
 
 
 def versions() -> dict:
@@ -246,7 +247,7 @@ def write_segmentation_outputs(out: Path, volume, result, *, source=None, apex, 
     results = {
         "input": None if source is None else str(source), "volume_ml": result.volume_ml,
         "iterations": result.iterations, "converged": result.converged, **_outcome(result),
-        "c_in": result.c_in, "c_out": result.c_out, "seconds": timings,
+        "c_in": result.c_in, "c_out": result.c_out, "log_compression": result.log_compression, "seconds": timings,
         **_placement(result, apex, base, annulus), "landmarks": _points(landmarks),
         "parameters": result.parameters, "units": dict(_UNITS), "files": files, "versions": versions(),
         **({"myocardium": myocardium} if myocardium else {}), **(extra or {}),

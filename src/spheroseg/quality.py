@@ -149,8 +149,14 @@ class FrameQuality:
 
     def __init__(self, initial, apex: np.ndarray):
         self.initial, self.apex = initial, apex
-        self.initial_volume_ml = initial.volume_ml()
-        self._axis_distances = None
+        self._initial_volume_ml = self._axis_distances = None  # on the first report
+
+    @property
+    def initial_volume_ml(self) -> float:
+        """The initial shape's volume (mL)."""
+        if self._initial_volume_ml is None:
+            self._initial_volume_ml = self.initial.volume_ml()
+        return self._initial_volume_ml
 
     def report(self, surface, *, observed, converged: bool, landmarks: np.ndarray, no_speckle: bool) -> dict:
         """:func:`quality_report` of ``surface``, given what the last

@@ -56,6 +56,10 @@ class SegmentationResult:
     segment_convention : SegmentConvention
         Where segment 1 of the 17-segment model starts
         (:mod:`spheroseg.myocardium`).
+    log_compression : float or None
+        Grey levels per neper of echo intensity, as the intensity interface
+        estimated them from the wall's speckle (``mode="intensity"``, the
+        default; None with another data term, or where it found no speckle).
     """
 
     surface: Surface
@@ -72,6 +76,7 @@ class SegmentationResult:
     initialisation: dict | None = None
     epicardium: Surface | None = None
     segment_convention: SegmentConvention = field(default_factory=SegmentConvention)
+    log_compression: float | None = None
 
     @property
     def volume_ml(self) -> float:

@@ -176,7 +176,8 @@ class Stepper:
         d, opts = self.descent, self.options
         obs = d.backend.observe(d.p, self.volume)
         shell = shell_offsets(opts.band_out)
-        self.start_means = d.backend.region_means(self.volume, obs, shell)
+        self._start = (d.backend, self.volume, obs, shell)  # its region means, should a result need them
+        self._start_means = None
         # the inner band's samples, then the shell's, in one call
         inner = band_offsets(opts.band)
         along = d.backend.samples_along(self.volume, obs, np.concatenate([-inner, shell]),
@@ -192,6 +193,15 @@ class Stepper:
                 terms[level.data_term] = level.data_term(samples, band=opts.band, band_out=opts.band_out,
                                                          interface=opts.interface)
         return terms
+
+    @property
+    def start_means(self) -> tuple[float, float]:
+        """The region means about the initial surface (the cavity's and the
+        shell's): a result's levels before any iteration has measured any."""
+        if self._start_means is None:
+            backend, volume, obs, shell = self._start
+            self._start_means = backend.region_means(volume, obs, shell)
+        return self._start_means
 
     # the levels ------------------------------------------------------------
 
@@ -333,6 +343,14 @@ class Stepper:
         else:
             c_in, c_out = self.c_in, self.c_out
         return float(nanmedian(c_in)), float(nanmedian(c_out))
+
+    def log_compression(self) -> float | None:
+        """Grey levels per neper of echo intensity, as the finest level's
+        intensity interface estimated them from the wall's speckle
+        (:attr:`IntensityInterface.nepers`); None before that, or with
+        another data term."""
+        term = self.terms[self.levels[-1].data_term]
+        return float(term.nepers) if isinstance(term, IntensityInterface) and term.nepers is not None else None
 
     # what changes between runs -----------------------------------------------
 

@@ -212,7 +212,7 @@ class Tracker:
             except StopIteration:
                 self.stop(2)
 
-    def run(self, iter_callback=None, *, callback_every: int = 1) -> SegmentationResult:
+    def run(self, iter_callback=None, *, callback_every: int = 1, report: bool = True) -> SegmentationResult:
         """Iterate until the current frame stops; ``iter_callback(intermediate)``
         is called after every iteration and may raise ``StopIteration``.
         With ``callback_every`` k > 1 it is called after every k-th iteration
@@ -221,13 +221,14 @@ class Tracker:
         surfaces at the speed of a run without one.
         A frame whose base ring came out narrower than :meth:`base_ring_floor`
         runs its finest level again with the ring held open
-        (:func:`spheroseg.frames.base_ring_points`)."""
+        (:func:`spheroseg.frames.base_ring_points`).  ``report``: as in
+        :meth:`result`."""
         if not (isinstance(callback_every, (int, np.integer)) and callback_every >= 1):
             raise ValueError(f"callback_every must be a positive integer, got {callback_every!r}")
         self._iterate_until_stopped(iter_callback, int(callback_every))
         if self.status in (0, 1) and self._widen_base_ring():
             self._iterate_until_stopped(iter_callback, int(callback_every))
-        return self.result()
+        return self.result(report=report)
 
     def base_ring_floor(self) -> float:
         """The least radius (mm) of the base ring (:func:`spheroseg.frames.base_ring_floor`)."""
@@ -315,8 +316,10 @@ class Tracker:
 
     # the result ------------------------------------------------------------
 
-    def result(self) -> SegmentationResult:
-        """The current frame's result."""
+    def result(self, *, report: bool = True) -> SegmentationResult:
+        """The current frame's result; its ``quality`` None without
+        ``report`` (a caller that judges the surface by its own measures, as
+        :func:`spheroseg.epicardium.segment_epicardium` its wall's)."""
         stepper = self.stepper
         c_in, c_out = stepper.start_means if stepper.c_in is None else (stepper.c_in, stepper.c_out)
         parameters = self.options.as_parameters()
@@ -324,9 +327,11 @@ class Tracker:
             parameters.update(max_iterations=stepper.frame_cap, coarse_to_fine=False)
         status = 2 if self.status is None else self.status
         surface = self.surface
-        quality = self._quality.report(surface, observed=stepper.last, converged=self.status == 0,
-                                       landmarks=self.landmarks, no_speckle=stepper.no_speckle)
+        quality = None if not report else self._quality.report(
+            surface, observed=stepper.last, converged=self.status == 0, landmarks=self.landmarks,
+            no_speckle=stepper.no_speckle)
         return SegmentationResult(
             surface=surface, iterations=self.iteration, converged=stepper.converged,
             c_in=float(nanmedian(c_in)), c_out=float(nanmedian(c_out)), seconds=stepper.seconds,
-            parameters=parameters, status=status, message=STATUS_MESSAGES[status], quality=quality)
+            parameters=parameters, status=status, message=STATUS_MESSAGES[status], quality=quality,
+            log_compression=stepper.log_compression())
