@@ -5,7 +5,7 @@ from spheroseg import Volume, segment
 from spheroseg.coords import Pose, ProlateSpheroidal
 from spheroseg.epicardium import (
     add_epicardium, conserving_start, enforce_thickness, initial_epicardium, segment_epicardium,
-    wall_nepers,
+    cell_centres, wall_nepers,
 )
 from spheroseg.hermite import HermiteGrid
 from spheroseg.myocardium import SEGMENT_NAMES, myocardial_volume_ml, wall_thickness
@@ -80,6 +80,8 @@ def test_epicardium_of_a_prolate_shell(myocardium, tissue, polarity):
     # Gaussian noise on sharp edges, no log-compressed speckle: the midpoint is the edge
     result = segment_epicardium(volume, endo, thickness_mm=7.0, boundary="midpoint")
     assert result.parameters["polarity"] == polarity
+    # a bright wall's edge to a coarser tolerance; a dark wall, which may collapse slowly, to the endocardium's
+    assert result.parameters["tol"] == {"bright": 0.1, "dark": 0.05}[polarity]
     v1, v2 = np.meshgrid(np.linspace(0, 2 * np.pi, 24, endpoint=False), np.linspace(0.2, 1.5, 12))
     error = wall_thickness(endo, result.surface, v1, v2) - wall_thickness(endo, truth, v1, v2)
     assert np.median(np.abs(error)) < 1.0
@@ -108,6 +110,23 @@ def test_wall_nepers_reads_the_log_compression():
     assert wall_nepers(volume, endo, shell(L_EPI, pose)) == pytest.approx(15.0, rel=0.08)
 
 
+def test_the_epicardium_reads_the_log_compression_the_endocardium_estimated():
+    """The endocardium's intensity interface estimates the image's log
+    compression (15 grey levels per neper here) and records it; the
+    epicardium's outer boundary uses that one estimate.  Other data terms
+    estimate none, and the epicardium then reads the wall's speckle."""
+    volume, _ = speckle_shells_image(nepers=15.0)
+    result = segment(volume, APEX, BASE, myocardium=True)
+    assert result.log_compression == pytest.approx(15.0, rel=0.08)
+    assert result.parameters["epicardium"]["nepers"] == result.log_compression
+    local = segment(volume, APEX, BASE, myocardium=True, mode="local")
+    assert local.log_compression is None
+    assert local.parameters["epicardium"]["nepers"] == pytest.approx(15.0, rel=0.08)
+    assert local.parameters["epicardium"]["nepers"] != result.log_compression
+    with pytest.raises(ValueError, match="nepers must be a positive number"):
+        segment_epicardium(volume, result.surface, nepers=-3.0)
+
+
 def test_intensity_interface_removes_the_midpoints_bias():
     """Blurred echo of a wall 12 dB brighter than the tissue beyond it: the
     grey levels' midpoint puts the epicardium outside the true one (at the
@@ -121,6 +140,14 @@ def test_intensity_interface_removes_the_midpoints_bias():
         assert result.parameters["boundary"] == boundary
         errors[boundary] = np.median(wall_thickness(endo, result.surface, v1, v2) - wall_thickness(endo, truth, v1, v2))
     assert abs(errors["intensity"]) < 0.5 < errors["midpoint"] - abs(errors["intensity"])
+    # its quality is the wall's, on 48 x 48 points of the endocardium's (v1, v2)
+    lo, hi = endo.grid.v2_range
+    v1, v2 = cell_centres(endo)
+    np.testing.assert_allclose(v1[:2], [np.pi / 48, np.pi / 16])
+    np.testing.assert_allclose(v2[[0, -1]], [lo + (hi - lo) / 96, hi - (hi - lo) / 96])
+    v1, v2 = np.meshgrid(v1, v2)
+    expected = wall_report(wall_thickness(endo, result.surface, v1, v2, order=4), min_thickness_mm=2.0)
+    assert result.quality == pytest.approx(expected, rel=1e-12)
     with pytest.raises(ValueError, match="boundary must be"):
         segment_epicardium(volume, endo, boundary="outer")
 

@@ -512,7 +512,8 @@ def test_the_myocardium_box_draws_the_epicardium_outside(browser, phantom_file, 
         assert len(asked) == 1
         page.screenshot(path=str(tmp_path / "myocardium.png"))
         result = session.results[0][1]
-        api = segment_epicardium(session.frames[0], result.surface).surface
+        api = segment_epicardium(session.frames[0], result.surface, nepers=result.log_compression).surface
+        assert result.log_compression is not None  # the endocardium's estimate, as segment(myocardium=True) uses
         shown = page.evaluate("Array.from(viewer.state.epicardium)")
         sign = np.array([-1.0, 1.0, -1.0])  # the echo orientation's display frame (viewer.js SIGN)
         np.testing.assert_allclose(np.reshape(shown, (-1, 3)), api.mesh(48, 24)[0] * sign, atol=1e-3)

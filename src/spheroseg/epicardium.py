@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .backends import sample_points
 from .dataterms import LocalMeans, NoSpeckleError, speckle_nepers
 from .hermite import gauss_legendre
 from .myocardium import SegmentConvention, wall_thickness_grid
@@ -34,35 +35,38 @@ from .surface import Surface
 from .tracker import Tracker
 from .volume import Volume
 
-__all__ = ["initial_epicardium", "conserving_start", "enforce_thickness", "wall_polarity", "wall_nepers",
-           "wall_term", "segment_epicardium", "add_epicardium"]
+__all__ = ["initial_epicardium", "conserving_start", "enforce_thickness", "cell_centres", "wall_polarity",
+           "wall_nepers", "wall_term", "segment_epicardium", "add_epicardium"]
 
 
-def _offsets(surface: Surface, thickness_mm: float, v1, v2) -> np.ndarray:
-    """``t`` such that the ``v0`` curve from the surface to ``f + t`` is
-    ``thickness_mm`` long at ``(v1, v2)``: Newton's method on
+def _node_offsets(surface: Surface, thickness_mm: float) -> np.ndarray:
+    """``t`` at the grid's nodes such that the ``v0`` curve from the
+    surface to ``f + t`` is ``thickness_mm`` long there: Newton's method on
     ``int_f^{f+t} h0 dv0 = thickness_mm`` (its derivative is ``h0(f + t)``)."""
-    f = surface.radius(v1, v2)
-    x, w = gauss_legendre(8)
+    grid = surface.grid
+    v2, v1 = np.meshgrid(grid.node_v2, grid.node_v1, indexing="ij")
+    f = np.maximum(surface.coefficients[..., 0], 0.0)  # f at a node is its value there, as radius()
+    x, w = gauss_legendre(4)  # h0 is smooth across a wall (as wall_thickness_grid's order 4)
     t = thickness_mm / surface.system.scale_factors(f, v1, v2)[0]
-    for _ in range(6):  # quadratic convergence from within a few per cent
+    for _ in range(6):  # quadratic convergence from within a few per cent: 3 reach rounding
         v0 = f[..., None] + t[..., None] * x
         length = (surface.system.scale_factors(v0, v1[..., None], v2[..., None])[0] @ w) * t
-        t = t - (length - thickness_mm) / surface.system.scale_factors(f + t, v1, v2)[0]
+        error = length - thickness_mm
+        t = t - error / surface.system.scale_factors(f + t, v1, v2)[0]
+        if np.abs(error).max() <= 1e-12 * thickness_mm:
+            break
     return t
 
 
 def initial_epicardium(endocardium: Surface, *, thickness_mm: float) -> Surface:
     """The endocardium moved out along ``v0`` so that the wall is
-    ``thickness_mm`` thick at its nodes (:func:`_offsets`; the offset's
+    ``thickness_mm`` thick at its nodes (Newton's method; the offset's
     slopes 0 there)."""
     if not (np.isfinite(thickness_mm) and thickness_mm > 0):
         raise ValueError(f"thickness_mm must be a positive number of mm, got {thickness_mm!r}")
-    grid = endocardium.grid
-    v2, v1 = np.meshgrid(grid.node_v2, grid.node_v1, indexing="ij")
     t = np.zeros(endocardium.coefficients.shape)
-    t[..., 0] = _offsets(endocardium, thickness_mm, v1, v2)
-    return endocardium.with_coefficients(grid.constrain(endocardium.coefficients + t))
+    t[..., 0] = _node_offsets(endocardium, thickness_mm)
+    return endocardium.with_coefficients(endocardium.grid.constrain(endocardium.coefficients + t))
 
 
 def conserving_start(endocardium: Surface, previous_endocardium: Surface, previous_epicardium: Surface, *,
@@ -92,48 +96,62 @@ def conserving_start(endocardium: Surface, previous_endocardium: Surface, previo
 
 
 def enforce_thickness(endocardium: Surface, epicardium: Surface, *, min_thickness_mm: float,
-                      n: int = 64) -> Surface:
+                      n: int = 48) -> Surface:
     """The epicardium with its thickness raised to at least
     ``min_thickness_mm`` (mm, along ``v0``).
 
     Nodes whose thickness is below it are set to it with flat slopes
     (projected back on the pole constraints); where the Hermite
-    interpolation still dips below it between nodes, on an ``n x n`` grid
-    of ``(v1, v2)``, the whole thickness is raised by the deficit there.
+    interpolation still dips below it between nodes, on the centres of an
+    ``n x n`` grid of cells of ``(v1, v2)`` (:func:`cell_centres`),
+    the whole thickness is raised by the deficit there.
     """
+    return _enforced(endocardium, epicardium, min_thickness_mm, n)[0]
+
+
+def cell_centres(surface: Surface, n: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """``(v1, v2)``: the centres of ``n x n`` cells of the surface's
+    ``(v1, v2)`` range (where the wall's thickness is checked and
+    reported, and its polarity read)."""
+    lo, hi = surface.grid.v2_range
+    return (np.arange(n) + 0.5) * 2 * np.pi / n, lo + (hi - lo) * (np.arange(n) + 0.5) / n
+
+
+def _enforced(endocardium: Surface, epicardium: Surface, min_thickness_mm: float, n: int):
+    """:func:`enforce_thickness`, and the wall thickness it leaves on
+    :func:`cell_centres` (rows ``v2``)."""
     if not (np.isfinite(min_thickness_mm) and min_thickness_mm >= 0):
         raise ValueError(f"min_thickness_mm must be a number of mm >= 0, got {min_thickness_mm!r}")
     grid = endocardium.grid
     t = epicardium.coefficients - endocardium.coefficients
-    v2, v1 = np.meshgrid(grid.node_v2, grid.node_v1, indexing="ij")
-    floor = _offsets(endocardium, min_thickness_mm, v1, v2)
+    floor = _node_offsets(endocardium, min_thickness_mm)
     low = t[..., 0] < floor
     t[low] = 0.0
     t[..., 0][low] = floor[low]
     epi = endocardium.with_coefficients(grid.constrain(endocardium.coefficients + t))
-    lo, hi = grid.v2_range
-    v1, v2 = np.linspace(0, 2 * np.pi, n, endpoint=False), lo + (hi - lo) * np.linspace(0, 1, n)
+    v1, v2 = cell_centres(endocardium, n)
     # 4 Gauss nodes: h0 is smooth across a wall (8 agree to 1e-13 mm on a phantom's)
-    deficit = min_thickness_mm - wall_thickness_grid(endocardium, epi, v1, v2, order=4).min()
+    thickness = wall_thickness_grid(endocardium, epi, v1, v2, order=4)
+    deficit = min_thickness_mm - thickness.min()
     if deficit > 0:
         # a constant in v0 moves the wall out by at least its times the smallest h0 there
-        f = np.maximum(grid.evaluate_grid(endocardium.coefficients, v1, v2), 0.0)
+        f = endocardium.radius_grid(v1, v2)
         h0 = endocardium.system.scale_factors(f, v1[None, :], v2[:, None])[0]
         lift = np.zeros(t.shape)
         lift[..., 0] = 1.001 * deficit / h0.min()
         epi = epi.with_coefficients(grid.constrain(epi.coefficients + lift))
-    return epi
+        thickness = wall_thickness_grid(endocardium, epi, v1, v2, order=4)
+    return epi, thickness
 
 
 def wall_polarity(volume: Volume, endocardium: Surface, epicardium: Surface, *, shell_mm: float = 8.0,
-                  n: int = 24) -> float:
+                  n: int = 16) -> float:
     """The median grey level of the wall (between the two surfaces) minus
     that of a shell ``shell_mm`` thick outside the epicardium, sampled along
     ``v0`` on an ``n x n`` grid of ``(v1, v2)``; NaN without data."""
-    lo, hi = endocardium.grid.v2_range
-    v2, v1 = np.meshgrid(lo + (hi - lo) * (np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) * 2 * np.pi / n,
-                         indexing="ij")
-    f_in, f_out = endocardium.radius(v1, v2), epicardium.radius(v1, v2)
+    v1, v2 = cell_centres(endocardium, n)
+    f_in, f_out = endocardium.radius_grid(v1, v2), epicardium.radius_grid(v1, v2)
+    v1, v2 = v1[None, :], v2[:, None]
     h0 = endocardium.system.scale_factors(f_out, v1, v2)[0]
     fractions = np.linspace(0.25, 1.0, 4)
     wall = f_in[..., None] + (f_out - f_in)[..., None] * (fractions - 0.125)
@@ -141,7 +159,7 @@ def wall_polarity(volume: Volume, endocardium: Surface, epicardium: Surface, *, 
 
     def grey(v0):
         local = endocardium.system.to_cartesian(v0, v1[..., None], v2[..., None])
-        values = volume.sample(endocardium.pose.to_world(local))
+        values = sample_points(volume, endocardium.pose.to_world(local))
         return np.nanmedian(values) if np.isfinite(values).any() else np.nan
 
     return float(grey(wall) - grey(shell))
@@ -155,13 +173,13 @@ def wall_nepers(volume: Volume, endocardium: Surface, epicardium: Surface, *, pe
     grid = endocardium.grid
     lo, hi = grid.v2_range
     m1, m2 = grid.n1 * per_patch, grid.n2 * per_patch
-    v2, v1 = np.meshgrid(lo + (hi - lo) * (np.arange(m2) + 0.5) / m2, (np.arange(m1) + 0.5) * 2 * np.pi / m1,
-                         indexing="ij")
+    v1, v2 = (np.arange(m1) + 0.5) * 2 * np.pi / m1, lo + (hi - lo) * (np.arange(m2) + 0.5) / m2
     patch = (np.arange(m2)[:, None] // per_patch) * grid.n1 + np.arange(m1)[None, :] // per_patch
-    f_in, f_out = endocardium.radius(v1, v2), epicardium.radius(v1, v2)
+    f_in, f_out = endocardium.radius_grid(v1, v2), epicardium.radius_grid(v1, v2)
+    v1, v2 = v1[None, :], v2[:, None]
     v0 = f_in[..., None] + (f_out - f_in)[..., None] * np.array([0.25, 0.5, 0.75])
     local = endocardium.system.to_cartesian(v0, v1[..., None], v2[..., None])
-    samples = volume.sample(endocardium.pose.to_world(local), order=0)
+    samples = sample_points(volume, endocardium.pose.to_world(local), order=0)
     return speckle_nepers(samples.reshape(-1, 3), patch.ravel())
 
 
@@ -176,7 +194,7 @@ def wall_term(nepers: float = np.inf) -> type[LocalMeans]:
 
 def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: float = 8.0,
                        min_thickness_mm: float = 2.0, polarity: str = "auto", boundary: str = "intensity",
-                       start: Surface | None = None, **options) -> SegmentationResult:
+                       nepers: float | None = None, start: Surface | None = None, **options) -> SegmentationResult:
     """The epicardium of a segmented endocardium.
 
     Parameters
@@ -202,6 +220,14 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
         speckle to read its log compression from), or at the midpoint of
         the band means' grey levels (:class:`spheroseg.dataterms.LocalMeans`).
         Unused with ``mode`` given.
+    nepers : float, optional
+        Grey levels per neper of the image's log compression, for the
+        "intensity" boundary: the endocardium's estimate
+        (:attr:`SegmentationResult.log_compression`, which
+        :func:`add_epicardium` hands over), read from the same wall's
+        speckle and bounded by its contrast
+        (:func:`spheroseg.dataterms.interface_nepers`), so that smoothed
+        speckle does not lower it; by default :func:`wall_nepers`.
     start : Surface, optional
         The start (and the thin-plate prior's reference) instead of the
         endocardium moved out by ``thickness_mm``: in a sequence,
@@ -211,12 +237,21 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
         ``mode="local"`` (:func:`wall_term` on a bright wall; a ``mode``
         given runs on the image as it is, the wall inside), ``band=4`` (the
         inner band stays in the wall), ``apex_weight=0`` (the epicardial
-        apex is not clicked).
+        apex is not clicked); on a bright wall ``tol=0.1`` (mm of RMS
+        motion, the coarse levels' tolerance: the edge of the wall's
+        intensity, blurred over a point-spread function's width, is not
+        found to the endocardium's 0.05 mm).  A dark wall keeps the
+        endocardium's: where the wall is not brighter than what lies
+        beyond it the wall can collapse slowly, and a coarser tolerance
+        stops the collapse part-way, above the thickness the quality
+        report flags.
 
     Returns
     -------
     SegmentationResult
-        Its ``surface`` is the epicardium, on the endocardium's grid.
+        Its ``surface`` is the epicardium, on the endocardium's grid; its
+        ``quality`` the wall's (:func:`spheroseg.quality.wall_report` of the
+        thickness on 48 x 48 :func:`cell_centres`).
     """
     if polarity not in ("auto", "bright", "dark"):
         raise ValueError(f"polarity must be 'auto', 'bright' or 'dark', got {polarity!r}")
@@ -230,25 +265,32 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     if polarity == "auto":
         contrast = wall_polarity(volume, endocardium, start)
         polarity = "dark" if contrast < 0 else "bright"
+    if polarity == "bright" and not own_mode:
+        options = {"tol": 0.1, **options}
     options = {"mode": "local", "band": 4.0, "apex_weight": 0.0,
                "patches": (endocardium.grid.n1, endocardium.grid.n2), **options}
     if own_mode:
         boundary = None
     elif polarity == "bright":
-        nepers = np.inf
-        if boundary == "intensity":
+        if boundary == "midpoint":
+            nepers = np.inf
+        elif nepers is None:
             try:
                 nepers = wall_nepers(volume, endocardium, start)
             except NoSpeckleError:  # no speckle to read the log compression from: the grey levels' midpoint
-                boundary = "midpoint"
+                nepers, boundary = np.inf, "midpoint"
+        elif not (np.isfinite(nepers) and nepers > 0):
+            raise ValueError(f"nepers must be a positive number of grey levels per neper, got {nepers!r}")
         options["mode"] = wall_term(nepers)
     else:
         boundary = "midpoint"
     apex = endocardium.tip()
-    result = Tracker(volume, apex, endocardium.pose.origin, init=start, **options).run()
-    result.surface = enforce_thickness(endocardium, result.surface, min_thickness_mm=min_thickness_mm)
+    result = Tracker(volume, apex, endocardium.pose.origin, init=start, **options).run(report=False)
+    result.surface, thickness = _enforced(endocardium, result.surface, min_thickness_mm, 48)
+    result.quality = wall_report(thickness, min_thickness_mm=min_thickness_mm)
     result.parameters = {**result.parameters, "thickness_mm": thickness_mm, "min_thickness_mm": min_thickness_mm,
-                         "polarity": polarity, "boundary": boundary}
+                         "polarity": polarity, "boundary": boundary,
+                         "nepers": float(nepers) if boundary == "intensity" else None}
     return result
 
 
@@ -271,7 +313,8 @@ def add_epicardium(result: SegmentationResult, volume: Volume, *, rv_insertion=N
         starts from its wall with its myocardial volume
         (:func:`conserving_start`).
     **options
-        Of :func:`segment_epicardium`.
+        Of :func:`segment_epicardium`; ``nepers`` by default the result's
+        :attr:`~SegmentationResult.log_compression`.
     """
     if isinstance(rv_insertion, SegmentConvention):
         convention = rv_insertion
@@ -284,12 +327,9 @@ def add_epicardium(result: SegmentationResult, volume: Volume, *, rv_insertion=N
     endo = result.surface
     if previous is not None and previous.epicardium is not None and "start" not in options:
         options["start"] = conserving_start(endo, previous.surface, previous.epicardium)
+    options.setdefault("nepers", result.log_compression)  # the image's, as the endocardium read it
     epi = segment_epicardium(volume, endo, **options)
-    lo, hi = endo.grid.v2_range
-    n = 48
-    v1, v2 = (np.arange(n) + 0.5) * 2 * np.pi / n, lo + (hi - lo) * (np.arange(n) + 0.5) / n
-    wall = wall_report(wall_thickness_grid(endo, epi.surface, v1, v2, order=4),
-                       min_thickness_mm=epi.parameters["min_thickness_mm"])
+    wall = epi.quality
     quality = dict(result.quality or {"warnings": [], "poor": False})
     quality["epicardium"] = wall
     quality["warnings"] = list(quality.get("warnings", [])) + [f"epicardium: {w}" for w in wall["warnings"]]
@@ -300,6 +340,7 @@ def add_epicardium(result: SegmentationResult, volume: Volume, *, rv_insertion=N
     result.seconds += epi.seconds
     result.parameters = {**result.parameters, "epicardium": {k: v for k, v in epi.parameters.items()
                                                              if k in ("mode", "band", "smoothness", "thickness_mm",
-                                                                      "min_thickness_mm", "polarity", "boundary")},
+                                                                      "min_thickness_mm", "polarity", "boundary",
+                                                                      "nepers", "tol")},
                          "segment_convention": convention.to_dict()}
     return result

@@ -124,8 +124,9 @@ class SegmentConvention:
 
 
 def _check_pair(endocardium: Surface, epicardium: Surface) -> None:
-    same_pose = (np.allclose(endocardium.pose.origin, epicardium.pose.origin, atol=1e-9)
-                 and np.allclose(endocardium.pose.rotation, epicardium.pose.rotation, atol=1e-12))
+    same_pose = endocardium.pose is epicardium.pose or (  # one pose object: as segmented
+        np.allclose(endocardium.pose.origin, epicardium.pose.origin, atol=1e-9)
+        and np.allclose(endocardium.pose.rotation, epicardium.pose.rotation, atol=1e-12))
     if endocardium.system != epicardium.system or not same_pose:
         raise ValueError("the endocardium and the epicardium must share one coordinate system and one pose")
     if tuple(endocardium.grid.v2_range) != tuple(epicardium.grid.v2_range):

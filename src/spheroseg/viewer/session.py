@@ -276,7 +276,8 @@ class Session:
 
     def epicardium_event(self, frame: int) -> dict | None:
         """The epicardium of ``frame``'s result for the current points
-        (:func:`spheroseg.epicardium.segment_epicardium`, once a result):
+        (:func:`spheroseg.epicardium.segment_epicardium` with the result's
+        log compression, as ``segment(..., myocardium=True)``; once a result):
         its display mesh's vertices, the LV mass (g); None before the frame
         is segmented.  Asked for by the page only when it draws the
         myocardium, so that the endocardium's latency stays the same."""
@@ -289,7 +290,8 @@ class Session:
         with self._lock:
             cached = self._epicardia.get(frame)
         if cached is None or cached[0] is not result:
-            cached = (result, segment_epicardium(self.frames[frame], result.surface).surface)
+            cached = (result, segment_epicardium(self.frames[frame], result.surface,
+                                                 nepers=result.log_compression).surface)
             with self._lock:
                 self._epicardia[frame] = cached
         epicardium = cached[1]
