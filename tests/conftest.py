@@ -48,6 +48,32 @@ def interruptible() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
+def cli(capfd, *args):
+    """``spheroseg ARGS`` in this process: what a subprocess would return
+    (exit status, stdout, stderr as ``subprocess.run``; ``capfd``: the lines C++
+    readers write on the file descriptors too)."""
+    from spheroseg import warmup
+    from spheroseg.cli import main as cli_main
+
+    # the kernels loaded before the command, as a later process finds them
+    # in numba's cache: load_kernels reports whether this process compiled
+    # anything, and other tests have (a first run's line is tested in a
+    # subprocess: tests/test_cli.py, tests/test_warmup.py)
+    load = warmup.load_kernels
+    load()
+    warmup.load_kernels = lambda **kwargs: warmup.KernelLoad(load(**kwargs), compiled=False)
+    capfd.readouterr()
+    argv = [str(a) for a in args]
+    try:
+        code = cli_main(argv)
+    except SystemExit as exc:  # argparse's errors and --help
+        code = exc.code
+    finally:
+        warmup.load_kernels = load
+    captured = capfd.readouterr()
+    return subprocess.CompletedProcess(argv, code, captured.out, captured.err)
+
+
 RUN = """
 import json
 import threading
