@@ -11,6 +11,19 @@ import pytest
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 CETUS = SHARED / "data" / "cetus"
 
+# numba's cache of this session and of every command a test starts (they
+# inherit the environment): one folder, set before any test module imports
+# numba.  Unless given, it is kept beside pytest's own cache, so that a clone
+# starts with it empty (as CI) and later runs load from it.
+NUMBA_CACHE = Path(os.environ.setdefault("NUMBA_CACHE_DIR",
+                                         str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "numba")))
+
+
+def pytest_collection_modifyitems(items):
+    """The tests of a first run first: when the session's numba cache is
+    empty, :func:`first_run` compiles into it (once a session, not twice)."""
+    items.sort(key=lambda item: "first_run" not in getattr(item, "fixturenames", ()))
+
 
 @pytest.fixture
 def rng():
@@ -33,6 +46,32 @@ def interruptible() -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def cli(capfd, *args):
+    """``spheroseg ARGS`` in this process: what a subprocess would return
+    (exit status, stdout, stderr as ``subprocess.run``; ``capfd``: the lines C++
+    readers write on the file descriptors too)."""
+    from spheroseg import warmup
+    from spheroseg.cli import main as cli_main
+
+    # the kernels loaded before the command, as a later process finds them
+    # in numba's cache: load_kernels reports whether this process compiled
+    # anything, and other tests have (a first run's line is tested in a
+    # subprocess: tests/test_cli.py, tests/test_warmup.py)
+    load = warmup.load_kernels
+    load()
+    warmup.load_kernels = lambda **kwargs: warmup.KernelLoad(load(**kwargs), compiled=False)
+    capfd.readouterr()
+    argv = [str(a) for a in args]
+    try:
+        code = cli_main(argv)
+    except SystemExit as exc:  # argparse's errors and --help
+        code = exc.code
+    finally:
+        warmup.load_kernels = load
+    captured = capfd.readouterr()
+    return subprocess.CompletedProcess(argv, code, captured.out, captured.err)
 
 
 RUN = """
@@ -69,13 +108,20 @@ def first_run(tmp_path_factory):
     first run elsewhere start from this cache less the kernels they need
     compiled (:func:`numba_cache_without`)."""
     pytest.importorskip("numba")
-    cache = tmp_path_factory.mktemp("first-run") / "numba"
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONWARNINGS": "ignore"}
+    folder = tmp_path_factory.mktemp("first-run")
+    cache = folder / "numba"
+    # the session's cache when nothing is in it yet (a clone's first run, as
+    # CI's): the session then loads these kernels rather than compile them
+    # again, and the returned cache is a copy taken after the two runs
+    session = not NUMBA_CACHE.exists() or not any(path.is_file() for path in NUMBA_CACHE.rglob("*"))
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(NUMBA_CACHE if session else cache), "PYTHONWARNINGS": "ignore"}
     runs = []
     for _ in range(2):
         proc = subprocess.run([sys.executable, "-c", RUN], capture_output=True, text=True, env=env, timeout=600)
         assert proc.returncode == 0, proc.stderr
         runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    if session:
+        shutil.copytree(NUMBA_CACHE, cache)
     return cache, runs
 
 

@@ -1,4 +1,6 @@
-"""The command line on beam-space files: scan-convert, segment, track."""
+"""The command line on beam-space files: scan-convert, segment, track.  One
+scan-convert of each kind runs in a subprocess (the verb's whole run), the
+rest through :func:`spheroseg.cli.main` in this process (``conftest.cli``)."""
 
 import json
 import os
@@ -8,6 +10,8 @@ import sys
 import numpy as np
 import pytest
 import SimpleITK as sitk
+
+from conftest import cli
 
 from spheroseg.beamspace import BeamGeometry, BeamVolume, scan_convert, to_beam_space
 from spheroseg.io import BEAM_KEYS, load, load_sequence, save_volume
@@ -36,7 +40,7 @@ def case(tmp_path_factory):
     return folder, ph, beam
 
 
-def test_scan_convert_verb(case, tmp_path):
+def test_scan_convert_verb(capfd, case, tmp_path):
     folder, _, beam = case
     proc = run("scan-convert", folder / "beam.mha", tmp_path / "cart.nii.gz", "--voxel-size", "2", "--quiet")
     assert proc.returncode == 0, proc.stderr
@@ -46,10 +50,10 @@ def test_scan_convert_verb(case, tmp_path):
     np.testing.assert_array_equal(out.no_data_mask, expected.no_data_mask)
     np.testing.assert_allclose(out.origin, expected.origin, atol=1e-4)
     # never over an existing output without --force, never over the input
-    assert_one_line_error(run("scan-convert", folder / "beam.mha", tmp_path / "cart.nii.gz"), "exists")
-    assert_one_line_error(run("scan-convert", folder / "beam.mha", folder / "beam.mha", "--force"),
+    assert_one_line_error(cli(capfd, "scan-convert", folder / "beam.mha", tmp_path / "cart.nii.gz"), "exists")
+    assert_one_line_error(cli(capfd, "scan-convert", folder / "beam.mha", folder / "beam.mha", "--force"),
                           "overwrite the input")
-    assert run("scan-convert", folder / "beam.mha", tmp_path / "cart.nii.gz", "--force", "--nearest",
+    assert cli(capfd, "scan-convert", folder / "beam.mha", tmp_path / "cart.nii.gz", "--force", "--nearest",
                "--quiet").returncode == 0
 
 
@@ -67,24 +71,26 @@ def test_scan_convert_a_sequence(tmp_path):
         np.testing.assert_allclose(v.array[inside], 10.0 * (k + 1), rtol=1e-6)
 
 
-def test_scan_convert_errors(case, tmp_path):
+def test_scan_convert_errors(capfd, case, tmp_path):
     folder, ph, _ = case
     image = sitk.GetImageFromArray(np.ones((6, 5, 4), np.float32))
     sitk.WriteImage(image, str(tmp_path / "cartesian.mha"))
-    assert_one_line_error(run("scan-convert", tmp_path / "cartesian.mha", tmp_path / "o.mha"), "not a beam-space")
+    assert_one_line_error(cli(capfd, "scan-convert", tmp_path / "cartesian.mha", tmp_path / "o.mha"),
+                          "not a beam-space")
     image.SetMetaData(BEAM_KEYS[0], "0.02")
     sitk.WriteImage(image, str(tmp_path / "half.mha"))
-    assert_one_line_error(run("scan-convert", tmp_path / "half.mha", tmp_path / "o.mha"), "missing ElevationAngular")
-    assert_one_line_error(run("scan-convert", folder / "beam.mha", tmp_path / "o.npy"), "must be one of")
-    assert_one_line_error(run("scan-convert", tmp_path / "absent.mha", tmp_path / "o.mha"), "no such file")
-    assert_one_line_error(run("scan-convert", folder / "beam.mha", tmp_path / "o.mha", "--voxel-size", "0"),
+    assert_one_line_error(cli(capfd, "scan-convert", tmp_path / "half.mha", tmp_path / "o.mha"),
+                          "missing ElevationAngular")
+    assert_one_line_error(cli(capfd, "scan-convert", folder / "beam.mha", tmp_path / "o.npy"), "must be one of")
+    assert_one_line_error(cli(capfd, "scan-convert", tmp_path / "absent.mha", tmp_path / "o.mha"), "no such file")
+    assert_one_line_error(cli(capfd, "scan-convert", folder / "beam.mha", tmp_path / "o.mha", "--voxel-size", "0"),
                           "positive")
 
 
-def test_segment_a_beam_space_file(case, tmp_path):
+def test_segment_a_beam_space_file(capfd, case, tmp_path):
     folder, ph, beam = case
     out = tmp_path / "seg"
-    proc = run("segment", folder / "beam.mha", "--apex", *ph.apex, "--base", *ph.base, "--out", out, "--quiet")
+    proc = cli(capfd, "segment", folder / "beam.mha", "--apex", *ph.apex, "--base", *ph.base, "--out", out, "--quiet")
     assert proc.returncode == 0, proc.stderr
     results = json.loads((out / "results.json").read_text())
     assert results["volume_ml"] == pytest.approx(ph.truth_volume_ml, rel=0.12)
@@ -95,17 +101,17 @@ def test_segment_a_beam_space_file(case, tmp_path):
     assert mask_ml == pytest.approx(results["volume_ml"], rel=0.03)
     assert (out / "report.png").stat().st_size > 10_000
     # a beam-space file has no spacing to override
-    assert_one_line_error(run("segment", folder / "beam.mha", "--apex", *ph.apex, "--base", *ph.base, "--out",
+    assert_one_line_error(cli(capfd, "segment", folder / "beam.mha", "--apex", *ph.apex, "--base", *ph.base, "--out",
                               tmp_path / "x", "--spacing", "1", "1", "1"), "no voxel spacing")
 
 
-def test_track_a_beam_space_sequence(tmp_path):
+def test_track_a_beam_space_sequence(capfd, tmp_path):
     seq = make_sequence(n_frames=3, seed=7, spacing=2.0)
     g = probe_sector(seq.volumes[0], shape=(110, 41, 41), radius_spacing=1.4, angle_deg=1.4)
     save_volume(tmp_path / "seq.mha", [to_beam_space(v, g) for v in seq.volumes])
     apex, base = seq.frames[0].apex, seq.frames[0].base
-    proc = run("track", tmp_path / "seq.mha", "--apex", *apex, "--base", *base, "--out", tmp_path / "t", "--quiet",
-               "--no-report")
+    proc = cli(capfd, "track", tmp_path / "seq.mha", "--apex", *apex, "--base", *base, "--out", tmp_path / "t",
+               "--quiet", "--no-report")
     assert proc.returncode == 0, proc.stderr
     results = json.loads((tmp_path / "t" / "results.json").read_text())
     assert results["frames"] == 3

@@ -1,4 +1,7 @@
-"""The command line, end to end, through a real subprocess."""
+"""The command line, end to end: through a real subprocess where the test is
+about the process (exit statuses, one-line errors, first-run messages,
+timings, a verb's whole run), else :func:`spheroseg.cli.main` in this
+process (no interpreter, numba or SciPy to start, some 2 s a command)."""
 
 import json
 import os
@@ -9,7 +12,7 @@ import meshio
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from conftest import numba_cache_without
+from conftest import cli, numba_cache_without
 
 from spheroseg.fit import annulus_of_open_mesh
 from spheroseg.io import load, write_markups
@@ -46,7 +49,7 @@ def points_args(ph, shift):
     return ["--apex", *(ph.apex + shift), "--base", *(ph.base + shift)]
 
 
-def test_segment_with_the_myocardium(case, tmp_path):
+def test_segment_with_the_myocardium(capfd, case, tmp_path):
     """``--myocardium``: the API's mass and myocardium mask, the epicardial
     mesh and the heart as CMISS volume elements; ``--force`` then replaces
     the whole set, these files included."""
@@ -56,8 +59,8 @@ def test_segment_with_the_myocardium(case, tmp_path):
     shift = np.array(image.GetOrigin())
     rv = ph.base + shift + [0.0, 20.0, 0.0]
     out = tmp_path / "out"
-    proc = run("segment", path, *points_args(ph, shift), "--myocardium", "--rv-insertion", *rv, "--out", out,
-               "--quiet", "--no-report", "--allow-poor")
+    proc = cli(capfd, "segment", path, *points_args(ph, shift), "--myocardium", "--rv-insertion", *rv, "--out", out,
+                "--quiet", "--no-report", "--allow-poor")
     assert proc.returncode == 0, proc.stderr
     results = json.loads((out / "results.json").read_text())
     vol = load(path)
@@ -67,19 +70,19 @@ def test_segment_with_the_myocardium(case, tmp_path):
     np.testing.assert_array_equal(mask, api.myocardium_mask(vol))
     for name in ("epicardium.vtk", "epicardium.ply", "epicardium.json", "heart.exnode", "heart.exelem"):
         assert (out / name).stat().st_size > 0, name
-    proc = run("segment", path, *points_args(ph, shift), "--out", out, "--quiet", "--no-report", "--force")
+    proc = cli(capfd, "segment", path, *points_args(ph, shift), "--out", out, "--quiet", "--no-report", "--force")
     assert proc.returncode == 0, proc.stderr
     assert not (out / "myocardium.mha").exists() and not (out / "heart.exnode").exists()
 
 
 @pytest.mark.parametrize("suffix", [".mha", ".mhd", ".nii.gz", ".nrrd"])
-def test_segment_each_format(case, suffix, tmp_path):
+def test_segment_each_format(capfd, case, suffix, tmp_path):
     folder, image, ph = case
     path = folder / f"case{suffix}"
     sitk.WriteImage(image, str(path))
     shift = np.array(image.GetOrigin())
     out = tmp_path / "out"
-    proc = run("segment", path, *points_args(ph, shift), "--out", out, "--quiet", "--stl")
+    proc = cli(capfd, "segment", path, *points_args(ph, shift), "--out", out, "--quiet", "--stl")
     assert proc.returncode == 0, proc.stderr
     results = json.loads((out / "results.json").read_text())
     # the same segmentation through the Python API
@@ -100,7 +103,7 @@ def test_segment_each_format(case, suffix, tmp_path):
     assert (out / "report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_points_from_markups_and_landmarks(case, tmp_path):
+def test_points_from_markups_and_landmarks(capfd, case, tmp_path):
     folder, image, ph = case
     path = folder / "case.mha"
     sitk.WriteImage(image, str(path))
@@ -113,14 +116,15 @@ def test_points_from_markups_and_landmarks(case, tmp_path):
         {"label": "landmark", "position": list(on_wall + shift)},  # on the true wall: no warning
     ]}]}
     (tmp_path / "p.mrk.json").write_text(json.dumps(doc))
-    proc = run("segment", path, "--points", tmp_path / "p.mrk.json", "--out", tmp_path / "o", "--quiet", "--no-report")
+    proc = cli(capfd, "segment", path, "--points", tmp_path / "p.mrk.json", "--out", tmp_path / "o", "--quiet",
+                "--no-report")
     assert proc.returncode == 0, proc.stderr
     results = json.loads((tmp_path / "o" / "results.json").read_text())
     assert len(results["landmarks"]) == 1
     assert len(results["quality"]["landmark_residuals_mm"]) == 1 and results["quality"]["landmark_residuals_mm"][0] < 2
 
 
-def test_annulus_from_the_command_line_and_markups(case, tmp_path):
+def test_annulus_from_the_command_line_and_markups(capfd, case, tmp_path):
     # the mitral plane from --annulus (base omitted), and the same points
     # from a markups file: the results of the Python API
     folder, image, ph = case
@@ -131,10 +135,12 @@ def test_annulus_from_the_command_line_and_markups(case, tmp_path):
     annulus = ring[:: len(ring) // 5][:5] + shift
     api = segment(load(path), ph.apex + shift, annulus=annulus)
     flags = [a for p in annulus for a in ("--annulus", *p)]
-    proc = run("segment", path, "--apex", *(ph.apex + shift), *flags, "--out", tmp_path / "a", "--quiet", "--no-report")
+    proc = cli(capfd, "segment", path, "--apex", *(ph.apex + shift), *flags, "--out", tmp_path / "a", "--quiet",
+                "--no-report")
     assert proc.returncode == 0, proc.stderr
     write_markups(tmp_path / "p.mrk.json", apex=ph.apex + shift, annulus=annulus)
-    proc = run("segment", path, "--points", tmp_path / "p.mrk.json", "--out", tmp_path / "b", "--quiet", "--no-report")
+    proc = cli(capfd, "segment", path, "--points", tmp_path / "p.mrk.json", "--out", tmp_path / "b", "--quiet",
+                "--no-report")
     assert proc.returncode == 0, proc.stderr
     for out in ("a", "b"):
         results = json.loads((tmp_path / out / "results.json").read_text())
@@ -143,7 +149,7 @@ def test_annulus_from_the_command_line_and_markups(case, tmp_path):
         np.testing.assert_allclose(results["base"], annulus.mean(0), atol=1e-9)
         np.testing.assert_allclose(results["long_axis"], api.surface.pose.axis, atol=1e-12)
     two = flags[:8]
-    assert_one_line_error(run("segment", path, "--apex", *(ph.apex + shift), *two, "--out", tmp_path / "c"),
+    assert_one_line_error(cli(capfd, "segment", path, "--apex", *(ph.apex + shift), *two, "--out", tmp_path / "c"),
                           "at least 3 annulus points, got 2")
 
 
@@ -174,7 +180,7 @@ def test_track_4d_image_and_frames(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["o", "seq.mha", "short.mha"]  # nothing hidden left
 
 
-def test_track_with_the_myocardium(tmp_path):
+def test_track_with_the_myocardium(capfd, tmp_path):
     """``track --myocardium``: the API's mass per frame, segmental volume
     curves, times to minimum and SDI in results.json, every frame's
     myocardium mask as the API's."""
@@ -188,8 +194,8 @@ def test_track_with_the_myocardium(tmp_path):
     sitk.WriteImage(image, str(path))
     first = seq.frames[0]
     rv = first.base + [0.0, 20.0, 0.0]
-    proc = run("track", path, "--apex", *first.apex, "--base", *first.base, "--myocardium", "--rv-insertion", *rv,
-               "--out", tmp_path / "o", "--quiet", "--no-report", "--allow-poor")
+    proc = cli(capfd, "track", path, "--apex", *first.apex, "--base", *first.base, "--myocardium", "--rv-insertion",
+                *rv, "--out", tmp_path / "o", "--quiet", "--no-report", "--allow-poor")
     assert proc.returncode == 0, proc.stderr
     block = json.loads((tmp_path / "o" / "results.json").read_text())["myocardium"]
     volumes = load_sequence(str(path))
@@ -253,13 +259,13 @@ def test_poor_result_warns_and_exits_3_with_its_outputs(case, tmp_path):
     assert "3 done, outputs written, but the result is poor" in " ".join(run("segment", "--help").stdout.split())
 
 
-def test_never_overwrites_the_input(case, tmp_path):
+def test_never_overwrites_the_input(capfd, case, tmp_path):
     folder, image, ph = case
     path = tmp_path / "mask.mha"  # an input named like the output
     sitk.WriteImage(image, str(path))
     before = path.read_bytes()
     shift = np.array(image.GetOrigin())
-    proc = run("segment", path, *points_args(ph, shift), "--out", tmp_path, "--force", "--quiet")
+    proc = cli(capfd, "segment", path, *points_args(ph, shift), "--out", tmp_path, "--force", "--quiet")
     assert_one_line_error(proc, "overwrite an input")
     assert path.read_bytes() == before
 

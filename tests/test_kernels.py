@@ -14,6 +14,14 @@ from spheroseg.surface import Surface
 pytestmark = pytest.mark.skipif(not _kernels.AVAILABLE, reason="numba not installed")
 
 
+
+def read_only(rows):
+    """A row index read-only, as a segmentation's band rows: the kernels'
+    signature of a real run (a writable one is another specialisation,
+    compiled for the test alone)."""
+    rows.flags.writeable = False
+    return rows
+
 @pytest.fixture(scope="module")
 def case():
     ph = make_phantom(seed=5, spacing=1.5)
@@ -93,7 +101,7 @@ def test_samples_match_volume_sample_including_no_data(case, offsets):
     vol = ph.volume
     world, normal = scattered_points(model, p, 2)
     offsets = np.array(offsets)
-    rows = np.arange(model.n_samples)
+    rows = read_only(np.arange(model.n_samples))
     mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
     _kernels.sample_along(*_kernels.sampler(vol.sampling_view()), world, normal, rows, offsets, 0.0, mean, count)
     samples = vol.sample(world.T[:, None, :] + offsets[None, :, None] * normal.T[:, None, :])
@@ -117,7 +125,7 @@ def test_samples_at_are_volume_sample_nearest_and_trilinear(case):
     vol = ph.volume
     world, normal = scattered_points(model, p, 5)
     offsets = np.array([-4.0, 0.0, 0.5, 3.0])
-    rows = np.arange(0, model.n_samples, 3)
+    rows = read_only(np.arange(0, model.n_samples, 3))
     points = world.T[rows, None, :] + offsets[None, :, None] * normal.T[rows, None, :]
     for order in (0, 1):
         out = np.empty((len(rows), len(offsets)))
@@ -179,7 +187,7 @@ def test_beam_space_samples_match_beam_volume_sample_including_no_data(beam_case
     world = (g.world + rng.normal(0, 40, g.world.shape)).T.copy()  # some behind the probe, off the sector
     normal = g.normal.T.copy()
     offsets = np.array([-4.0, 0.0, 3.0])
-    rows = np.arange(model.n_samples)
+    rows = read_only(np.arange(model.n_samples))
     mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
     _kernels.sample_along(*_kernels.sampler(beam.sampling_view()), world, normal, rows, offsets, 0.0, mean, count)
     samples = beam.sample(world.T[:, None, :] + offsets[None, :, None] * normal.T[:, None, :])
@@ -205,7 +213,7 @@ def test_compiled_backend_samples_beam_space_as_the_numpy_backend(beam_case):
     assert np.isfinite(ref.u).mean() > 0.9
     for name in ("u", "inside", "outside"):
         np.testing.assert_allclose(getattr(obs, name), getattr(ref, name), rtol=1e-7, atol=1e-7, err_msg=name)
-    rows = np.arange(0, model.n_samples, 3)
+    rows = read_only(np.arange(0, model.n_samples, 3))
     fractions = np.linspace(0.05, 0.95, 7)
     total, weight = compiled.cavity_sums(beam, obs, fractions, rows)
     ref_total, ref_weight = numpy_backend.cavity_sums(beam, ref, fractions, rows)
