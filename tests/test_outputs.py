@@ -12,9 +12,9 @@ from spheroseg.segment import segment, track
 from spheroseg.surface_io import read_surface_json
 
 SEGMENT_KEYS = {"input", "volume_ml", "iterations", "converged", "status", "message", "quality", "c_in", "c_out",
-                "seconds", "apex", "base", "landmarks", "parameters", "units", "files", "versions"}
+                "log_compression", "seconds", "apex", "base", "landmarks", "parameters", "units", "files", "versions"}
 TRACK_KEYS = {"input", "frames", "volumes_ml", "edv_ml", "esv_ml", "ef_percent", "ed_frame", "es_frame", "quality",
-              "iterations", "seconds", "apex", "base", "parameters", "units", "versions"}
+              "iterations", "log_compression", "seconds", "apex", "base", "parameters", "units", "versions"}
 
 
 class WithQuality:
@@ -45,6 +45,7 @@ def test_segmentation_outputs_round_trip(tmp_path):
     assert {k: seconds.pop(k) for k in ("load", "segment")} == {"load": 0.25, "segment": result.seconds}
     assert set(seconds) == {"mask", "writes", "meshes"} and all(v > 0 for v in seconds.values())
     assert on_disk["volume_ml"] == pytest.approx(result.volume_ml, rel=1e-12)
+    assert on_disk["log_compression"] == result.log_compression > 0  # the intensity interface's estimate
     np.testing.assert_allclose(on_disk["landmarks"], [landmark])
     mask = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "o" / on_disk["files"]["mask"]))).astype(bool)
     np.testing.assert_array_equal(mask, result.mask(ph.volume))
@@ -64,6 +65,7 @@ def test_tracking_outputs_round_trip(tmp_path):
     assert on_disk["quality"] == json.loads(json.dumps(result.quality)) and on_disk["input"] is None
     assert len(on_disk["quality"]["frames"]) == 3 and on_disk["quality"]["poor"] == bool(on_disk["quality"]["warnings"])
     assert on_disk["parameters"]["iterations_per_frame"] == 7
+    assert on_disk["log_compression"] == result.frames[0].log_compression > 0
     np.testing.assert_allclose(on_disk["volumes_ml"], result.volumes_ml, rtol=1e-12)
     assert on_disk["ef_percent"] == pytest.approx(100 * (1 - on_disk["esv_ml"] / on_disk["edv_ml"]))
     masks = sorted((tmp_path / "masks").iterdir())
