@@ -15,7 +15,7 @@ puts those parts together.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -176,7 +176,11 @@ class Stepper:
         d, opts = self.descent, self.options
         obs = d.backend.observe(d.p, self.volume)
         shell = shell_offsets(opts.band_out)
-        self._start = (d.backend, self.volume, obs, shell)  # its region means, should a result need them
+        # its region means, should a result need them: the compiled backend's
+        # next observation writes over its arrays
+        start = replace(obs, **{f.name: getattr(obs, f.name).copy() for f in fields(obs)
+                                if isinstance(getattr(obs, f.name), np.ndarray)})
+        self._start = (d.backend, self.volume, start, shell)
         self._start_means = None
         # the inner band's samples, then the shell's, in one call
         inner = band_offsets(opts.band)
