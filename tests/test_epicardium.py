@@ -5,10 +5,10 @@ from spheroseg import Volume, segment
 from spheroseg.coords import Pose, ProlateSpheroidal
 from spheroseg.epicardium import (
     add_epicardium, conserving_start, enforce_thickness, initial_epicardium, segment_epicardium,
-    cell_centres, wall_nepers,
+    wall_nepers,
 )
 from spheroseg.hermite import HermiteGrid
-from spheroseg.myocardium import SEGMENT_NAMES, myocardial_volume_ml, wall_thickness
+from spheroseg.myocardium import SEGMENT_NAMES, cell_centres, myocardial_volume_ml, wall_thickness
 from spheroseg.quality import wall_report
 from spheroseg.results import SegmentationResult, TrackingResult
 from spheroseg.surface import Surface

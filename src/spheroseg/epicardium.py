@@ -28,15 +28,15 @@ import numpy as np
 from .backends import sample_points
 from .dataterms import LocalMeans, NoSpeckleError, speckle_nepers
 from .hermite import gauss_legendre
-from .myocardium import SegmentConvention, wall_thickness_grid
+from .myocardium import SegmentConvention, cell_centres, wall_thickness_grid
 from .quality import wall_report
 from .results import SegmentationResult
 from .surface import Surface
 from .tracker import Tracker
 from .volume import Volume
 
-__all__ = ["initial_epicardium", "conserving_start", "enforce_thickness", "cell_centres", "wall_polarity",
-           "wall_nepers", "wall_term", "segment_epicardium", "add_epicardium"]
+__all__ = ["initial_epicardium", "conserving_start", "enforce_thickness", "wall_polarity", "wall_nepers",
+           "wall_term", "segment_epicardium", "add_epicardium"]
 
 
 def _node_offsets(surface: Surface, thickness_mm: float) -> np.ndarray:
@@ -103,23 +103,16 @@ def enforce_thickness(endocardium: Surface, epicardium: Surface, *, min_thicknes
     Nodes whose thickness is below it are set to it with flat slopes
     (projected back on the pole constraints); where the Hermite
     interpolation still dips below it between nodes, on the centres of an
-    ``n x n`` grid of cells of ``(v1, v2)`` (:func:`cell_centres`),
+    ``n x n`` grid of cells of ``(v1, v2)``
+    (:func:`spheroseg.myocardium.cell_centres`),
     the whole thickness is raised by the deficit there.
     """
     return _enforced(endocardium, epicardium, min_thickness_mm, n)[0]
 
 
-def cell_centres(surface: Surface, n: int = 48) -> tuple[np.ndarray, np.ndarray]:
-    """``(v1, v2)``: the centres of ``n x n`` cells of the surface's
-    ``(v1, v2)`` range (where the wall's thickness is checked and
-    reported, and its polarity read)."""
-    lo, hi = surface.grid.v2_range
-    return (np.arange(n) + 0.5) * 2 * np.pi / n, lo + (hi - lo) * (np.arange(n) + 0.5) / n
-
-
 def _enforced(endocardium: Surface, epicardium: Surface, min_thickness_mm: float, n: int):
     """:func:`enforce_thickness`, and the wall thickness it leaves on
-    :func:`cell_centres` (rows ``v2``)."""
+    :func:`spheroseg.myocardium.cell_centres` (rows ``v2``)."""
     if not (np.isfinite(min_thickness_mm) and min_thickness_mm >= 0):
         raise ValueError(f"min_thickness_mm must be a number of mm >= 0, got {min_thickness_mm!r}")
     grid = endocardium.grid
@@ -171,9 +164,8 @@ def wall_nepers(volume: Volume, endocardium: Surface, epicardium: Surface, *, pe
     three quarters of the way from the endocardium to ``epicardium`` on
     ``per_patch x per_patch`` rays per patch of the grid."""
     grid = endocardium.grid
-    lo, hi = grid.v2_range
     m1, m2 = grid.n1 * per_patch, grid.n2 * per_patch
-    v1, v2 = (np.arange(m1) + 0.5) * 2 * np.pi / m1, lo + (hi - lo) * (np.arange(m2) + 0.5) / m2
+    v1, v2 = cell_centres(endocardium, m1, m2)
     patch = (np.arange(m2)[:, None] // per_patch) * grid.n1 + np.arange(m1)[None, :] // per_patch
     f_in, f_out = endocardium.radius_grid(v1, v2), epicardium.radius_grid(v1, v2)
     v1, v2 = v1[None, :], v2[:, None]
@@ -251,7 +243,7 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     SegmentationResult
         Its ``surface`` is the epicardium, on the endocardium's grid; its
         ``quality`` the wall's (:func:`spheroseg.quality.wall_report` of the
-        thickness on 48 x 48 :func:`cell_centres`).
+        thickness on 48 x 48 :func:`spheroseg.myocardium.cell_centres`).
     """
     if polarity not in ("auto", "bright", "dark"):
         raise ValueError(f"polarity must be 'auto', 'bright' or 'dark', got {polarity!r}")

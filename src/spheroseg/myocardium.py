@@ -49,7 +49,7 @@ from .hermite import gauss_legendre
 from .surface import Surface
 
 __all__ = ["MYOCARDIAL_DENSITY", "SEGMENT_NAMES", "SegmentConvention", "myocardial_volume_ml", "lv_mass_g",
-           "wall_thickness", "wall_thickness_grid", "cavity_length", "segment_labels", "segment_volumes_ml", "segment_table",
+           "wall_thickness", "wall_thickness_grid", "cell_centres", "cavity_length", "segment_labels", "segment_volumes_ml", "segment_table",
            "times_to_minimum", "systolic_dyssynchrony_index"]
 
 #: density of myocardium, g/mL (Lang et al., J Am Soc Echocardiogr 2015)
@@ -161,6 +161,15 @@ def wall_thickness(endocardium: Surface, epicardium: Surface, v1, v2, *, order: 
     _check_pair(endocardium, epicardium)
     v1, v2 = np.broadcast_arrays(np.asarray(v1, dtype=float), np.asarray(v2, dtype=float))
     return _arc_length(endocardium.system, endocardium.radius(v1, v2), epicardium.radius(v1, v2), v1, v2, order)
+
+
+def cell_centres(surface: Surface, n1: int = 48, n2: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(v1, v2)``: the centres of ``n1 x n2`` cells (``n2`` default
+    ``n1``) of the surface's ``(v1, v2)`` range, where the wall's thickness
+    is read (the segment table, the quality report, the thickness floor)."""
+    n2 = n1 if n2 is None else n2
+    lo, hi = surface.grid.v2_range
+    return (np.arange(n1) + 0.5) * (2 * np.pi / n1), lo + (np.arange(n2) + 0.5) * ((hi - lo) / n2)
 
 
 def wall_thickness_grid(endocardium: Surface, epicardium: Surface, v1, v2, *, order: int = 8) -> np.ndarray:
@@ -294,9 +303,8 @@ def segment_table(endocardium: Surface, epicardium: Surface | None = None, *,
         return rows
     _check_pair(endocardium, epicardium)
     myocardium = segment_volumes_ml(epicardium, length=length, convention=convention) - cavity
-    lo, hi = endocardium.grid.v2_range
-    v1 = (np.arange(n) + 0.5) * (2 * np.pi / n)
-    v2 = lo + (np.arange(n) + 0.5) * ((hi - lo) / n)
+    lo = endocardium.grid.v2_range[0]
+    v1, v2 = cell_centres(endocardium, n)
     thickness = wall_thickness_grid(endocardium, epicardium, v1, v2)
     f = endocardium.radius_grid(v1, v2)
     _, h1, h2 = endocardium.system.scale_factors(f, v1[None, :], v2[:, None])
