@@ -245,87 +245,95 @@ def _speed(sp) -> list[str]:
         out += ["", "### Where the time goes, and what it would take", "",
                 "The default mode runs four stages: the global means on 2 x 2 and 4 x 4 patches, the local means on "
                 "8 x 8, then the intensity interface on 8 x 8, which is handed the local means' last band means and "
-                "freezes its levels. Issue 15's rounds removed work that produced nothing: the last stage samples no "
-                "bands (two thirds of its samples; its first observation neither, since the hand-over), a stage on "
-                "the same grid (and a tracked frame) continues the descent instead of rebuilding its matrices and "
-                "landmark rows, a volume or a mesh no longer builds a sparse basis matrix, the grid matrices are read "
-                "from a cache on disk, the step is solved for directly (one dense product a step instead of two, the "
-                "thin-plate matrix kept sparse), the medians a result reports are taken once at its end, raw samples "
-                "(the speckle's, the start's) come from a compiled kernel, and the set-up and the quality report "
-                "evaluate the surface on tensor grids, the initial surface once per tracker and the apex as one "
-                "point; the local means project their two band fields in one product with the mass inverse and "
-                "multiply them by the constraints in compiled code (scipy's dispatch of a sparse product cost more "
-                "than the product), a wall's distances from the axis are measured in the model's frame, the "
-                "surface's own samples (one a point) run in a loop of their own on SIMD lanes, and the hand-over's "
-                "speckle estimate bins its rays by their patch's number (no sort); then each level ran in one "
-                "compiled loop (below). Two "
-                "changes of method cut the iterations, both checked across the image formations (the "
-                "accuracy section): the coarse levels stop at twice `tol` (`coarse_tol`: they only bring the surface "
-                "near the wall for the next level), and the interface stage, which starts at the wall, takes twice "
-                "the step when the local means settled. On the 32 sweep cases the iterations fell from 824 to 641 "
-                "and the median Dice rose from 0.971 to 0.978.",
+                "freezes its levels; each level runs in one compiled loop (`_kernels.descend`, called by "
+                f"`Tracker.run_level`). A whole default segmentation of the unseen-style cases takes "
+                f"{min(seg_unseen):.1f} to {max(seg_unseen):.1f} ms (target 5 ms: "
+                f"{'met' if max(seg_unseen) <= 5 else 'missed'}), in {min(its_unseen)} to {max(its_unseen)} "
+                f"iterations. {stage_text}".rstrip(),
                 "",
                 f"An iteration of the last stage at 8 x 8 patches takes {it_default:.0f} us (median over the "
                 f"unseen-style cases above, {sp.get('kernel_threads', 1)} kernel threads, inside the compiled loop "
                 "that runs a level: 11 iterations less 1, over 10): the surface at the "
-                f"{prof['samples']} sample points and their grey levels (alone, from Python, "
-                f"{prof['surface_and_samples_us']:.0f} us: the Hermite basis patch by patch, then exp, normal and "
-                "scale factor on SIMD lanes; the samples in a parallel loop whose body has no inner loop), then the "
-                "force, B^T v, the thin-plate and constraint products, the product with the 259 x 259 system "
-                "inverse (a row of it added per parameter: SIMD lanes instead of a chain of dependent additions) "
-                "and the motion B dp. The local-mode iteration of the profile below adds the band means: "
-                f"{prof['band_samples_us']:.0f} us of samples "
+                f"{prof['samples']} sample points and their grey levels ({prof['surface_and_samples_us']:.0f} us "
+                "alone, from Python), then the force, B^T v, the thin-plate and constraint products, the product "
+                "with the 259 x 259 system inverse and the motion B dp. The local-mode iteration of the profile "
+                f"above adds the band means: {prof['band_samples_us']:.0f} us of samples "
                 f"({1000 * prof['band_samples_us'] / (prof['image_samples'] - prof['samples']):.0f} ns each) and "
-                f"their projection on the surface. The kernels of the sample points "
-                "(surface, samples, cavity sums, B p) split the points among numba's threads (the threads section "
-                "above; a batch of several workers runs one thread in each, where threads would only contend).",
+                "their projection on the surface. The kernels of the sample points (surface, samples, cavity sums, "
+                "B p) split the points among numba's threads; a batch of several workers runs one thread in each, "
+                "where threads would only contend.",
                 "",
-                f"A whole default segmentation of the unseen-style cases takes {min(seg_unseen):.1f} to "
-                f"{max(seg_unseen):.1f} ms (target 5 ms: {'met' if max(seg_unseen) <= 5 else 'missed'}), in "
-                f"{min(its_unseen)} to {max(its_unseen)} iterations. {stage_text}"
-                "Each level runs in one compiled loop (`_kernels.descend`, called by `Tracker.run_level`): from "
-                "Python an iteration had been a dozen kernel calls and their numpy glue, 60-100 us on the coarse "
-                "levels where the arithmetic is a few, and some 50 us on the fine ones. Then the Python around the "
-                "loops was trimmed, each part equal to the last bit (24 segmentations, four modes on the six cases, "
-                "gave the same coefficients and quality reports): the machine's load is read at most ten times a "
-                "second (a reading cost 0.1 ms back to back: the kernels' threads were still running, and were read "
-                "one by one), a tensor grid's Hermite basis is kept for the last parameters (the quality report's "
-                "axis distances, twice a result, 80 to 46 us), the initial surface's profile is one call and its "
-                "frame is built without `np.cross`'s checks (130 to 100 us), and the hand-over's speckle estimate "
-                "bins by the patch labels themselves (no `np.unique`: 30 us). In one process, alternating with the "
-                "code before that (3113c3a), the six cases' median went from 4.43 to 4.11 ms and the worst from "
-                "4.87 to 4.68 (2 threads). That code had measured 5.6 to 6.6 ms two days earlier, on a slower day of "
-                "this virtual machine: most of the gain against that figure is the machine's, and the worst case "
-                "(the wide point-spread function, seed 0: 24 iterations) is within a few tenths of a millisecond of "
-                "the target, which a slower day would take. What is left is some 2.6 ms of arithmetic in the loops "
-                "(the local means' iterations the dearest: their band samples, their projection and the median of "
-                "their contrast) and some 2 ms of Python around them: the set-up 0.7 ms (the initial surface, the "
-                "start's statistics, the first level's matrices and landmark rows), each change of level 0.15-0.2 "
-                "ms (the new level's landmark rows, 80 us for the one apex point, all of it numpy's cost per call, "
-                "and their Woodbury update), the hand-over 0.2 ms (the speckle estimate, the interface's frozen "
-                "levels) and the result 0.35-0.5 ms (its quality report: the wall's distances from the axis on two "
-                "surfaces, and the volume). The loop's sums are plain loops (with numba's dot "
-                "products, medians and array expressions the loop and its kernels took 12.7 s to compile, with "
-                "plain loops 7.1), so a level in "
-                "it equals its iterations from Python to rounding, not to the last bit (tested). On this virtual "
-                "machine one case takes 6.5 ms in one minute and 10 in the next, whichever the code (the table "
-                "above keeps the least of several runs). Fewer sample points "
-                "(`order=6`: 36 a patch instead of 64) saved about 1.2 ms but worsened the sweep's worst case (Dice "
-                "0.935 against 0.946, worst volume error 13.3 % against 10.6 %): left. Five changes of the schedule "
-                "were tried and left: a step that grows while "
-                "successive motions agree overshot on the coarse levels (144 iterations against 143 on these six "
-                "cases); starting the interface from the 4 x 4 global means' wall, without the local means, "
-                "changed CETUS Patient 7's end-systolic volume by 11 %; the local means on the 4 x 4 patches instead "
-                "of the 8 x 8 saved 0.9 ms with the sweep's accuracy (median Dice 0.9780 against 0.9782) but moved "
-                "that volume by 2.4 % and would leave a tracked frame (the finest patches only) without them; the "
-                "local means stopping at `coarse_tol` saved 0.6 ms but moved it by 2.6 %; and starting at 4 x 4, "
-                "without the 2 x 2 level, saved 0.4 ms but moved the end-diastolic volume by 5 %. On that volume "
-                "the local means' last iterations slide one region inwards (139 to 126 mL over 20 iterations, the "
-                "median point moving 0.005 mm an iteration and the fastest 0.5-0.9) and the interface moves it back "
-                "(140.6 mL): where the interface stage starts sets the end-systolic volume within some 3 %. "
-                "What depends only on the grid (the mass and "
-                "smoothing systems and their inverses, the basis tables) is built once per machine and read from "
-                "disk by a new process (see the first segmentation above)."]
+                "What is left is some 2.6 ms of arithmetic in the loops (the local means' iterations the dearest: "
+                "their band samples, their projection and the median of their contrast) and some 2 ms of Python "
+                "around them: the set-up 0.7 ms (the initial surface, the start's statistics, the first level's "
+                "matrices and landmark rows), each change of level 0.15-0.2 ms (the new level's landmark rows, 80 us "
+                "for the one apex point, all of it numpy's cost per call, and their Woodbury update), the hand-over "
+                "0.2 ms and the result 0.35-0.5 ms (its quality report). The worst case (the wide point-spread "
+                "function, seed 0: 24 iterations) is within a few tenths of a millisecond of the target, which a "
+                "slower day of this virtual machine would take: one case takes 6.5 ms in one minute and 10 in the "
+                "next, whichever the code (the tables keep the least of several runs).",
+                "",
+                "Issue 15's rounds, then what was tried on what was left. CETUS Patient 7 judged the schedule: on "
+                "its end-systolic volume the local means' last iterations slide one region inwards (139 to 126 mL "
+                "over 20 iterations, the median point moving 0.005 mm an iteration and the fastest 0.5-0.9) and the "
+                "interface moves it back (140.6 mL), so where the interface stage starts sets that volume within "
+                "some 3 %.",
+                ""]
+        out += _tried([
+            ("the last stage sampling no bands (nor its first observation, since the hand-over)",
+             "two thirds of its samples fewer", "kept"),
+            ("a stage on the same grid, and a tracked frame, continuing the descent",
+             "no rebuilt matrices and landmark rows", "kept"),
+            ("a volume or a mesh without a sparse basis matrix", "no separate figure", "kept"),
+            ("what depends only on the grid (mass and smoothing systems, their inverses, basis tables) cached on disk",
+             "built once per machine, read by a new process (the first segmentation above)", "kept"),
+            ("the step solved for directly", "one dense product a step instead of two; the thin-plate matrix sparse",
+             "kept"),
+            ("the medians a result reports taken once, at its end", "no separate figure", "kept"),
+            ("raw samples (the speckle's, the start's) from a compiled kernel", "no separate figure", "kept"),
+            ("the set-up and the quality report on tensor grids, the initial surface once per tracker, the apex as "
+             "one point", "no separate figure", "kept"),
+            ("the local means' two band fields in one product with the mass inverse, times the constraints in "
+             "compiled code", "scipy's dispatch of a sparse product had cost more than the product", "kept"),
+            ("a wall's distances from the axis measured in the model's frame", "no separate figure", "kept"),
+            ("the surface's own samples (one a point) in a loop of their own: the Hermite basis patch by patch, "
+             "then exp, normal and scale factor on SIMD lanes", "no separate figure", "kept"),
+            ("the image samples in a parallel loop whose body has no inner loop", "no separate figure", "kept"),
+            ("the product with the system inverse a row added per parameter",
+             "SIMD lanes instead of a chain of dependent additions", "kept"),
+            ("the hand-over's speckle estimate binning its rays by their patch's number", "no sort", "kept"),
+            ("the coarse levels stopping at twice `tol` (`coarse_tol`), the interface (starting at the wall) taking "
+             "twice the step when the local means settled", "32 sweep cases: 824 to 641 iterations, median Dice "
+             "0.971 to 0.978", "kept: checked across the image formations"),
+            ("each level in one compiled loop", "from Python an iteration had been a dozen kernel calls and their "
+             "numpy glue: 60-100 us on the coarse levels, some 50 us on the fine ones", "kept"),
+            ("the loop's sums with numba's dot products, medians and array expressions",
+             "12.7 s to compile the loop and its kernels, 7.1 s with plain loops",
+             "no: plain loops (a level equals its iterations from Python to rounding, not to the last bit; tested)"),
+            ("the machine's load read at most ten times a second",
+             "a reading had cost 0.1 ms back to back (the kernels' threads still running, read one by one)", "kept"),
+            ("a tensor grid's Hermite basis kept for the last parameters",
+             "the quality report's axis distances (twice a result) 80 to 46 us", "kept"),
+            ("the initial surface's profile in one call, its frame without `np.cross`'s checks", "130 to 100 us",
+             "kept"),
+            ("the hand-over's speckle estimate binning by the patch labels themselves (no `np.unique`)", "30 us",
+             "kept"),
+            ("the last four rows together, alternating in one process with the code before them (3113c3a)",
+             "the six cases' median 4.43 to 4.11 ms, worst 4.87 to 4.68 (2 threads)", "kept: equal to the last bit "
+             "(24 segmentations, four modes on the six cases); 3113c3a had read 5.6-6.6 ms two days earlier, on a "
+             "slower day: that gain is the machine's"),
+            ("fewer sample points (`order=6`: 36 a patch instead of 64)", "about 1.2 ms saved; the sweep's worst "
+             "Dice 0.935 against 0.946, worst volume error 13.3 % against 10.6 %", "no: a worse worst case"),
+            ("a step that grows while successive motions agree",
+             "overshot on the coarse levels: 144 iterations against 143 on the six cases", "no"),
+            ("the interface started from the 4 x 4 global means' wall, without the local means",
+             "Patient 7's end-systolic volume changed by 11 %", "no"),
+            ("the local means on the 4 x 4 patches instead of the 8 x 8", "0.9 ms saved, the sweep's median Dice "
+             "0.9780 against 0.9782; Patient 7's end-systolic volume moved 2.4 %",
+             "no: and a tracked frame (the finest patches only) would lack them"),
+            ("the local means stopping at `coarse_tol`", "0.6 ms saved; that volume moved 2.6 %", "no"),
+            ("starting at 4 x 4, without the 2 x 2 level", "0.4 ms saved; Patient 7's end-diastolic volume moved "
+             "5 %", "no")])
     return out
 
 
