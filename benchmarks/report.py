@@ -723,19 +723,17 @@ def _postprocessing(data) -> list[str]:
     out = ["## Accuracy on post-processed echo (issue 30)", "",
            f"`{data['command']}` ({data['wall_seconds'] / 60:.0f} min, phantom generation included). Machine: "
            f"{_machine(data['machine'])}.", "",
-           "The scenes `speckle` and `tilted` (seeds " + ", ".join(map(str, seeds)) + ") imaged by the default "
-           "formation and post-processed as a scanner exports them (`spheroseg.synthetic.phantom.POSTPROCESSINGS`, "
-           "`spheroseg.synthetic.echo.postprocess`: Gaussian smoothing of 1 and 2 mm (sigma), the median of a cube of "
-           "half width 1 and 2 mm, 10 iterations of Perona-Malik diffusion, persistence over 3 images, and the "
-           "Cartesian export at 0.7 and 1.5 mm instead of 1 mm), plus four raw formations: the two of the most "
-           "contrast (`blood_low` 43 dB, `contrast_high` 42 dB) and the narrow and wide point-spread functions "
-           "(2 and 4.5 mm FWHM laterally at 80 mm). `spheroseg.segment` with default options. 'bound': the "
-           "intensity interface's log compression `k` is the speckle's spread bounded below by the region "
-           f"means' contrast taken at most {data['max_contrast_db']:g} dB (`spheroseg.dataterms.interface_nepers`), "
-           "the smoothing's estimate held at 0 (the code before); 'edge': now, the interface's level also "
-           "lowered by the smoothing estimated from the speckle (`speckle_smoothing_mm`, `smoothed_edge_drop`, "
-           f"a {data['edge_psf_mm']:g} mm FWHM point-spread function across the wall). Median Dice, median "
-           "(worst) volume error in % per setting, and the median smoothing estimated (mm, sigma).", "",
+           "The scenes `speckle` and `tilted` (seeds " + ", ".join(map(str, seeds)) + ") of the default formation "
+           "post-processed as a scanner exports them (`echo.postprocess`: a Gaussian of sigma 1 and 2 mm, a median "
+           "of half width 1 and 2 mm, 10 Perona-Malik iterations, persistence over 3 images, the Cartesian export "
+           "at 0.7 and 1.5 mm instead of 1), and four raw formations (the most contrast, `blood_low` 43 dB and "
+           "`contrast_high` 42 dB; `psf_narrow` and `psf_wide`, 2 and 4.5 mm FWHM laterally at 80 mm); "
+           "`spheroseg.segment`, default options. 'bound' (the code before): the interface's log compression `k` "
+           "is the speckle's spread bounded below by the region means' contrast taken at most "
+           f"{data['max_contrast_db']:g} dB (`interface_nepers`). 'edge' (now): its level also lowered by the "
+           "smoothing estimated from the speckle, across a "
+           f"{data['edge_psf_mm']:g} mm FWHM point-spread function (`speckle_smoothing_mm`, `smoothed_edge_drop`). "
+           "Cells: median Dice, median (worst) volume error, median smoothing estimated (mm, sigma).", "",
            "| setting | bound: Dice | bound: volume error % | edge: Dice | edge: volume error % | smoothing mm |",
            "| --- | --- | --- | --- | --- | --- |"]
     for name in dict.fromkeys(c["setting"] for c in cases):
@@ -748,24 +746,27 @@ def _postprocessing(data) -> list[str]:
         out.append(f"| {name} | " + " | ".join(cells) + f" | {np.median([c['smoothing_mm'] for c in rows]):.2f} |")
     out += ["", "Smoothing narrows the speckle's spread and leaves the region means: the spread alone gives `k` "
             "2-3.5 times low, and the contrast bound holds it (14-16 grey levels per neper). What the bound "
-            "leaves is the edge itself: across the wall the mean grey level is `c_out + k ln(eps + (1 - eps) "
-            "Phi(x / sigma))` (a point-spread function of standard deviation `sigma`), concave at the "
-            "interface, so a Gaussian smoothing of standard deviation `s` lowers its level there (by 0.30 `k` "
-            "at `s = sigma`, 0.98 `k` at `s = 2 sigma`, 35 dB) and the level crossing moves outwards. The "
-            "smoothing is estimated from the speckle's correlation between neighbouring voxels, the least over "
-            "the image axes (the beam's direction, along which raw speckle hardly correlates: 0.4 mm on the raw "
-            "export, 1.4 after the 1 mm Gaussian, 1.9 after the 2 mm one); persistence averages independent "
-            "speckle and leaves the correlation (0.5 mm). The interface's level is then lowered by the smoothed "
-            "edge's drop across a nominal 3 mm FWHM point-spread function (an adult apical 3D scan's at 80 mm). "
-            "Tried first and left: the shape of the histogram (fully developed log speckle's skewness -1.14 and "
-            "excess kurtosis 2.4 shrink by sqrt(N) and N under averaging, but the raw export's are -0.32 and 0.22: "
-            "no usable N); fitting the log edge (position, PSF width, smoothing) to the mean profile across the "
-            "wall, which averaged over the wall's orientations is a blurred step whatever the smoothing (the "
-            "fitted PSF width went to its bound, the position 1.2 mm off on the raw export); the speckle's "
-            "spread ratio to the bound as the measure of smoothing, which persistence (spread ratio 0.66, no "
-            "edge blur) and the median (0.5, little) would have over-corrected. The nominal PSF width is the "
-            "model's one constant: 1.0 or 1.6 mm sigma instead of 1.27 move the 2 mm Gaussian's median from "
-            "+2.1 % to +0.1 or +3.5 % (four cases, before the estimate read the band's 8 mm offset too)."]
+            "leaves is the edge: across the wall the mean grey level is `c_out + k ln(eps + (1 - eps) "
+            "Phi(x / sigma))` (a point-spread function of standard deviation `sigma`), concave at the interface, "
+            "so a Gaussian smoothing of standard deviation `s` lowers its level there (by 0.30 `k` at "
+            "`s = sigma`, 0.98 `k` at `s = 2 sigma`, 35 dB) and the level crossing moves outwards. The smoothing "
+            "is the speckle's correlation between neighbouring voxels, the least over the image axes (along the "
+            "beam raw speckle hardly correlates): 0.4 mm on the raw export, 1.4 after the 1 mm Gaussian, 1.9 "
+            "after the 2 mm one, 0.5 after persistence (which averages independent speckle). The level is lowered "
+            "by the smoothed edge's drop across a nominal 3 mm FWHM point-spread function (an adult apical 3D "
+            "scan's at 80 mm).", ""]
+    out += _tried([
+        ("the histogram's shape as the measure of smoothing (log speckle's skewness and excess kurtosis shrink "
+         "by sqrt(N) and N under averaging)", "fully developed: -1.14 and 2.4; the raw export: -0.32 and 0.22",
+         "no: no usable N"),
+        ("fitting the log edge (position, PSF width, smoothing) to the mean profile across the wall",
+         "the PSF width at its bound, the position 1.2 mm off on the raw export",
+         "no: averaged over the wall's orientations the profile is a blurred step whatever the smoothing"),
+        ("the speckle's spread ratio to the bound as the measure of smoothing",
+         "persistence 0.66 (no edge blur), the median 0.5 (little)", "no: would over-correct both"),
+        ("the nominal PSF width, 1.0 or 1.6 mm sigma instead of 1.27",
+         "the 2 mm Gaussian's median +0.1 or +3.5 % instead of +2.1 % (four cases, before the estimate read the "
+         "band's 8 mm offset too)", "1.27 kept: the model's one constant")])
     return out
 
 
