@@ -776,13 +776,9 @@ def _framerate(data) -> list[str]:
            "Cycles of the default formation whose annulus descends "
            f"{data['base_descent_mm']:g} mm at end-systole, made at 20 frames a cycle and tracked with every "
            "frame, every 2nd and every 5th, and as the pair end-diastole, end-systole; a cycle made at 6 frames. "
-           "`spheroseg.track` with default options: each frame is stepped from the previous surface; a frame "
-           "whose stepped descent did not converge, or whose wall it left behind (`frames.followed_the_wall`: in "
-           "some sector of the mid or basal wall the 4 mm just inside the surface read more than a quarter of the "
-           "way from the blood's grey level to the wall's, or the 4 mm just outside less), is also segmented "
-           "again through the coarse data term (from the frame's start surface, and from the initial shape), "
-           "the stepped one kept unless another's data energy is lower by 1 %. Poor: frames whose quality "
-           "report warns; least base radius over the frames; frames segmented again (of those after the first).",
+           "`spheroseg.track` with default options: each frame is stepped from the previous surface, and some are "
+           "segmented again (below). Poor: frames whose quality report warns; least base radius over the frames; "
+           "frames segmented again (of those after the first). Seconds per frame on a shared machine.",
            "", "| seed | frames | true EF % | tracked EF % | EF error points | EDV error % | ESV error % | poor frames | "
            "least base radius mm | segmented again | s per frame |", "| --- |" + " --- |" * 10]
     for r in data["rows"]:
@@ -793,47 +789,55 @@ def _framerate(data) -> list[str]:
     samplings = dict.fromkeys(r["sampling"] for r in data["rows"])
     worst = {s: max((r["ef_error"] for r in data["rows"] if r["sampling"] == s), key=abs) for s in samplings}
     out += ["", "Worst EF error over the seeds: " + ", ".join(f"{s} {e:+.1f}" for s, e in worst.items()) + " points.",
-            "", "Before, seed 0 of the same cycle from end-diastole to end-systole: the stepped surface alone "
-            "stays near the end-diastolic wall (ESV +48 %, EF about 19 points low); with a fresh start kept by "
-            "energy but the annulus searched +-8 mm (it descends 10 mm), -4.0 points. The legacy image's 6-frame "
-            "cycles (seeds 0-2, 1.5 mm) from end-diastole to end-systole: -16.7, -24.8, -11.7 points before, "
-            "-3.0, -2.3, -2.8 now; their 6-frame tracking unchanged (-2.0, -1.6, -1.7). Seconds per frame on a "
-            "shared machine.", "",
-            "How a left-behind wall is told (`frames.followed_the_wall`), measured on the stepped frames of these "
-            "cycles, the legacy 10- and 6-frame cycles, the descent reference's 4-frame cycle and 10- and 5-frame "
-            "cycles of each of the 16 formations (seed 3): the largest inner-band level over the 12 sectors of the "
-            "basal wall is -0.37 to 0.11 on every frame the stepped descent followed, and 0.57 to 0.70 on the "
-            "end-systoles reached from end-diastole directly (where the annulus descends); the least outer-band "
-            "level is 0.44 to 0.59, except under `dropout` (0.23-0.35: the wall without echo reads dark outside; "
-            "two of its frames are segmented again, to no change). Under each of the 9 post-processings of the "
-            "smoothing sweep (10-frame cycles, seed 3, and their ED-ES pairs): followed frames -0.02 to 0.11, "
-            "the ED-ES pairs 0.52 to 0.58, every pair segmented again and no other frame. The apical half is not read: near-field clutter "
-            "(`clutter_strong`) raises the inner band there to 0.48 on frames that were followed, and the apex "
-            "barely moves over a cycle. The tracked EFs above, and those of the legacy cycles and of the descent "
-            "reference's, are the ones segmenting every frame again gave. A stepped descent capped before it "
-            "settled (the descent reference's 5 iterations a frame) is segmented again too: its wall was still "
-            "moving."]
+            "", "A frame is segmented again through the coarse data term (from its start surface, and from the "
+            "initial shape), the stepped one kept unless another's data energy is lower by 1 %, when its stepped "
+            "descent did not converge (capped before it settled, as at the descent reference's 5 iterations a "
+            "frame: its wall was still moving) or left the wall behind (`frames.followed_the_wall`: in some sector "
+            "of the mid or basal wall the 4 mm just inside the surface read more than a quarter of the way from the "
+            "blood's grey level to the wall's, or the 4 mm just outside less). The apical half is not read: "
+            "near-field clutter (`clutter_strong`) raises the inner band there to 0.48 on followed frames, and the "
+            "apex barely moves over a cycle. The tracked EFs above, and those of the legacy cycles and of the "
+            "descent reference's, are the ones segmenting every frame again gave. The levels, over the 12 sectors "
+            "of the basal wall:", "",
+            "| frames | largest inner-band level | least outer-band level |", "| --- | --- | --- |",
+            "| followed by the stepped descent: these cycles, the legacy 10- and 6-frame cycles, the descent "
+            "reference's 4-frame cycle, 10- and 5-frame cycles of each of the 16 formations (seed 3) | -0.37 to "
+            "0.11 | 0.44 to 0.59 |",
+            "| the same under `dropout` (the wall without echo reads dark outside; two frames segmented again, to "
+            "no change) | | 0.23-0.35 |",
+            "| end-systoles reached from end-diastole directly (where the annulus descends) | 0.57 to 0.70 | |",
+            "| the 9 post-processings of the smoothing sweep (10-frame cycles, seed 3), followed frames (none "
+            "segmented again) | -0.02 to 0.11 | |",
+            "| the same, their ED-ES pairs (every pair segmented again) | 0.52 to 0.58 | |"]
     sp = data.get("speed")
     if sp:
         out += ["", "Tracking speed (`python benchmarks/framerate.py --speed`, " + sp["date"] + ", load average "
                 f"{sp['load_start']:.1f} at the start and {sp['load_end']:.1f} at the end: on a busy machine the "
-                "ratio holds, not the rates): the legacy 10-frame cycle of benchmarks/speed.py's tracking line, "
-                "stepped at 5 iterations a frame with the frames whose wall was left behind segmented again (the "
-                "default), with every frame and with none, interleaved, medians of 3; the least volume over the "
-                f"stepped frames against the true ESV {sp['truth_esv_ml']:.1f} mL.", "",
+                "ratio holds, not the rates): the legacy 10-frame cycle of benchmarks/speed.py's tracking line at 5 "
+                "iterations a frame, segmenting again the frames whose wall was left behind (the default), every "
+                "frame, or none; interleaved, medians of 3; the least volume over the stepped frames against the "
+                f"true ESV {sp['truth_esv_ml']:.1f} mL.", "",
                 "| frames segmented again | volumes per second at 5 iterations a frame | least volume mL |",
                 "| --- | --- | --- |"]
         for name, row in sp["policies"].items():
             out.append(f"| {name} | {row['volumes_per_second_5']:.1f} | {row['esv_ml']:.1f} |")
         out += ["", f"The whole `spheroseg.track` of the cycle: {sp['track_volumes_per_second']:.1f} volumes per "
-                f"second, EF {sp['ef']:.1f} % (true {sp['truth_ef']:.1f} %). Tried and left: segmenting a frame "
-                "again only when its stepped surface holds the frame's blood (the Chan-Vese data energy over the "
-                "cavity's volume and the squared contrast) less well than a fraction of the first frame's: the "
-                "stepped frames that no candidate replaced held 0.92-1.00 of it on the legacy 4- and 6-frame "
-                "cycles, the end-systolic frames reached from end-diastole directly 0.73-0.81, but the end-systole "
-                "of the descent reference's 4-frame cycle (seed 7, 2 mm, `mode='local'`, base kept still), which a "
-                "candidate replaced (EF 55.3 % against 50.3 without, true 55.0), held 0.895: too thin a margin to "
-                "gate on (that frame's descent had not converged, which the gate above reads)."]
+                f"second, EF {sp['ef']:.1f} % (true {sp['truth_ef']:.1f} %)."]
+    out += [""] + _tried([
+        ("the stepped surface alone (seed 0, end-diastole to end-systole)",
+         "stays near the end-diastolic wall: ESV +48 %, EF about 19 points low", "no"),
+        ("a fresh start kept by energy, the annulus searched +-8 mm while it descends 10 (seed 0, the same pair)",
+         "-4.0 points", "no"),
+        ("the code before, on the legacy image's 6-frame cycles (seeds 0-2, 1.5 mm), end-diastole to end-systole",
+         "-16.7, -24.8, -11.7 points (now -3.0, -2.3, -2.8); their 6-frame tracking unchanged (-2.0, -1.6, -1.7)",
+         "no: replaced by the present check"),
+        ("segmenting a frame again only when its stepped surface holds the frame's blood (the Chan-Vese data "
+         "energy over the cavity's volume and the squared contrast) less well than a fraction of the first frame's",
+         "frames no candidate replaced 0.92-1.00 (legacy 4- and 6-frame cycles); end-systoles reached from "
+         "end-diastole directly 0.73-0.81; the descent reference's 4-frame end-systole (seed 7, 2 mm, "
+         "`mode='local'`, base kept still), which a candidate replaced (EF 55.3 % against 50.3 without, true "
+         "55.0), 0.895", "no: too thin a margin (that frame's descent had not converged, which the present check "
+         "reads)")])
     return out
 
 
