@@ -942,86 +942,90 @@ def _locate(data) -> list[str]:
                      f"apex {r['apex_mm']:.0f} mm, base {r['base_mm']:.0f} mm off, confidence {r['confidence']:.2f}, "
                      f"{r['located_ml']:.0f} mL")
             out.append(f"| {phase} | {r['clicked_ml']:.0f} | {where} | {'; '.join(r['clicks_flagged']) or 'no'} |")
-    out += ["", "How `locate` works and what was tried (each choice measured on the formation sweep's scenes, the "
-            "legacy families, the tilted mitral scenes and CETUS Patient 7, not on one phantom): a 3 mm block-mean "
-            "copy of the image, Otsu's threshold of its smoothed grey levels, the dark pools after an opening of 1 "
-            "(then 2, 3) voxels, the long axis by PCA turned towards the probe, the base at the waist of the pool's "
-            "cross-section along the axis (then moved onto the mitral plane, below), the apex where the "
-            "full-resolution axial profile meets the wall. "
-            "(1) The apex of the coarse pool alone was 4-8 mm short on every case (the opening and the 3 mm voxels "
-            "round the tip off); the axial profile brings it to about 2 mm. (2) A 2 mm slab of voxels around the "
-            "base, on a grid slightly tilted to the axis, is a strip to one side: the base was 14-17 mm off "
-            "laterally on upright phantoms; whole voxel layers fixed it. (3) Otsu's between-class variance ratio "
-            "cannot refuse tissue (0.63 for any single Gaussian class, 0.69-0.86 on phantoms); the distance "
-            "between the two classes' means in their pooled deviations can (2.6 on speckled tissue, 4.7-5.7 on "
-            "the sweep; refused below 2.8). A phantom whose blood is as bright as its wall still has dark "
-            "background tissue (3.2): it is refused because no dark pool lies along the sector (a long axis "
-            "within 45 degrees of the centre line). (4) The widest-section-first waist search put the base at "
-            "the far end of the atrium when the atrium was wider than the ventricle's base; the waist is now the "
-            "narrowest section against the widest on both sides. (5) Haze over the apex (`clutter_strong`) makes "
-            "the pool start 34-38 mm deep; this is not fixed, but the blunt end (the section 10 mm from the apex "
-            "is two thirds of the widest, against a quarter to a third for a tapering apex) takes the confidence "
-            "under 0.5. (6) Under-compensated attenuation (`tgc_under`) darkens the deep sector until Otsu's dark "
-            "class is the depth, not the blood (classes 2.0 deviations apart on an end-systolic case, refused); "
-            "levelling each 6 mm shell of depth to its brighter quartile brings it to 5.1, raises every phantom's "
-            "(4.9-6.3) and brought the legacy `clutter` apex from 11 to 3.5 mm. Not tried for want of time: refining "
-            "candidate poses by coarse descents and scoring them by the energy. CETUS Patient 7 is refused: its "
-            "cavity's dark pool joins the dark tissue beyond a faint wall near the base over a wide front (openings "
-            "of up to 9 mm do not cut it) and the pool lies across the sector.", "",
-            "A second pass tried three ways to locate Patient 7. Each was measured on its ED and ES volumes, on the "
-            "16-case sweep and on the bright-blood phantom that must be refused, and none was kept, because each one "
-            "replaced a refusal with a wrong location (flagged as such, but the target is the right location). "
-            "(a) Splitting the dark pools where they narrow, once the openings find no ventricle. This used a merge tree of the "
-            "distance to the pool's edge: two parts meeting at a ridge narrower than a ratio of the narrower part's "
-            "widest point are kept apart. At ratios of 0.3-0.4 Patient 7 stayed joined. At 0.5 the ES volume was "
-            "located 21 mm (apex) and 25 mm (base) off the clicks. At 0.6 ED was 53 / 68 mm off, and the "
-            "bright-blood phantom was given a ventricle. scipy's `watershed_ift` was tried first. Its basins leak "
-            "(it cuts a symmetric two-basin profile off-centre), and an ES result 7 mm off at the base came from "
-            "that artefact. (b) Keeping only the pools inside a cone around the sector's centre line, once the "
-            "whole sector has no ventricle. With a half-angle of 15-25 degrees both phases were located, 10-19 mm "
-            "off at the apex and 9-37 mm off at the base, with confidence 0-0.11. At 30 degrees both were "
-            "refused. (c) Fitting a straight line to the depth drift instead of levelling shell by shell. Gain "
-            "errors are linear in dB, and so linear in log-compressed grey. The line stops the bright near field "
-            "over Patient 7's apex from being levelled into a false pool that reaches 25 mm above the clicked apex. "
-            "It left the sweep about as it was (apex median 1.6 mm, base 2.8 mm, Dice 0.951, volume +5.5 %), but "
-            "it did not locate Patient 7 on its own. Patient 7's blood and tissue are about 3 pooled deviations "
-            "apart (4.7-5.7 on the sweep), so the present scores would keep even a right location of it under "
-            "confidence 0.5. Not tried: scoring candidate poses by coarse descents and their energy, which now "
-            "looks like the way forward rather than more morphology.", "",
-            "A third pass. (1) The mitral plane: the coarse pool's narrowest section lies 1-4 mm beyond the plane "
-            "(the 3-4 mm voxels and the atrium widening past the orifice), which made the volumes without points 5-9 "
-            "% large. The steepest fall of the pool's section before its waist was tried first: it put the base "
-            "1.6-6.8 mm short of the plane (median 3.2 mm; the ventricle itself narrows towards its base). Kept: the "
-            "mean grey level over a disc across the axis, read from the full-resolution image 12 mm either side of "
-            "the coarse base, rises from the blood's level where the disc meets the annulus (or the closed leaflets, "
-            "or the narrower orifice); the base is where it crosses half-way to its peak. The disc's radius, as a "
-            "fraction of the cavity's coarse radius near the base, was measured at 0.5 (the disc stays inside the "
-            "orifice: up to 15 mm off), 0.8 (sweep 0.6-1.7 mm, but the tilted mitral scenes 3.0-4.7 mm, whose atrium "
-            "is 0.85 of the cavity's radius), 0.9 (sweep 0.6-2.0 mm, mitral scenes 0.9-2.1 mm: kept) and 1.0 (one "
-            "mitral scene 3.3 mm off). (2) Beam-space speed: the coarse copy of a beam-space volume is interpolated "
-            "over the whole box around the sector, three times the sector's volume (650,000 coarse voxels at 3 mm for"
-            " a 75-degree sector). It is now read only inside the sector, the voxels' distances from the probe come "
-            "from the grid's axes, and a beam-space volume is searched at 4 mm (a 2 mm Cartesian image already is): "
-            "on the 8 beam-space cases, side by side under heavy load, 3 mm took a median 0.38 s (worst 0.51 s) "
-            "for apex median 1.7 mm and base 0.9 "
-            "mm, 4 mm 0.19 s (0.28 s) for 1.8 mm and 1.0 mm; the first pass took 0.55-1.8 s. (3) Patient 7. Its "
-            "cavity's sections across the depth axis are dark discs ringed by the wall from 108 to 140 mm deep (ED); "
-            "above and below, the faint wall lets the pool run out into the dark tissue around it. Tried: lower "
-            "thresholds (Otsu's minus 0.25-1.5 pooled deviations: ED stays joined at every one; ES is located 10-28 "
-            "mm off at the apex, 13-14 mm at the base, at 1.25-1.5); the core of ringed sections alone with a "
-            "cylinder about the line from the probe through it (1.0-1.6 times its radius: apex 29-33 mm off, into the"
-            " bright near field, base 19-60 mm); with a straight-line depth drift (second pass, c) the ringed core "
-            "vanishes (0.2-2 mL). Tried last, and removed: for images that would otherwise be refused, the cavity "
-            "followed section by section from the ringed core (a section that runs out through the wall, more than "
-            "1.3 times the previous one, is cut to the previous section), ending at a quarter of the widest section "
-            "and leaving the apex to the axial profile. It located Patient 7 instead of refusing it, but not within "
-            "the targets (ED apex 10 mm and base 10 mm off, 288 mL without points against 196 clicked; ES 7 mm and 16"
-            " mm, 153 mL against 141; confidence 0.001-0.05; ending at 0.15 of the widest section took the ED apex 29"
-            " mm up into the near field, a growth limit of 1.1 or 1.2 left ES as it was and ED 9-13 mm off), and on a"
-            " synthetic half-ellipsoid whose wall opens over 20 mm into dark surroundings (refused before) it gave a "
-            "confident wrong pose (apex 18 mm, base 27 mm off, confidence 0.91). A refusal is better than that: "
-            "Patient 7 stays refused. Scoring candidate poses by coarse descents and their energy is still not tried.",
-            "", f"Machine: {_machine(data['machine'])}; a shared machine under load (six developers on 2 cores)."]
+    out += ["", "How `locate` works: a 3 mm block-mean copy of the image (a beam-space volume: 4 mm, inside the "
+            "sector only), each 6 mm shell of depth levelled to its brighter quartile; Otsu's threshold of its "
+            "smoothed grey levels, refused under 2.8 pooled deviations between the classes' means; the dark pools "
+            "after an opening of 1 (then 2, 3) voxels, one along the sector (a long axis within 45 degrees of its "
+            "centre line); the long axis by PCA, turned towards the probe; the base at the pool's waist (the "
+            "narrowest section against the widest on both sides), moved onto the mitral plane where the mean grey "
+            "level over a disc across the axis (0.9 of the cavity's coarse radius), read at full resolution 12 mm "
+            "either side, crosses half-way from the blood's level to its peak (the annulus, the closed leaflets or "
+            "the narrower orifice); the apex where the full-resolution axial profile meets the wall. Haze over the "
+            "apex (`clutter_strong`) starts the pool 34-38 mm deep: not fixed, but the blunt end (the section 10 mm "
+            "from the apex two thirds of the widest, a quarter to a third when tapering) takes the confidence under "
+            "0.5.", "",
+            "CETUS Patient 7 is refused: its cavity's dark pool joins the dark tissue beyond a faint wall near the "
+            "base over a wide front (openings of up to 9 mm do not cut it) and lies across the sector; its "
+            "sections across the depth axis are dark discs ringed by the wall only from 108 to 140 mm deep (ED). "
+            "Its blood and tissue are about 3 pooled deviations apart (4.7-5.7 on the sweep), so the present "
+            "scores would keep even a right location of it under confidence 0.5. Each way tried to locate it "
+            "replaced the refusal with a wrong location (flagged as such, but the target is the right location). "
+            "Not tried: scoring candidate poses by coarse descents and their energy, the likelier way forward "
+            "than more morphology.", "",
+            "Each choice below was measured on the formation sweep's scenes, the legacy families, the tilted "
+            "mitral scenes and CETUS Patient 7 (its ED and ES volumes); those for Patient 7 also on the "
+            "bright-blood phantom, which must be refused.", ""]
+    out += _tried([
+        ("the apex of the coarse pool alone", "4-8 mm short on every case (the opening and the 3 mm voxels round "
+         "the tip off)", "no: the full-resolution axial profile, about 2 mm"),
+        ("a 2 mm slab of voxels around the base, on a grid slightly tilted to the axis",
+         "a strip to one side: the base 14-17 mm off laterally on upright phantoms", "no: whole voxel layers"),
+        ("Otsu's between-class variance ratio to refuse tissue",
+         "0.63 for any single Gaussian class, 0.69-0.86 on phantoms",
+         "no: cannot refuse; the classes' distance in pooled deviations can (2.6 on speckled tissue, 4.7-5.7 on "
+         "the sweep; 3.2 on a phantom whose blood is as bright as its wall, refused as no dark pool lies along "
+         "the sector)"),
+        ("the widest section first, then the waist", "the base at the far end of the atrium when the atrium was "
+         "wider than the ventricle's base", "no: the narrowest section against the widest on both sides"),
+        ("no levelling in depth, under under-compensated attenuation (`tgc_under`)",
+         "Otsu's dark class is the depth, not the blood: classes 2.0 deviations apart on an end-systolic case, "
+         "refused", "no: 6 mm shells levelled: 5.1, every phantom 4.9-6.3, the legacy `clutter` apex 11 to "
+         "3.5 mm"),
+        ("Patient 7: scipy's `watershed_ift` to split the pools", "its basins leak (it cuts a symmetric two-basin "
+         "profile off-centre); an ES result 7 mm off at the base came from that", "no"),
+        ("Patient 7: splitting the pools where they narrow, once the openings find no ventricle (a merge tree of "
+         "the distance to the pool's edge; two parts kept apart at a ridge narrower than a ratio of the narrower "
+         "part's widest point)", "ratio 0.3-0.4: joined; 0.5: ES 21 mm (apex) and 25 mm (base) off the clicks; "
+         "0.6: ED 53 / 68 mm off, and the bright-blood phantom given a ventricle", "no: wrong locations"),
+        ("Patient 7: only the pools inside a cone about the sector's centre line, once the whole sector has no "
+         "ventricle", "half-angle 15-25 degrees: both phases 10-19 mm off at the apex, 9-37 mm at the base, "
+         "confidence 0-0.11; 30 degrees: both refused", "no: wrong locations"),
+        ("a straight line fitted to the depth drift instead of the shells (gain errors are linear in dB, so in "
+         "log-compressed grey)", "no false pool from the bright near field 25 mm above Patient 7's clicked apex; "
+         "the sweep about as it was (apex median 1.6 mm, base 2.8 mm, Dice 0.951, volume +5.5 %); Patient 7 not "
+         "located on its own", "no"),
+        ("the base left at the coarse pool's narrowest section", "1-4 mm beyond the mitral plane (the 3-4 mm "
+         "voxels, the atrium widening past the orifice): volumes without points 5-9 % large",
+         "no: moved onto the plane"),
+        ("the base at the steepest fall of the pool's section before its waist", "1.6-6.8 mm short of the plane "
+         "(median 3.2 mm; the ventricle itself narrows towards its base)", "no"),
+        ("the disc's radius 0.5 of the cavity's", "the disc stays inside the orifice: up to 15 mm off", "no"),
+        ("the disc's radius 0.8", "sweep 0.6-1.7 mm; tilted mitral scenes 3.0-4.7 mm (their atrium 0.85 of the "
+         "cavity's radius)", "no"),
+        ("the disc's radius 0.9", "sweep 0.6-2.0 mm; mitral scenes 0.9-2.1 mm", "kept"),
+        ("the disc's radius 1.0", "one mitral scene 3.3 mm off", "no"),
+        ("a beam-space volume's coarse copy interpolated over the whole box around the sector (three times the "
+         "sector: 650,000 coarse voxels at 3 mm for a 75-degree sector)", "0.55-1.8 s (the first pass)",
+         "no: read only inside the sector, the distances from the probe from the grid's axes"),
+        ("a beam-space volume searched at 3 mm", "8 beam-space cases, side by side under heavy load: median "
+         "0.38 s (worst 0.51), apex median 1.7 mm, base 0.9 mm", "no"),
+        ("... at 4 mm (as a 2 mm Cartesian image already is)", "0.19 s (0.28), apex 1.8 mm, base 1.0 mm", "kept"),
+        ("Patient 7: lower thresholds, Otsu's minus 0.25-1.5 pooled deviations", "ED joined at every one; ES "
+         "10-28 mm off at the apex, 13-14 mm at the base, at 1.25-1.5", "no"),
+        ("Patient 7: the core of ringed sections alone, with a cylinder about the line from the probe through it "
+         "(1.0-1.6 times its radius)", "apex 29-33 mm off, into the bright near field; base 19-60 mm", "no"),
+        ("Patient 7: the ringed core with the straight-line depth drift", "the core vanishes (0.2-2 mL)", "no"),
+        ("for images otherwise refused, the cavity followed section by section from the ringed core (a section "
+         "running out through the wall, over 1.3 times the previous one, cut to the previous), ending at a "
+         "quarter of the widest section, the apex left to the axial profile", "Patient 7 located, not within the "
+         "targets: ED apex and base 10 mm off, 288 mL without points against 196 clicked; ES 7 and 16 mm, "
+         "153 mL against 141; confidence 0.001-0.05", "removed (below)"),
+        ("... ending at 0.15 of the widest section", "the ED apex 29 mm up into the near field", "no"),
+        ("... a growth limit of 1.1 or 1.2", "ES as it was, ED 9-13 mm off", "no"),
+        ("... on a synthetic half-ellipsoid whose wall opens over 20 mm into dark surroundings (refused before)",
+         "a confident wrong pose: apex 18 mm, base 27 mm off, confidence 0.91",
+         "removed: a refusal is better; Patient 7 stays refused")])
+    out += ["", f"Machine: {_machine(data['machine'])}; a shared machine under load (six developers on 2 cores)."]
     return out
 
 
