@@ -1055,31 +1055,36 @@ def _myocardium(data) -> list[str]:
     out += ["", "A bright wall's epicardium lies where the echo intensity is half way between the wall's and what lies "
             "beyond it (`epicardium.wall_term`: the local means with the wall inside, `LocalMeans.polarity = -1`, and "
             "`boundary_nepers`, `k` the image's log compression as the endocardium's intensity interface estimated it, "
-            "`SegmentationResult.log_compression`; in the compiled level loop). "
-            "Tried on this sweep: the grey levels' midpoint (the local means) put it outside, on the dim side of the "
-            "blurred edge (median mass error +9.1 %, +17 % at contrast_high); the crop as linear intensity under the "
-            "local means put it inside (-14 % and -22 % on default: the outer band's mean intensity follows what lies "
-            "beyond the wall). A median thickness below 4 mm is flagged (`quality.WALL_LIMITS`): at contrast_low the "
-            "phantom's wall is darker than the tissue outside it and the epicardium finds no outer boundary.", "",
-            "The ratios above were measured with nothing else running on the machine. Where the epicardium's time "
-            "goes (default formation, upright, least of 20 calls each, nothing else running): the endocardium's "
-            "whole `segment` 6.9 ms, the epicardium 6.8 ms: its level 3.5 ms (8 iterations at 0.44 ms, on 8 x 8 "
-            "patches, 4096 sample points, the local means' bands read at every iteration), the `Tracker` set-up "
-            "0.7 ms, the thickness floor and the wall report 0.7 ms, the polarity 0.5 ms, the start 0.3 ms. "
-            "From 2.8-3.1 times to about 2 (the previous table: median 3.11 under a load of about 10; 2.82 with "
-            "nothing else running): the log compression is the endocardium's estimate, not a second reading of the "
-            "wall's speckle (this changes the results: median |mass error| 4.4 % before, Dice 0.915); a bright wall "
-            "stops at 0.1 mm of RMS motion, the coarse levels' tolerance (10 iterations before, 8 now, on this "
-            "case); the thickness floor is checked where the wall report reads it, one thickness grid instead of "
-            "two; the epicardium's descent makes no quality report of the endocardium's kind, which was discarded; "
-            "the start's region means are measured only when a result needs them (the endocardium gains this too); "
-            "the polarity is read on 16 x 16 cells instead of 24 x 24, and its samples by the compiled sampler. "
-            "The two dark walls (contrast_low, flagged) take 3.1-3.2 times: their plain local means keep the "
-            "endocardium's 0.05 mm, since at 0.1 mm the collapsing wall stopped above the 4 mm flag (median "
-            "thickness 4.1 and 4.5 mm, mass -22 and -17 % unflagged; measured again with this code). "
-            "Tried and not kept: the local means' force computed on numba's threads (no gain measured); the "
-            "quadrature order 6 instead of 8 (Dice -0.01, mass error 1-3 points worse on 8 cases); a step twice "
-            "as long (7-10 iterations instead of 6-12 on 6 cases, the mass up to 2 % lower)."]
+            "`SegmentationResult.log_compression`; in the compiled level loop). A median thickness below 4 mm is "
+            "flagged (`quality.WALL_LIMITS`): at contrast_low the phantom's wall is darker than the tissue outside it "
+            "and the epicardium finds no outer boundary. Where the time goes (default formation, upright, least of 20 "
+            "calls each, nothing else running, as for the ratios above): the endocardium's whole `segment` 6.9 ms, "
+            "the epicardium 6.8 ms: its level 3.5 ms (8 iterations at 0.44 ms, on 8 x 8 patches, 4096 sample "
+            "points, the local means' bands read at every iteration), the `Tracker` set-up 0.7 ms, the thickness "
+            "floor and the wall report 0.7 ms, the polarity 0.5 ms, the start 0.3 ms.", ""]
+    out += _tried([
+        ("the grey levels' midpoint (the local means) for a bright wall", "outside, on the dim side of the blurred "
+         "edge: median mass error +9.1 %, +17 % at contrast_high", "no"),
+        ("the crop as linear intensity under the local means", "inside: -14 % and -22 % on default (the outer "
+         "band's mean intensity follows what lies beyond the wall)", "no"),
+        ("the log compression from the endocardium's estimate, not a second reading of the wall's speckle",
+         "changes the results: before, median absolute mass error 4.4 %, Dice 0.915", "kept"),
+        ("a bright wall stopping at 0.1 mm of RMS motion, the coarse levels' tolerance",
+         "8 iterations instead of 10 on this case", "kept"),
+        ("the thickness floor checked where the wall report reads it", "one thickness grid instead of two", "kept"),
+        ("no quality report of the endocardium's kind for the epicardium's descent", "it had been made and discarded", "kept"),
+        ("the start's region means measured only when a result needs them", "the endocardium gains this too",
+         "kept"),
+        ("the polarity read on 16 x 16 cells instead of 24 x 24, its samples by the compiled sampler",
+         "no separate figure", "kept"),
+        ("the last six rows together", "the time ratio from 2.8-3.1 to about 2 (the previous table: median 3.11 "
+         "under a load of about 10; 2.82 with nothing else running)", "kept"),
+        ("the dark walls (contrast_low) stopping at 0.1 mm too", "the collapsing wall stopped above the 4 mm flag: "
+         "median thickness 4.1 and 4.5 mm, mass -22 and -17 % unflagged (measured again with this code)",
+         "no: their plain local means keep the endocardium's 0.05 mm (3.1-3.2 times)"),
+        ("the local means' force computed on numba's threads", "no gain measured", "no"),
+        ("the quadrature order 6 instead of 8", "Dice -0.01, mass error 1-3 points worse on 8 cases", "no"),
+        ("a step twice as long", "7-10 iterations instead of 6-12 on 6 cases, the mass up to 2 % lower", "no")])
     out += ["", f"Command: `{data.get('sequences_command', data['command'])}`. "
             "A tracked 10-frame cycle (`track(..., myocardium=True)`, default formation) whose wall has a region "
             "10 % of the cycle late (`phantom.LateRegion(theta=1, half_width=pi/3, delay=0.1)`): the mass at ED and "
