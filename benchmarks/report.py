@@ -643,15 +643,10 @@ def batch_section(b) -> list[str]:
            "indicative.", "",
            f"{b['studies']} phantom volumes ({' x '.join(map(str, b['volume_shape']))} voxels, {b['spacing_mm']} mm) "
            "as .mha, default outputs (mask, meshes, surface JSON, CMISS, report PNG, results.json). Wall time from "
-           "the command's start to its exit, median of "
-           f"{b['repeats']} runs into fresh folders. Overhead: worker-seconds a study costs beyond loading and "
-           "segmenting it (outputs, interpreter and worker start, kernel loading, scheduling): "
-           "wall x workers / studies - mean(load + segment). In the shell loop every study's segmentation is the "
-           "first of its process, so its time includes loading the compiled kernels (about 0.2 s unloaded); the "
-           "workers load them once. The Dask rows run on a `LocalCluster(n_workers=N, threads_per_worker=1, "
-           "processes=True)` started beforehand. On a machine this loaded the second worker seldom finds a free "
-           "core (the load + segment time of a study grows with it), so 1 against 2 workers is not measured "
-           "here; what stands is the shell loop against any of the batch runs.", "",
+           f"the command's start to its exit, median of {b['repeats']} runs into fresh folders. Overhead: the "
+           "worker-seconds a study costs beyond loading and segmenting it (outputs, interpreter and worker start, "
+           "kernel loading, scheduling): wall x workers / studies - mean(load + segment). The Dask rows run on a "
+           "`LocalCluster(n_workers=N, threads_per_worker=1, processes=True)` started beforehand.", "",
            "| how | studies/s | median wall s | load + segment s a study | overhead s a study |",
            "| --- | --- | --- | --- | --- |"]
     for name, c in b["configs"].items():
@@ -662,6 +657,11 @@ def batch_section(b) -> list[str]:
     if b.get("dask_cluster_start_seconds"):
         out.append("Starting the Dask LocalCluster (not in the times above): " + ", ".join(
             f"{_fmt(v, 1)} s with {k} worker(s)" for k, v in b["dask_cluster_start_seconds"].items()) + ".")
+    out += ["", "In the shell loop every study's segmentation is the first of its process, so its time includes "
+            "loading the compiled kernels (about 0.2 s unloaded); the workers load them once. On a machine this "
+            "loaded the second worker seldom finds a free core (the load + segment time of a study grows with it), "
+            "so 1 against 2 workers is not measured here; what stands is the shell loop against any of the batch "
+            "runs."]
     return out
 
 
@@ -680,10 +680,7 @@ def _viewer(v) -> list[str]:
              f"{n} repeats, milliseconds, measured in the page from the click's handler. *Contour drawn*: the "
              "final surface's contour on the slices, after a one-pixel `readPixels` (the slices under it are on "
              "screen); *3D drawn*: the 3D view after it (the page draws it once nothing has moved for 600 ms); "
-             "*received*: when the page had the surface's event; *segmentation*: the descent on the server. No "
-             "graphics card here: WebGL runs on SwiftShader, where the slices take about a hundred ms to draw and "
-             "the 3D view of a large echo seconds; a placing click leaves the slices where they are and a new "
-             "surface redraws only the contour (a 2D canvas), so nothing waits for WebGL before the contour.", ""]
+             "*received*: when the page had the surface's event; *segmentation*: the descent on the server.", ""]
     rows = [("CETUS Patient 7 ED (0.9 mm assumed), 3D view on: click on the base", "base", "_cetus", "400"),
             ("CETUS Patient 7 ED: landmark dragged (release)", "drag", "_cetus", "300"),
             ("demo phantom, 3D view on: click on the base", "base", "", ""),
@@ -699,6 +696,9 @@ def _viewer(v) -> list[str]:
         lines.append(f"| {label} | {m[f'{kind}_to_final_ms{suffix}']:.0f} | {target or '-'} | "
                      f"{'-' if three is None else f'{three:.0f}'} | {m[f'{kind}_to_final_received_ms{suffix}']:.0f} | "
                      f"{'-' if segment is None else f'{segment:.0f}'} |")
+    software = ("No graphics card here: WebGL runs on SwiftShader, where the slices take about a hundred ms to draw "
+                "and the 3D view of a large echo seconds; a placing click leaves the slices where they are and a new "
+                "surface redraws only the contour (a 2D canvas), so nothing waits for WebGL before the contour.")
     if "base_to_final_ms_cetus" in m:
         met = [f"{what} {m[key]:.0f} ms against {target} ({'met' if m[key] <= target else 'missed'})"
                for what, key, target in (("base click", "base_to_final_ms_cetus", 400),
@@ -707,7 +707,9 @@ def _viewer(v) -> list[str]:
                       "the difference between *contour drawn* and *received*; the rest is the server's: the "
                       "descent, its intermediate surfaces and the event stream, on a machine shared by other jobs "
                       + (f"(load average {v['load_average_1min']:.1f} on its 2 cores at the end of the run)"
-                         if "load_average_1min" in v else "") + "."]
+                         if "load_average_1min" in v else "") + ". " + software]
+    else:
+        lines += ["", software]
     if v.get("page_ready_s") is not None:
         lines += ["", f"The demo's page was ready {v['page_ready_s']:.1f} s after it was opened."]
     lines += ["", "Screenshots: `docs/viewer-1-loaded.png` (the demo, probe at the top), `-2-segmented`, "
