@@ -26,7 +26,8 @@ def _fmt(v, digits=2):
 
 def _tried(rows) -> list[str]:
     """A table of what was tried: (tried, what it gave, kept? / why) a row."""
-    return ["| tried | what it gave | kept? / why |", "| --- | --- | --- |"] + [f"| {a} | {b} | {c} |" for a, b, c in rows]
+    return (["| tried | what it gave | kept? / why |", "| --- | --- | --- |"]
+            + [f"| {a} | {b} | {c} |" for a, b, c in rows])
 
 
 def _machine(m):
@@ -1074,7 +1075,8 @@ def _myocardium(data) -> list[str]:
         ("a bright wall stopping at 0.1 mm of RMS motion, the coarse levels' tolerance",
          "8 iterations instead of 10 on this case", "kept"),
         ("the thickness floor checked where the wall report reads it", "one thickness grid instead of two", "kept"),
-        ("no quality report of the endocardium's kind for the epicardium's descent", "it had been made and discarded", "kept"),
+        ("no quality report of the endocardium's kind for the epicardium's descent",
+         "it had been made and discarded", "kept"),
         ("the start's region means measured only when a result needs them", "the endocardium gains this too",
          "kept"),
         ("the polarity read on 16 x 16 cells instead of 24 x 24, its samples by the compiled sampler",

@@ -204,26 +204,15 @@ def report_section(data: dict) -> str:
     labels = [k for k in ("before", "after") if k in data]
     lines = ["## The whole command, stage by stage (issue 15)", "",
              "Command: `PYTHONPATH=<code>/src python benchmarks/userspeed.py --label before|after --repeats 3`, "
-             "then `--report`.  `before` is main when issue 15 was filed, `after` its latest round "
-             "(the compiled mask by blocks, the report drawn in a second process while a core is "
-             "free, the command ending without the interpreter's teardown, kernels on numba's threads; then the "
-             "padding search on the float32 voxels in place and the mask's slopes bounded patch by patch only; and "
-             "the global means' blood-dark polarity, without which the 256^3 case collapsed: see its volume; and "
-             "the surface's samples on SIMD lanes, one more parallel loop for the first run to compile, some "
-             "1.5 s; and the mask's and the padding's outputs zeroed in an anonymous memory map instead of "
-             "numpy's huge pages: the 256^3 mask 50 to 20-25 ms; and on a first run a second process compiling the "
-             "mask's and the padding's kernels while the command compiles the segmentation's: 20 to 11 s; and the "
-             "demo's synthetic sequence made frame by frame in threads, 7 to 4 s; and each level of the descent "
-             "in one compiled loop: the segmentation 21 to 15 ms at CETUS size and 46 to 35 at 256^3, a first run "
-             "3 s longer, 14 s, after the second process took on the step's plain kernels too); "
+             "then `--report`.  `before` is main when issue 15 was filed, `after` its latest round (its changes: "
+             "the table at the end of this section); "
              + ", ".join(f"{k}: {data[k]['commit']} on {data[k]['date']}"
                          + (f" ({data[k]['machine']})" if data[k].get("machine") else "") for k in labels) + ".  "
-             "Medians over 3 runs on a 2-core machine; the labels ran in different sessions, on virtual machines "
-             "of one type whose import times vary by a third from run to run (the load average with each); "
-             "each stage runs in a fresh interpreter, as in a command (the report stage draws in that process). "
-             "Volumes: CETUS Patient 7 ED (201 x 140 x 140, 0.9 mm assumed) and the same resampled (nearest "
-             "voxel) to 250 x 172 x 163 (7.0 M voxels, the issue's mask target; after only) and to 256^3, "
-             "as MetaImage files.  Milliseconds.", ""]
+             "Medians over 3 runs on a 2-core machine, each stage in a fresh interpreter, as in a command (the "
+             "report stage draws in that process); the labels ran in different sessions, on virtual machines of one "
+             "type whose import times vary by a third from run to run (their load averages above). Volumes: CETUS "
+             "Patient 7 ED (201 x 140 x 140, 0.9 mm assumed), resampled (nearest voxel) to 250 x 172 x 163 (7.0 M "
+             "voxels, the issue's mask target; after only) and to 256^3, as MetaImage files.  Milliseconds.", ""]
     names = list(dict.fromkeys(n for lab in labels for n in data[lab]["results"]))
     names.sort(key=lambda n: np.prod([int(k) for k in n.split("x")]))
 
@@ -269,6 +258,26 @@ def report_section(data: dict) -> str:
                 r = d[run]
                 lines.append(f"| {run.replace('_', ' ')} | {lab} ({data[lab]['commit']}) | {r['wall']:.1f} | "
                              f"{r['make_phantom']:.1f} | {r['kernels']:.1f} | {r['segment_all_frames']:.2f} |")
+    if "after" in labels:  # what the rounds of issue 15 changed, in order
+        lines += ["", "What `after` changed, round by round:", "",
+                  "| tried | what it gave | kept? / why |", "| --- | --- | --- |"]
+        lines += [f"| {a} | {b} | kept |" for a, b in (
+            ("the mask compiled, by blocks", "no separate figure"),
+            ("the report drawn in a second process while a core is free", "no separate figure"),
+            ("the command ending without the interpreter's teardown", "no separate figure"),
+            ("kernels on numba's threads", "no separate figure"),
+            ("the padding search on the float32 voxels in place", "no separate figure"),
+            ("the mask's slopes bounded patch by patch only", "no separate figure"),
+            ("the global means' blood-dark polarity", "without it the 256^3 case collapsed (see its volume)"),
+            ("the surface's samples on SIMD lanes", "one more parallel loop for a first run to compile, some 1.5 s"),
+            ("the mask's and the padding's outputs zeroed in an anonymous memory map instead of numpy's huge pages",
+             "the 256^3 mask 50 to 20-25 ms"),
+            ("on a first run, a second process compiling the mask's and the padding's kernels while the command "
+             "compiles the segmentation's", "a first run 20 to 11 s"),
+            ("the demo's synthetic sequence made frame by frame in threads", "7 to 4 s"),
+            ("each level of the descent in one compiled loop", "the segmentation 21 to 15 ms at CETUS size, 46 to 35 "
+             "at 256^3; a first run 3 s longer, 14 s, after the second process took on the step's plain kernels "
+             "too"))]
     return "\n".join(lines) + "\n"
 
 
