@@ -274,8 +274,9 @@ def _speed(sp) -> list[str]:
                 "slower day of this virtual machine would take: one case takes 6.5 ms in one minute and 10 in the "
                 "next, whichever the code (the tables keep the least of several runs).",
                 "",
-                "Issue 15's rounds, then what was tried on what was left. CETUS Patient 7 judged the schedule: on "
-                "its end-systolic volume the local means' last iterations slide one region inwards (139 to 126 mL "
+                "Below, issue 15's rounds in order, then what was tried on what is left. The schedule's changes "
+                "were judged on CETUS Patient 7: on its end-systolic volume the local means' last iterations slide "
+                "one region inwards (139 to 126 mL "
                 "over 20 iterations, the median point moving 0.005 mm an iteration and the fastest 0.5-0.9) and the "
                 "interface moves it back (140.6 mL), so where the interface stage starts sets that volume within "
                 "some 3 %.",
