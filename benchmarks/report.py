@@ -967,8 +967,8 @@ def _locate(data) -> list[str]:
             "Not tried: scoring candidate poses by coarse descents and their energy, the likelier way forward "
             "than more morphology.", "",
             "Each choice below was measured on the formation sweep's scenes, the legacy families, the tilted "
-            "mitral scenes and CETUS Patient 7 (its ED and ES volumes); those for Patient 7 also on the "
-            "bright-blood phantom, which must be refused.", ""]
+            "mitral scenes and CETUS Patient 7; those for Patient 7 on its ED and ES volumes, the 16-case sweep "
+            "and the bright-blood phantom, which must be refused.", ""]
     out += _tried([
         ("the apex of the coarse pool alone", "4-8 mm short on every case (the opening and the 3 mm voxels round "
          "the tip off)", "no: the full-resolution axial profile, about 2 mm"),
