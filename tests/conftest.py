@@ -13,15 +13,28 @@ CETUS = SHARED / "data" / "cetus"
 
 # numba's cache of this session and of every command a test starts (they
 # inherit the environment): one folder, set before any test module imports
-# numba.  Unless given, it is kept beside pytest's own cache, so that a clone
-# starts with it empty (as CI) and later runs load from it.
+# numba, shared by the session's workers (pytest-xdist; numba writes a file
+# under a name of its own and renames it).  Unless given, it is kept beside
+# pytest's own cache, so that a clone starts with it empty (as CI) and later
+# runs load from it.
 NUMBA_CACHE = Path(os.environ.setdefault("NUMBA_CACHE_DIR",
                                          str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "numba")))
 
 
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto``: a worker per core this process may run on (its
+    affinity, as :func:`spheroseg._runtime.usable_cores`; not the host's
+    count, which a container's may be far below), at most 4: each worker
+    compiles the kernels it calls, and past 4 the longest test file sets
+    the time."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return max(1, min(cores, 4))
+
+
 def pytest_collection_modifyitems(items):
-    """The tests of a first run first: when the session's numba cache is
-    empty, :func:`first_run` compiles into it (once a session, not twice)."""
+    """The tests of a first run first: their compilation from nothing is
+    the suite's longest fixture, and a worker that starts it last ends
+    the session late."""
     items.sort(key=lambda item: "first_run" not in getattr(item, "fixturenames", ()))
 
 
@@ -103,25 +116,21 @@ print(json.dumps({**loaded, "raster_compiled": compilations(), "said": len(said)
 @pytest.fixture(scope="session")
 def first_run(tmp_path_factory):
     """``RUN`` twice in one numba cache, empty at first: the cache (every
-    kernel of a command, compiled) and the two runs' reports.  The session's
-    one compilation from nothing (``tests/test_warmup.py``); tests of a
-    first run elsewhere start from this cache less the kernels they need
+    kernel of a command, compiled) and the two runs' reports.  The one
+    compilation from nothing of a test process (``tests/test_warmup.py``);
+    tests of a first run start from this cache less the kernels they need
     compiled (:func:`numba_cache_without`)."""
     pytest.importorskip("numba")
-    folder = tmp_path_factory.mktemp("first-run")
-    cache = folder / "numba"
-    # the session's cache when nothing is in it yet (a clone's first run, as
-    # CI's): the session then loads these kernels rather than compile them
-    # again, and the returned cache is a copy taken after the two runs
-    session = not NUMBA_CACHE.exists() or not any(path.is_file() for path in NUMBA_CACHE.rglob("*"))
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(NUMBA_CACHE if session else cache), "PYTHONWARNINGS": "ignore"}
+    cache = tmp_path_factory.mktemp("first-run") / "numba"
+    # a cache of its own, never the session's: the suite's other worker
+    # (pytest-xdist) writes into that one meanwhile, and a first run must
+    # start from nothing
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONWARNINGS": "ignore"}
     runs = []
     for _ in range(2):
         proc = subprocess.run([sys.executable, "-c", RUN], capture_output=True, text=True, env=env, timeout=600)
         assert proc.returncode == 0, proc.stderr
         runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
-    if session:
-        shutil.copytree(NUMBA_CACHE, cache)
     return cache, runs
 
 

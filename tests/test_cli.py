@@ -1,7 +1,8 @@
 """The command line, end to end: through a real subprocess where the test is
-about the process (exit statuses, one-line errors, first-run messages,
-timings, a verb's whole run), else :func:`spheroseg.cli.main` in this
-process (no interpreter, numba or SciPy to start, some 2 s a command)."""
+about the process (exit statuses, one-line errors, timings, a verb's whole
+run; a first run's message: tests/test_warmup.py), else
+:func:`spheroseg.cli.main` in this process (no interpreter, numba or SciPy
+to start, some 2 s a command)."""
 
 import json
 import os
@@ -12,7 +13,7 @@ import meshio
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from conftest import cli, numba_cache_without
+from conftest import cli
 
 from spheroseg.fit import annulus_of_open_mesh
 from spheroseg.io import load, write_markups
@@ -366,28 +367,3 @@ def test_profile_and_seconds_block(case, tmp_path):
     proc = run("segment", path, *points_args(ph, shift), "--out", tmp_path / "quiet", "--quiet", "--no-report")
     assert proc.returncode == 0 and proc.stderr == ""  # the kernels were compiled above: no message
     assert "report" not in json.loads((tmp_path / "quiet" / "results.json").read_text())["seconds"]
-
-
-def test_first_run_says_once_that_it_compiles(case, first_run, tmp_path):
-    # a cache without the rasteriser's kernels is a first run (as an empty
-    # one on a new machine: tests/test_warmup.py); the rest of a command's
-    # kernels are the first run's, so a kernel that load_kernels misses is
-    # compiled in the segment stage, as it would be from nothing
-    folder, image, ph = case
-    path = folder / "first.mha"
-    sitk.WriteImage(image, str(path))
-    args = ["segment", path, *points_args(ph, np.array(image.GetOrigin())), "--no-report", "--force"]
-    cache = numba_cache_without(first_run, tmp_path / "numba", ["_raster.*"])
-    env = {**os.environ, "PYTHONWARNINGS": "ignore", "NUMBA_CACHE_DIR": str(cache)}
-    runs = [subprocess.run([sys.executable, "-m", "spheroseg", *map(str, args), "--out", tmp_path / f"out{k}"],
-                           capture_output=True, text=True, env=env, timeout=600) for k in range(2)]
-    assert all(r.returncode == 0 for r in runs), runs[0].stderr
-    first = runs[0].stderr.strip().splitlines()
-    assert len(first) == 1 and first[0].startswith("spheroseg: compiling the numerical kernels"), first
-    assert runs[1].stderr == ""
-    seconds = [json.loads((tmp_path / f"out{k}" / "results.json").read_text())["seconds"] for k in range(2)]
-    said = float(first[0].split("): ")[1].split(" s")[0])
-    assert said == pytest.approx(seconds[0]["kernels"], abs=0.051)
-    # compiling is in the kernels stage, not in the segmentation
-    assert seconds[0]["kernels"] > seconds[1]["kernels"]
-    assert seconds[0]["segment"] < seconds[0]["kernels"]

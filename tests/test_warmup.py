@@ -1,4 +1,5 @@
-"""load_kernels on a first run (an empty numba cache) and on later runs, from two threads at once."""
+"""load_kernels on a first run (an empty numba cache) and on later runs, from two threads at once,
+and what a first run of the command says."""
 
 import json
 import os
@@ -7,6 +8,9 @@ import sys
 
 import pytest
 from conftest import numba_cache_without
+
+from spheroseg.io import save_volume
+from spheroseg.synthetic.phantom import make_phantom
 
 pytest.importorskip("numba")
 
@@ -87,3 +91,30 @@ def test_tracking_compiles_nothing_a_first_run_left_out(first_run, tmp_path):
     assert proc.returncode == 0, proc.stderr
     compiled = json.loads(proc.stdout.strip().splitlines()[-1])
     assert compiled and not any(compiled.values()), compiled
+
+
+def test_first_run_says_once_that_it_compiles(first_run, tmp_path):
+    """``spheroseg segment`` twice: the first run says once, in one line,
+    that it compiles, and the second nothing.  A cache without the
+    rasteriser's kernels is a first run (as an empty one on a new machine:
+    the first test above); the rest of a command's kernels are the first
+    run's, so a kernel that load_kernels misses is compiled in the segment
+    stage, as it would be from nothing."""
+    ph = make_phantom(seed=41, spacing=1.5)
+    path = tmp_path / "first.mha"
+    save_volume(path, ph.volume)
+    args = ["segment", path, "--apex", *ph.apex, "--base", *ph.base, "--no-report", "--force"]
+    cache = numba_cache_without(first_run, tmp_path / "numba", ["_raster.*"])
+    env = {**os.environ, "PYTHONWARNINGS": "ignore", "NUMBA_CACHE_DIR": str(cache)}
+    runs = [subprocess.run([sys.executable, "-m", "spheroseg", *map(str, args), "--out", tmp_path / f"out{k}"],
+                           capture_output=True, text=True, env=env, timeout=600) for k in range(2)]
+    assert all(r.returncode == 0 for r in runs), runs[0].stderr
+    first = runs[0].stderr.strip().splitlines()
+    assert len(first) == 1 and first[0].startswith("spheroseg: compiling the numerical kernels"), first
+    assert runs[1].stderr == ""
+    seconds = [json.loads((tmp_path / f"out{k}" / "results.json").read_text())["seconds"] for k in range(2)]
+    said = float(first[0].split("): ")[1].split(" s")[0])
+    assert said == pytest.approx(seconds[0]["kernels"], abs=0.051)
+    # compiling is in the kernels stage, not in the segmentation
+    assert seconds[0]["kernels"] > seconds[1]["kernels"]
+    assert seconds[0]["segment"] < seconds[0]["kernels"]
