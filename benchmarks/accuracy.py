@@ -6,13 +6,15 @@ Chan-Vese dense level set), plus real CETUS Patient 7 (no truth).
     python benchmarks/accuracy.py --peer-sweep    # the peers' parameter sweep
     python benchmarks/accuracy.py --quick         # 2 seeds, no peers: a smoke run
     python benchmarks/accuracy.py --sweep --label before   # image formations (a few minutes)
+    python benchmarks/accuracy.py --sweep --label coarse-reference --smoothness-reference coarse
 
 Writes docs/accuracy.json and regenerates docs/benchmarks.md.  ``--sweep``
 segments the phantom scenes imaged by every named image formation
 (``spheroseg.synthetic.phantom.FORMATIONS``) and tracks sequences with base descent,
 with spheroseg's default options, and stores the run under ``--label`` in
 docs/accuracy_sweep.json beside the runs already there (so 'before' and
-'after' a change of method sit side by side).
+'after' a change of method sit side by side); ``--smoothness-reference``
+runs it with that option instead of the default.
 """
 
 from __future__ import annotations
@@ -90,12 +92,12 @@ def sweep() -> dict:
     return results
 
 
-def formation_cases() -> list:
-    """spheroseg with default options on scene families x image formations."""
+def formation_cases(**options) -> list:
+    """spheroseg with default options (or ``options``) on scene families x image formations."""
     cases = []
     for family, name, kwargs in sweep_cases():
         ph = make_phantom(**kwargs)
-        r = segment(ph.volume, ph.apex, ph.base)
+        r = segment(ph.volume, ph.apex, ph.base, **options)
         row = {**score(r.mask(ph.volume), r.mesh(closed=False), r.volume_ml, ph),
                "volume_error_ml": r.volume_ml - ph.truth_volume_ml, "iterations": r.iterations,
                "converged": bool(r.converged), "seconds": r.seconds}
@@ -109,18 +111,21 @@ def formation_cases() -> list:
 SWEEP_SEQUENCES = ((0, 0.0), (1, 0.0), (2, 0.0), (0, 10.0), (1, 12.0), (2, 14.0))
 
 
-def formation_sequences() -> list:
-    """Tracked EF on default-formation sequences, without and with base descent."""
+def formation_sequences(**options) -> list:
+    """Tracked EF on default-formation sequences, without and with base
+    descent; and the end-systolic frame segmented on its own from its true
+    apex and base (``fresh_esv_ml``)."""
     rows = []
     for seed, descent in SWEEP_SEQUENCES:
         seq = make_sequence(seed=seed, n_frames=10, base_descent=descent, formation=FORMATIONS["default"])
         first = seq.frames[0]
-        tr = track(seq.volumes, first.apex, first.base)
+        tr = track(seq.volumes, first.apex, first.base, **options)
         truth = seq.truth_volumes_ml
         ed, es = int(np.argmax(truth)), int(np.argmin(truth))
+        fresh = segment(seq.volumes[es], seq.frames[es].apex, seq.frames[es].base, **options)
         rows.append({"seed": seed, "base_descent_mm": descent, "truth_ef": seq.truth_ef, "tracked_ef": tr.ef,
                      "truth_edv_ml": truth[ed], "truth_esv_ml": truth[es], "tracked_edv_ml": tr.volumes_ml[ed],
-                     "tracked_esv_ml": tr.volumes_ml[es],
+                     "tracked_esv_ml": tr.volumes_ml[es], "fresh_esv_ml": fresh.volume_ml,
                      "seconds_per_frame": sum(f.seconds for f in tr.frames) / len(tr.frames)})
         print("sequence", {k: round(v, 2) for k, v in rows[-1].items()}, flush=True)
     return rows
@@ -137,14 +142,18 @@ def git_commit() -> str:
         return "unknown"
 
 
-def formation_sweep(label: str) -> None:
+def formation_sweep(label: str, smoothness_reference: str | None = None) -> None:
     path = DOCS / "accuracy_sweep.json"
     data = json.loads(path.read_text()) if path.is_file() else {"runs": {}}
     t0 = time.perf_counter()
-    run = {"command": f"python benchmarks/accuracy.py --sweep --label {label}", "commit": git_commit(),
-           "machine": machine(), "method": "spheroseg.segment / track with default options",
-           "default_mode": SegmentOptions().mode,
-           "cases": formation_cases(), "sequences": formation_sequences()}
+    options = {} if smoothness_reference is None else {"smoothness_reference": smoothness_reference}
+    command = f"python benchmarks/accuracy.py --sweep --label {label}" + "".join(
+        f" --{k.replace('_', '-')} {v}" for k, v in options.items())
+    run = {"command": command, "commit": git_commit(), "machine": machine(),
+           "method": "spheroseg.segment / track with default options" + "".join(
+               f", {k}={v!r}" for k, v in options.items()),
+           "default_mode": SegmentOptions().mode, "options": options,
+           "cases": formation_cases(**options), "sequences": formation_sequences(**options)}
     run["wall_seconds"] = time.perf_counter() - t0
     run["summary"] = summarise(run["cases"])
     data["runs"][label] = run
@@ -228,6 +237,8 @@ def main(argv=None):
     ap.add_argument("--sweep", action="store_true",
                     help="spheroseg (default options) across image formations and tracked sequences with base descent")
     ap.add_argument("--label", default="latest", help="name of the --sweep run in docs/accuracy_sweep.json")
+    ap.add_argument("--smoothness-reference", choices=["start", "coarse"],
+                    help="--sweep with this SegmentOptions.smoothness_reference (default: the default options)")
     ap.add_argument("--quick", action="store_true", help="2 seeds and no peers")
     ap.add_argument("--only", choices=["cases", "sequences", "cetus"],
                     help="recompute one part and keep the rest of docs/accuracy.json")
@@ -248,7 +259,7 @@ def main(argv=None):
         print("wrote", write_markdown())
         return
     if args.sweep:
-        formation_sweep(args.label)
+        formation_sweep(args.label, args.smoothness_reference)
         return
     if args.peer_sweep:
         write_json("peer_sweep.json", {"machine": machine(), "case": "speckle seed 100", "results": sweep()})

@@ -306,7 +306,12 @@ class Stepper:
                 # the intensity stage: same grid, same landmarks
                 self.descent.restart(self.stage_step(settled=converged))
             else:
-                self.descent = self.new_descent(self.descent.surface, self.reference)
+                surface = self.descent.surface
+                # the finest patches smooth the wall's departure from the
+                # shape the coarse levels found (SegmentOptions.smoothness_reference)
+                coarse = (self.options.smoothness_reference == "coarse"
+                          and self.levels[self.level].patches == self.levels[-1].patches)
+                self.descent = self.new_descent(surface, surface if coarse else self.reference)
             self._skip_empty_levels()
         else:
             self.status = 0 if converged else 1
