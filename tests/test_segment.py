@@ -144,18 +144,19 @@ def test_thread_count_changes_no_bit(phantoms):
 
 
 def test_an_end_systolic_cavity_is_smoothed_from_the_coarse_shape_not_the_clicked_one():
-    """The finest level's smoothing prior measures the surface's departure
-    from the shape the coarse levels found: an end-systolic cavity (small,
-    its wall thick) segmented from its own clicks keeps its volume; smoothed
-    from the clicked half-ellipsoid it came out 4-6 % large."""
+    """With ``smoothness_reference="coarse"`` the finest level's smoothing
+    prior measures the surface's departure from the shape the coarse
+    levels found: an end-systolic cavity (small, its wall thick) segmented
+    from its own clicks keeps its volume within 3.5 %; smoothed from the
+    clicked half-ellipsoid (the default) it comes out larger."""
     from spheroseg.synthetic.phantom import FORMATIONS
 
     es = make_sequence(seed=0, n_frames=2, spacing=1.5, base_descent=10.0, formation=FORMATIONS["default"]).frames[1]
     errors = {reference: segment(es.volume, es.apex, es.base, check=False,
                                  smoothness_reference=reference).volume_ml / es.truth_volume_ml - 1
               for reference in ("coarse", "start")}
-    assert abs(errors["coarse"]) < 0.03, errors
-    assert errors["start"] > errors["coarse"] + 0.015, errors
+    assert abs(errors["coarse"]) < 0.035, errors  # +2.6 %
+    assert errors["start"] > errors["coarse"] + 0.025, errors  # +6.6 %
 
 
 def test_tracking_recovers_ejection_fraction():
