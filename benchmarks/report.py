@@ -106,7 +106,8 @@ def _sweep_targets(sweep) -> list[tuple[str, str, bool]]:
     """(target, measured, met) for the latest run of the formation sweep."""
     if not sweep or not sweep.get("runs"):
         return []
-    label, run = list(sweep["runs"].items())[-1]
+    # the latest run with the default options (a run with options of its own is a comparison)
+    label, run = [(lab, r) for lab, r in sweep["runs"].items() if not r.get("options")][-1]
     a, t = run["summary"]["all"], SWEEP_TARGETS
     ef = max((abs(r["tracked_ef"] - r["truth_ef"]) for r in run["sequences"] if r["base_descent_mm"] > 0),
              default=float("nan"))
