@@ -4,7 +4,7 @@ import pytest
 from spheroseg import Volume, segment
 from spheroseg.coords import Pose, ProlateSpheroidal
 from spheroseg.epicardium import (
-    add_epicardium, conserving_start, enforce_thickness, initial_epicardium, segment_epicardium,
+    MAX_ITERATIONS, add_epicardium, conserving_start, enforce_thickness, initial_epicardium, segment_epicardium,
     wall_nepers,
 )
 from spheroseg.hermite import HermiteGrid
@@ -189,6 +189,29 @@ def test_wall_report_flags_a_wall_thin_everywhere_but_off_its_floor():
     thin = wall_report(np.r_[rng.uniform(2.6, 3.4, 950), rng.uniform(6, 9, 50)], min_thickness_mm=2.0)
     assert thin["floor_fraction"] < 0.1 and thin["poor"] and "thin" in thin["warnings"][0]
     assert not wall_report(rng.uniform(4.5, 7.0, 1000), min_thickness_mm=2.0)["poor"]
+
+
+def test_wall_report_flags_an_epicardium_still_moving():
+    rng = np.random.default_rng(2)
+    thickness = rng.uniform(6, 12, 1000)
+    assert not wall_report(thickness, min_thickness_mm=2.0)["poor"]
+    moving = wall_report(thickness, min_thickness_mm=2.0, settled=False)
+    assert moving["poor"] and moving["warnings"] == [
+        "the epicardium was still moving at its iteration cap: no clear outer boundary"]
+
+
+def test_an_epicardium_stopped_by_its_cap_is_poor():
+    """The cap (30 iterations by default; a bright wall settles in 5-12)
+    reached: the wall report says the epicardium was still moving.  Here
+    the cap is 2, the start some 4 mm outside the wall."""
+    volume, pose = shells_image()
+    endo = shell(L_ENDO, pose)
+    capped = segment_epicardium(volume, endo, thickness_mm=12.0, max_iterations=2)
+    assert capped.status == 1 and capped.iterations == 2
+    assert capped.quality["poor"] and "still moving" in capped.quality["warnings"][-1]
+    settled = segment_epicardium(volume, endo, thickness_mm=12.0)
+    assert settled.parameters["max_iterations"] == MAX_ITERATIONS == 30
+    assert settled.status == 0 and settled.iterations > 2 and not settled.quality["poor"]
 
 
 def test_a_collapsed_epicardium_makes_the_result_poor():

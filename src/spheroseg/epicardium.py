@@ -35,7 +35,13 @@ from .surface import Surface
 from .tracker import Tracker
 from .volume import Volume
 
-__all__ = ["initial_epicardium", "conserving_start", "enforce_thickness", "wall_polarity", "wall_nepers",
+#: the epicardium's iteration cap: a bright wall's outer boundary settles in
+#: 5-12 iterations from the prior thickness across the image-formation
+#: sweep; a wall still moving after this many has no clear outer boundary
+#: (a dark wall collapses slowly towards the endocardium) and is flagged
+MAX_ITERATIONS = 30
+
+__all__ = ["MAX_ITERATIONS", "initial_epicardium", "conserving_start", "enforce_thickness", "wall_polarity", "wall_nepers",
            "wall_term", "segment_epicardium", "add_epicardium"]
 
 
@@ -229,7 +235,8 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
         ``mode="local"`` (:func:`wall_term` on a bright wall; a ``mode``
         given runs on the image as it is, the wall inside), ``band=4`` (the
         inner band stays in the wall), ``apex_weight=0`` (the epicardial
-        apex is not clicked); on a bright wall ``tol=0.1`` (mm of RMS
+        apex is not clicked), ``max_iterations`` :data:`MAX_ITERATIONS` (a
+        wall still moving then is flagged poor); on a bright wall ``tol=0.1`` (mm of RMS
         motion, the coarse levels' tolerance: the edge of the wall's
         intensity, blurred over a point-spread function's width, is not
         found to the endocardium's 0.05 mm).  A dark wall keeps the
@@ -259,7 +266,7 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
         polarity = "dark" if contrast < 0 else "bright"
     if polarity == "bright" and not own_mode:
         options = {"tol": 0.1, **options}
-    options = {"mode": "local", "band": 4.0, "apex_weight": 0.0,
+    options = {"mode": "local", "band": 4.0, "apex_weight": 0.0, "max_iterations": MAX_ITERATIONS,
                "patches": (endocardium.grid.n1, endocardium.grid.n2), **options}
     if own_mode:
         boundary = None
@@ -279,7 +286,7 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     apex = endocardium.tip()
     result = Tracker(volume, apex, endocardium.pose.origin, init=start, **options).run(report=False)
     result.surface, thickness = _enforced(endocardium, result.surface, min_thickness_mm, 48)
-    result.quality = wall_report(thickness, min_thickness_mm=min_thickness_mm)
+    result.quality = wall_report(thickness, min_thickness_mm=min_thickness_mm, settled=result.status != 1)
     result.parameters = {**result.parameters, "thickness_mm": thickness_mm, "min_thickness_mm": min_thickness_mm,
                          "polarity": polarity, "boundary": boundary,
                          "nepers": float(nepers) if boundary == "intensity" else None}
@@ -333,6 +340,6 @@ def add_epicardium(result: SegmentationResult, volume: Volume, *, rv_insertion=N
     result.parameters = {**result.parameters, "epicardium": {k: v for k, v in epi.parameters.items()
                                                              if k in ("mode", "band", "smoothness", "thickness_mm",
                                                                       "min_thickness_mm", "polarity", "boundary",
-                                                                      "nepers", "tol")},
+                                                                      "nepers", "tol", "max_iterations")},
                          "segment_convention": convention.to_dict()}
     return result

@@ -196,13 +196,14 @@ class FrameQuality:
 WALL_LIMITS = {"floor_fraction": 0.1, "p95_mm": 25.0, "median_min_mm": 4.0}
 
 
-def wall_report(thickness_mm, *, min_thickness_mm: float) -> dict:
+def wall_report(thickness_mm, *, min_thickness_mm: float, settled: bool = True) -> dict:
     """How plausible a myocardium is, from its wall thickness (mm) sampled
     over the endocardium: the 5th, 50th and 95th percentiles, the fraction
     within 0.5 mm of ``min_thickness_mm`` (where the epicardium fell onto
     its floor), ``warnings`` and ``poor``.  A collapse, a median thinner than
     an adult wall and a 95th percentile thicker than one are flagged
-    (:data:`WALL_LIMITS`)."""
+    (:data:`WALL_LIMITS`), and so is an epicardium that had not ``settled``
+    (its descent still moving at its iteration cap)."""
     t = np.asarray(thickness_mm, dtype=float).ravel()
     p5, p50, p95 = (float(v) for v in np.percentile(t, [5, 50, 95]))
     floor = float(np.mean(t <= min_thickness_mm + 0.5))
@@ -214,6 +215,8 @@ def wall_report(thickness_mm, *, min_thickness_mm: float) -> dict:
         warnings.append(f"the wall is implausibly thin (median {p50:.1f} mm): the epicardium found no outer boundary")
     if p95 > WALL_LIMITS["p95_mm"]:
         warnings.append(f"the wall is implausibly thick (95th percentile {p95:.0f} mm): the epicardium went astray")
+    if not settled:
+        warnings.append("the epicardium was still moving at its iteration cap: no clear outer boundary")
     return {"thickness_p5_mm": p5, "thickness_median_mm": p50, "thickness_p95_mm": p95, "floor_fraction": floor,
             "warnings": warnings, "poor": bool(warnings)}
 
