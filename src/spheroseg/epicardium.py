@@ -41,8 +41,8 @@ from .volume import Volume
 #: (a dark wall collapses slowly towards the endocardium) and is flagged
 MAX_ITERATIONS = 30
 
-__all__ = ["MAX_ITERATIONS", "initial_epicardium", "conserving_start", "enforce_thickness", "wall_polarity", "wall_nepers",
-           "wall_term", "segment_epicardium", "add_epicardium"]
+__all__ = ["MAX_ITERATIONS", "initial_epicardium", "conserving_start", "enforce_thickness", "wall_polarity",
+           "wall_nepers", "wall_term", "segment_epicardium", "add_epicardium"]
 
 
 def _node_offsets(surface: Surface, thickness_mm: float) -> np.ndarray:
@@ -236,8 +236,8 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
         given runs on the image as it is, the wall inside), ``band=4`` (the
         inner band stays in the wall), ``apex_weight=0`` (the epicardial
         apex is not clicked), ``max_iterations`` :data:`MAX_ITERATIONS` (a
-        wall still moving then is flagged poor); on a bright wall ``tol=0.1`` (mm of RMS
-        motion, the coarse levels' tolerance: the edge of the wall's
+        wall still moving then is flagged poor); on a bright wall
+        ``tol=0.1`` (mm of RMS motion, the coarse levels' tolerance: the edge of the wall's
         intensity, blurred over a point-spread function's width, is not
         found to the endocardium's 0.05 mm).  A dark wall keeps the
         endocardium's: where the wall is not brighter than what lies

@@ -98,8 +98,8 @@ class SegmentOptions:
         ``"start"``, the initial half-ellipsoid, as on the coarse levels;
         ``"coarse"``, the surface the coarse levels ended on (the wall found
         from afar).  The start pulls a small cavity out towards the clicked
-        shape (end-systolic phantoms segmented from their own clicks 4-6 %
-        large, against 1.5-3 % from the coarse shape); the coarse shape
+        shape (end-systolic phantoms segmented from their own clicks 3-8 %
+        large, against 1-3.5 % from the coarse shape); the coarse shape
         fits every phantom of the image-formation sweep closer (Dice and
         mean surface distance) but leaves the volumes about 1 % lower
         (docs/benchmarks.md).  A frame of a sequence is smoothed from the
