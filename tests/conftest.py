@@ -32,10 +32,20 @@ def pytest_xdist_auto_num_workers(config):
 
 
 def pytest_collection_modifyitems(items):
-    """The tests of a first run first: their compilation from nothing is
-    the suite's longest fixture, and a worker that starts it last ends
-    the session late."""
-    items.sort(key=lambda item: "first_run" not in getattr(item, "fixturenames", ()))
+    """The test files in the order the workers take them (``--dist
+    loadfile --no-loadscope-reorder``): the one with the tests of a first
+    run first, whose compilation from nothing is the suite's longest
+    fixture, then the others by their number of tests, most first (as
+    xdist's own order), so that no long file starts last; in a file, the
+    first run's tests first."""
+    def first_run(item):
+        return "first_run" in getattr(item, "fixturenames", ())
+
+    files = {}
+    for item in items:
+        files.setdefault(item.path, []).append(item)
+    ordered = sorted(files.values(), key=lambda tests: (not any(map(first_run, tests)), -len(tests)))
+    items[:] = [item for tests in ordered for item in sorted(tests, key=lambda item: not first_run(item))]
 
 
 @pytest.fixture
