@@ -22,13 +22,14 @@ NUMBA_CACHE = Path(os.environ.setdefault("NUMBA_CACHE_DIR",
 
 
 def pytest_xdist_auto_num_workers(config):
-    """``-n auto``: a worker per core this process may run on (its
-    affinity, as :func:`spheroseg._runtime.usable_cores`; not the host's
+    """``-n auto``: a worker per core this process may run on
+    (:func:`spheroseg._runtime.usable_cores`, its affinity; not the host's
     count, which a container's may be far below), at most 4: each worker
     compiles the kernels it calls, and past 4 the longest test file sets
     the time."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return max(1, min(cores, 4))
+    from spheroseg._runtime import usable_cores
+
+    return max(1, min(usable_cores(), 4))
 
 
 def pytest_collection_modifyitems(items):
