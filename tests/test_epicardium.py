@@ -147,7 +147,8 @@ def test_intensity_interface_removes_the_midpoints_bias():
     np.testing.assert_allclose(v2[[0, -1]], [lo + (hi - lo) / 96, hi - (hi - lo) / 96])
     v1, v2 = np.meshgrid(v1, v2)
     expected = wall_report(wall_thickness(endo, result.surface, v1, v2, order=4), min_thickness_mm=2.0)
-    assert result.quality == pytest.approx(expected, rel=1e-12)
+    assert result.quality["warnings"] == expected.pop("warnings")  # pytest 9.2's approx takes no nested list
+    assert {k: v for k, v in result.quality.items() if k != "warnings"} == pytest.approx(expected, rel=1e-12)
     with pytest.raises(ValueError, match="boundary must be"):
         segment_epicardium(volume, endo, boundary="outer")
 
