@@ -294,9 +294,13 @@ def test_a_low_contrast_base_stays_a_ring():
     pinched = Surface.from_function(start.system, start.pose, start.grid,
                                     lambda v2: v0 * (1 - 0.85 * ((v2 - apex_end) / (start.base_v2 - apex_end)) ** 6))
     assert pinched.base_radii().min() < BASE_RING_MM[0]
-    r = segment(low_contrast_base(ph), ph.apex, ph.base, init=pinched)
+    image = low_contrast_base(ph)
+    r = segment(image, ph.apex, ph.base, init=pinched)
     assert r.surface.base_radii().min() > 0.95 * BASE_RING_MM[0]
     assert abs(r.volume_ml / ph.truth_volume_ml - 1) < 0.08
+    # the check left out (as for the epicardium, held outside the endocardium): the ring closes
+    unheld = Tracker(image, ph.apex, ph.base, init=pinched).run(base_ring=False)
+    assert unheld.surface.base_radii().min() < 0.5 * BASE_RING_MM[0]
 
 
 @pytest.fixture(scope="module")

@@ -284,7 +284,8 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     else:
         boundary = "midpoint"
     apex = endocardium.tip()
-    result = Tracker(volume, apex, endocardium.pose.origin, init=start, **options).run(report=False)
+    # the thickness floor holds it outside the endocardium, whose base ring was held open
+    result = Tracker(volume, apex, endocardium.pose.origin, init=start, **options).run(report=False, base_ring=False)
     result.surface, thickness = _enforced(endocardium, result.surface, min_thickness_mm, 48)
     result.quality = wall_report(thickness, min_thickness_mm=min_thickness_mm, settled=result.status != 1)
     result.parameters = {**result.parameters, "thickness_mm": thickness_mm, "min_thickness_mm": min_thickness_mm,

@@ -212,7 +212,8 @@ class Tracker:
             except StopIteration:
                 self.stop(2)
 
-    def run(self, iter_callback=None, *, callback_every: int = 1, report: bool = True) -> SegmentationResult:
+    def run(self, iter_callback=None, *, callback_every: int = 1, report: bool = True,
+            base_ring: bool = True) -> SegmentationResult:
         """Iterate until the current frame stops; ``iter_callback(intermediate)``
         is called after every iteration and may raise ``StopIteration``.
         With ``callback_every`` k > 1 it is called after every k-th iteration
@@ -221,12 +222,14 @@ class Tracker:
         surfaces at the speed of a run without one.
         A frame whose base ring came out narrower than :meth:`base_ring_floor`
         runs its finest level again with the ring held open
-        (:func:`spheroseg.frames.base_ring_points`).  ``report``: as in
-        :meth:`result`."""
+        (:func:`spheroseg.frames.base_ring_points`); ``base_ring=False``
+        skips that check, for a surface that something else keeps open (the
+        epicardium, held outside an endocardium whose ring was checked).
+        ``report``: as in :meth:`result`."""
         if not (isinstance(callback_every, (int, np.integer)) and callback_every >= 1):
             raise ValueError(f"callback_every must be a positive integer, got {callback_every!r}")
         self._iterate_until_stopped(iter_callback, int(callback_every))
-        if self.status in (0, 1) and self._widen_base_ring():
+        if base_ring and self.status in (0, 1) and self._widen_base_ring():
             self._iterate_until_stopped(iter_callback, int(callback_every))
         return self.result(report=report)
 
