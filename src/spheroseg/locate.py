@@ -23,7 +23,12 @@ averages the speckle out):
    atrium out of the sector); the full-resolution image across the axis
    then moves it to where the cavity's grey level rises into the annulus
    (the waist of the coarse pool lies a few millimetres beyond);
-5. the apex is the pool's first section along the axis from the probe side.
+5. the apex is the pool's first section along the axis from the probe side;
+6. when no pool is a ventricle (a faint wall joins the cavity to the dark
+   around it), the cavity is followed along its sections across the sector
+   that are still dark discs ringed by the wall, the long axis from the probe
+   through their centres; such a location's confidence is at most
+   :data:`JOINED_POOL`.
 
 ``confidence`` combines how well blood and tissue separate, how clear the
 waist is and how plausible the size and length are.
@@ -38,7 +43,8 @@ from scipy import ndimage
 
 from .annulus import basal_profile
 
-__all__ = ["Located", "NoVentricleError", "locate", "check_points", "initialise", "annotate", "VOLUME_RANGE_ML"]
+__all__ = ["Located", "NoVentricleError", "locate", "check_points", "initialise", "annotate", "VOLUME_RANGE_ML",
+           "JOINED_POOL"]
 
 #: cavity volumes (mL, the part before the waist) a left ventricle can have
 VOLUME_RANGE_ML = (20.0, 450.0)
@@ -68,6 +74,11 @@ BASE_DISC = 0.9
 #: between the long axis and the sector's centre line (25 is a tilted view)
 AXIS_MAX_DEG = 45.0
 
+#: the confidence's factor for a cavity found along its ringed sections, its
+#: dark pool joined to the dark around it (:func:`_along_ringed_sections`):
+#: under a half, so that such a location is reported as one to check
+JOINED_POOL = 0.3
+
 #: what a low score means, for ``Located.reason``
 _REASONS = {
     "separation": "blood and tissue barely differ in grey level",
@@ -76,6 +87,7 @@ _REASONS = {
     "length": "the long axis has an unusual length",
     "wall": "the cavity's wall is barely brighter than its blood",
     "taper": "the cavity ends bluntly towards the probe (haze or the sector's edge hides the apex?)",
+    "pool": "the cavity is joined to the dark regions around it (a faint wall): found along its ringed sections",
 }
 
 
@@ -104,7 +116,9 @@ class Located:
     scores : dict
         ``separation`` (blood against tissue), ``waist`` (how clearly the
         pool narrows at the base), ``size`` and ``length`` (plausibility),
-        each in [0, 1].
+        ``wall`` and ``taper``, each in [0, 1]; or, for a cavity found along
+        its ringed sections, ``separation`` and ``pool``
+        (:data:`JOINED_POOL`).
     """
 
     apex: np.ndarray
@@ -315,12 +329,19 @@ def locate(volume, *, spacing: float | None = None) -> Located:
         if best is not None and best["score"] > 0:
             break
     if best is None or best["score"] <= 0:
+        best = _along_ringed_sections(volume, smooth, inside, threshold, spread, separation * spread, to_world,
+                                      probe, depth)
+    if best is None:
         raise NoVentricleError(f"no left ventricle found: no dark region of {VOLUME_RANGE_ML[0]:.0f}-"
                                f"{VOLUME_RANGE_ML[1]:.0f} mL, walled by brighter tissue, along the sector (the "
                                f"largest dark region is {largest:.0f} mL)")
     local = threshold + np.interp(np.linalg.norm(best["apex"] - probe), centres, drift)
-    apex = _endocardial_apex(volume, best["apex"], best["normal"], local)
-    base = _mitral_plane(volume, best["base"], best["normal"], BASE_DISC * best["base_radius"], separation * spread)
+    if best.get("refined"):  # found on the full-resolution image already
+        apex, base = best["apex"], best["base"]
+    else:
+        apex = _endocardial_apex(volume, best["apex"], best["normal"], local)
+        base = _mitral_plane(volume, best["base"], best["normal"], BASE_DISC * best["base_radius"],
+                             separation * spread)
     scores = {"separation": float(np.clip(separation - SEPARATION_MIN, 0, 1)), **best["scores"]}
     confidence = float(np.prod(list(scores.values())))
     # the scores that brought it down (the lowest, when each alone is fair)
@@ -359,6 +380,21 @@ def _pool(mask: np.ndarray, to_world, probe, probe_known: bool, depth, voxel_ml,
     return best
 
 
+def _waist(area, first: int, last: int, allowed) -> tuple[int, float]:
+    """The section narrowest against the widest on either side of it: its
+    index among ``allowed`` strictly between ``first`` and ``last`` and that
+    dip, ``1 - area / min(widest before, widest after)`` (``last`` and 0
+    when no section dips)."""
+    waist, dip = last, 0.0
+    for k in range(first + 1, last):
+        if not allowed[k]:
+            continue
+        here = 1 - area[k] / min(area[first:k].max(), area[k:last + 1].max())
+        if here > dip:
+            waist, dip = k, here
+    return waist, dip
+
+
 def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict | None:
     """Apex, base and scores of a pool whose apex lies along ``axis``."""
     t = (points - centre) @ axis
@@ -371,13 +407,7 @@ def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict
     first, last = present[0], present[-1]
     # the waist: the section narrowest against the widest on either side of it
     # (a ventricle's own sections only narrow towards the apex)
-    waist, depth_of_waist = last, 0.0
-    for k in range(first + 1, last):
-        if heights[first] - heights[k] < LENGTH_RANGE_MM[0]:
-            continue
-        dip = 1 - area[k] / min(area[first:k].max(), area[k:last + 1].max())
-        if dip > depth_of_waist:
-            waist, depth_of_waist = k, dip
+    waist, depth_of_waist = _waist(area, first, last, heights[first] - heights >= LENGTH_RANGE_MM[0])
     stepped = False
     if depth_of_waist < 0.1:
         waist, depth_of_waist = last, 0.0
@@ -424,6 +454,203 @@ def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict
             "base_radius": base_radius, "middle": points[lv].mean(0), "taper": taper}
 
 
+def _across(axis) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors across ``axis`` (unit), at right angles to each other."""
+    e2 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e2 /= np.linalg.norm(e2)
+    return e2, np.cross(axis, e2)
+
+
+def _sections(sample, origin, axis, heights, *, radius: float = 36.0, spacing: float = 1.5):
+    """Planes across ``axis`` at ``heights`` (mm from ``origin``): for
+    each, the points of a square of half-width ``radius`` about the axis
+    (``(heights, n, n, 3)`` world mm) and the levelled grey levels there
+    (NaN off the data)."""
+    e2, e3 = _across(axis)
+    s = np.arange(-radius, radius + spacing / 2, spacing)
+    plane = s[:, None, None] * e2 + s[None, :, None] * e3  # (n, n, 3)
+    points = origin + np.asarray(heights)[:, None, None, None] * axis + plane[None]
+    return points, sample(points)
+
+
+def _ringed_sections(sample, origin, axis, heights, threshold: float, spread: float) -> list:
+    """The cavity's sections that are closed all round by brighter tissue:
+    ``(height, centre (world mm), area mm^2)`` of each plane across ``axis``
+    whose dark region about the axis (the connected part of it nearest the
+    axis, below ``threshold``) does not reach the square sampled and is
+    ringed by tissue brighter by :data:`WALL_MIN` ``spread``."""
+    points, grey = _sections(sample, origin, axis, heights)
+    n = grey.shape[1]
+    middle = n // 2
+    found = []
+    for height, plane, values in zip(heights, points, grey):
+        dark = np.isfinite(values) & (values < threshold)
+        labels, count = ndimage.label(dark)
+        if count == 0:
+            continue
+        # the part nearest the axis
+        near = np.argwhere(labels > 0)
+        label = labels[tuple(near[np.argmin(np.sum((near - middle) ** 2, axis=1))])]
+        region = labels == label
+        if region[0].any() or region[-1].any() or region[:, 0].any() or region[:, -1].any():
+            continue  # joined to the dark around it (or cut by the sector's edge)
+        area = region.sum() * 1.5 ** 2
+        if not (np.pi * 6.0 ** 2 <= area <= np.pi * 35.0 ** 2):
+            continue
+        ring = ndimage.binary_dilation(region, iterations=2) & ~region
+        if not np.isfinite(values[ring]).all():
+            continue  # closed by the sector's edge, not by tissue
+        if (values[ring].mean() - values[region].mean()) / spread < WALL_MIN:
+            continue
+        found.append((float(height), plane[region].mean(0), float(area)))
+    return found
+
+
+def _along_ringed_sections(volume, smooth, inside, threshold: float, spread: float, contrast: float, to_world,
+                           probe, depth, *, reach: float = 200.0) -> dict | None:
+    """Apex, base and scores of a cavity whose dark pool is joined to the
+    dark regions around it (a faint wall), or None.
+
+    Where the wall is clear, the cavity's sections across the sector's
+    centre line are still dark discs ringed by brighter tissue
+    (:func:`_ringed_sections`, on the coarse levelled image).  The longest
+    series of neighbouring ones (of equals, the nearest the probe) is the
+    cavity, cut at its waist when it has one (an open mitral valve joins the
+    atrium's sections on).  An apical view looks down the long axis from
+    over the apex: the axis is the line from the probe through the
+    sections' centres.  Along it the apex and, without a waist, the base
+    are where the full-resolution grey level leaves the blood's
+    (:func:`_cavity_ends`); at a waist, the base is its section moved onto
+    the mitral plane (:func:`_mitral_plane`).  Each rise must be at least
+    half the image's tissue-blood ``contrast`` (grey levels): a cavity that
+    runs off the data or into more dark is not located.
+    """
+    filled = np.where(inside, smooth, 0.0).astype(np.float64)
+    valid = inside.astype(np.float64)
+    origin_index = to_world(np.zeros(3))
+    jacobian = np.stack([to_world(e) - origin_index for e in np.eye(3)], 1)  # world = o + J index_zyx
+    inverse = np.linalg.inv(jacobian)
+
+    def sample(points):
+        index = (np.asarray(points, float) - origin_index) @ inverse.T
+        flat = index.reshape(-1, 3).T
+        grey = ndimage.map_coordinates(filled, flat, order=1, cval=0.0)
+        ok = ndimage.map_coordinates(valid, flat, order=1, cval=0.0) > 0.99  # all eight neighbours on the data
+        return np.where(ok, grey, np.nan).reshape(index.shape[:-1])
+
+    probe, depth = np.asarray(probe, float), np.asarray(depth, float)
+    rings = _ringed_sections(sample, probe, depth, np.arange(0.0, reach, 3.0), threshold, spread)
+    if not rings:
+        return None
+    # the longest series of neighbouring sections (others lie in the atrium or beside the heart)
+    breaks = np.flatnonzero(np.diff([h for h, _, _ in rings]) > 6.0) + 1
+    series = np.split(np.arange(len(rings)), breaks)
+    rings = [rings[k] for k in series[int(np.argmax([len(g) for g in series]))]]
+    # an open mitral valve joins the atrium's sections on: they end at the waist
+    area = np.array([a for _, _, a in rings])
+    waist, dip = _waist(area, 0, len(rings) - 1, np.ones(len(rings), bool))
+    if dip >= 0.1:
+        rings = rings[:waist + 1]
+    centres = np.array([c for _, c, _ in rings])
+    middle = centres.mean(0)
+    # an apical view looks down the long axis from over the apex
+    axis = (middle - probe) / np.linalg.norm(middle - probe)
+    if axis @ depth < np.cos(np.radians(AXIS_MAX_DEG)):
+        return None  # not an apical view of it
+    apex_t, base_t = _cavity_ends(volume, probe, axis, (centres - probe) @ axis, 0.5 * contrast, reach)
+    base_radius = float(np.sqrt(max(a for _, _, a in rings) / np.pi))
+    if dip >= 0.1:  # the base at the waist, moved onto the mitral plane
+        base = _mitral_plane(volume, probe + ((centres[-1] - probe) @ axis) * axis, -axis,
+                             BASE_DISC * float(np.sqrt(area[waist] / np.pi)), contrast)
+    elif base_t is not None:
+        base = probe + base_t * axis
+    else:
+        return None
+    if apex_t is None:
+        return None
+    apex = probe + apex_t * axis
+    length = float(np.linalg.norm(base - apex))
+    if not (LENGTH_RANGE_MM[0] <= length <= LENGTH_RANGE_MM[1]):
+        return None
+    # a half-ellipsoid of the widest ringed section's radius
+    volume_ml = 2.0 / 3.0 * np.pi * base_radius ** 2 * length / 1000.0
+    return {"apex": apex, "base": base, "normal": -axis, "volume_ml": float(volume_ml), "base_radius": base_radius,
+            "refined": True, "scores": {"pool": JOINED_POOL}, "score": 1.0}
+
+
+def _cavity_ends(volume, start, axis, held, rise: float, reach: float) -> tuple[float | None, float | None]:
+    """Heights (mm from ``start`` along ``axis``) of the apex and the base
+    of a cavity known to span the heights ``held``: where the
+    full-resolution grey level crosses half way from the blood's (its
+    median over ``held``) to the wall's, towards the probe and away from it
+    (:func:`_crossing`; the base within 60 mm).  None for a side that
+    rises by no more than ``rise`` grey levels or runs off the data."""
+    t = np.arange(0.0, reach, 1.0)
+    profile = _axial_profile(volume, start, axis, t)
+    inside = (t >= np.min(held)) & (t <= np.max(held))
+    if not np.isfinite(profile[inside]).any():
+        return None, None
+    blood = float(np.nanmedian(profile[inside]))
+    first, last = int(np.flatnonzero(inside)[0]), int(np.flatnonzero(inside)[-1])
+    return (_crossing(profile, t, blood, first, -1, first, rise=rise),
+            _crossing(profile, t, blood, last, +1, 60, rise=rise))
+
+
+def _axial_profile(volume, start, axis, heights, *, disc: float = 3.0, smooth_mm: float = 2.0) -> np.ndarray:
+    """Grey levels of ``volume`` along ``axis`` from ``start`` at the evenly
+    spaced ``heights`` (mm), averaged over a disc of radius ``disc`` mm
+    across it (the centre and 8 points on its rim; speckle) and smoothed by
+    a Gaussian of ``smooth_mm``; NaN where no point of the disc has data."""
+    e2, e3 = _across(axis)
+    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    offsets = np.concatenate([[[0.0, 0.0, 0.0]], disc * (np.cos(angles)[:, None] * e2 + np.sin(angles)[:, None] * e3)])
+    values = volume.sample(start + np.asarray(heights)[:, None, None] * axis + offsets[None])
+    ok = np.isfinite(values)
+    with np.errstate(invalid="ignore"):
+        profile = np.where(ok, values, 0).sum(1) / ok.sum(1)
+    step = float(heights[1] - heights[0]) if len(heights) > 1 else 1.0
+    smoothed = ndimage.gaussian_filter1d(np.nan_to_num(profile), smooth_mm / step)
+    return np.where(np.isfinite(profile), smoothed, np.nan)
+
+
+def _crossing(profile, heights, blood: float, start: int, direction: int, reach, *, rise: float = 0.0,
+              near: int = 12):
+    """Where ``profile`` first crosses half way from ``blood`` to its
+    brightest level within ``reach`` samples from ``start`` in
+    ``direction`` (interpolated height), or None when that level is not
+    ``rise`` above ``blood`` or data runs out before the crossing."""
+    end = min(max(start + direction * int(reach), 0), len(profile) - 1)
+    window = np.arange(start, end + direction, direction)
+    values = profile[window]
+    if values.size < 2 or not np.isfinite(values).any():
+        return None
+    if float(np.nanmax(values)) - blood <= rise:
+        return None
+    # half way to the brightest level, then to the brightest within ``near``
+    # samples beyond that crossing (the wall or the haze next to the blood,
+    # not a brighter echo further off: the near field's ringing)
+    k = _first_at_or_above(values, 0.5 * (blood + float(np.nanmax(values))))
+    if k is None:
+        return None
+    level = 0.5 * (blood + float(np.nanmax(values[k:k + near + 1])))
+    k = _first_at_or_above(values, level)
+    if k is None:
+        return None
+    a, b = values[k - 1], values[k]
+    return float(heights[window[k - 1]] + (heights[window[k]] - heights[window[k - 1]]) * (level - a) / (b - a))
+
+
+def _first_at_or_above(values, level: float) -> int | None:
+    """The first index (from 1) at which ``values`` reach ``level``, None
+    when data runs out (NaN) before."""
+    for k in range(1, values.size):
+        if not np.isfinite(values[k]):
+            return None
+        if values[k] >= level:
+            return k
+    return None
+
+
 def _mitral_plane(volume, base, axis, radius: float, contrast: float, *, reach: float = 12.0) -> np.ndarray:
     """The coarse ``base`` moved along ``axis`` to where the cavity meets the
     mitral annulus.
@@ -467,20 +694,10 @@ def _endocardial_apex(volume, apex, axis, threshold: float, *, reach: float = 12
     ``disc`` mm across it, and over 2 mm along it, for the speckle) finds the
     wall itself.
     """
-    e2 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e2 /= np.linalg.norm(e2)
-    e3 = np.cross(axis, e2)
-    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
-    offsets = np.concatenate([[[0.0, 0.0, 0.0]], disc * (np.cos(angles)[:, None] * e2 + np.sin(angles)[:, None] * e3)])
     heights = np.arange(-reach, reach + 0.25, 0.5)
-    points = apex + heights[:, None, None] * axis + offsets[None]
-    values = volume.sample(points)
-    ok = np.isfinite(values)
-    with np.errstate(invalid="ignore"):
-        profile = np.where(ok, values, 0).sum(1) / ok.sum(1)
+    profile = _axial_profile(volume, apex, axis, heights, disc=disc, smooth_mm=1.0)
     if not np.isfinite(profile).all():
         return apex
-    profile = ndimage.gaussian_filter1d(profile, 2.0)
     inside = np.flatnonzero(profile < threshold)
     if inside.size == 0:
         return apex
