@@ -78,6 +78,15 @@ AXIS_MAX_DEG = 45.0
 #: dark pool joined to the dark around it (:func:`_along_ringed_sections`):
 #: under a half, so that such a location is reported as one to check
 JOINED_POOL = 0.3
+#: the ringed sections (3 mm apart) narrowing by this fraction of their area
+#: against the widest on both sides: the mitral orifice, the atrium's
+#: sections beyond it
+RING_WAIST = 0.05
+#: how far (mm) beyond the last ringed section the base may lie: a faint
+#: basal wall leaves some of the ventricle unringed (12-19 mm on CETUS
+#: Patient 7); farther, the axis has run through an open valve to the
+#: atrium's far wall (35-41 mm on phantoms), and the image is refused
+BASE_REACH_MM = 30.0
 
 #: what a low score means, for ``Located.reason``
 _REASONS = {
@@ -549,7 +558,7 @@ def _along_ringed_sections(volume, smooth, inside, threshold: float, spread: flo
     # an open mitral valve joins the atrium's sections on: they end at the waist
     area = np.array([a for _, _, a in rings])
     waist, dip = _waist(area, 0, len(rings) - 1, np.ones(len(rings), bool))
-    if dip >= 0.1:
+    if dip >= RING_WAIST:
         rings = rings[:waist + 1]
     centres = np.array([c for _, c, _ in rings])
     middle = centres.mean(0)
@@ -559,7 +568,7 @@ def _along_ringed_sections(volume, smooth, inside, threshold: float, spread: flo
         return None  # not an apical view of it
     apex_t, base_t = _cavity_ends(volume, probe, axis, (centres - probe) @ axis, 0.5 * contrast, reach)
     base_radius = float(np.sqrt(max(a for _, _, a in rings) / np.pi))
-    if dip >= 0.1:  # the base at the waist, moved onto the mitral plane
+    if dip >= RING_WAIST:  # the base at the waist, moved onto the mitral plane
         base = _mitral_plane(volume, probe + ((centres[-1] - probe) @ axis) * axis, -axis,
                              BASE_DISC * float(np.sqrt(area[waist] / np.pi)), contrast)
     elif base_t is not None:
@@ -583,8 +592,9 @@ def _cavity_ends(volume, start, axis, held, rise: float, reach: float) -> tuple[
     of a cavity known to span the heights ``held``: where the
     full-resolution grey level crosses half way from the blood's (its
     median over ``held``) to the wall's, towards the probe and away from it
-    (:func:`_crossing`; the base within 60 mm).  None for a side that
-    rises by no more than ``rise`` grey levels or runs off the data."""
+    (:func:`_crossing`; the base within :data:`BASE_REACH_MM`).  None for a
+    side that rises by no more than ``rise`` grey levels or runs off the
+    data."""
     t = np.arange(0.0, reach, 1.0)
     profile = _axial_profile(volume, start, axis, t)
     inside = (t >= np.min(held)) & (t <= np.max(held))
@@ -593,7 +603,7 @@ def _cavity_ends(volume, start, axis, held, rise: float, reach: float) -> tuple[
     blood = float(np.nanmedian(profile[inside]))
     first, last = int(np.flatnonzero(inside)[0]), int(np.flatnonzero(inside)[-1])
     return (_crossing(profile, t, blood, first, -1, first, rise=rise),
-            _crossing(profile, t, blood, last, +1, 60, rise=rise))
+            _crossing(profile, t, blood, last, +1, int(BASE_REACH_MM), rise=rise))
 
 
 def _axial_profile(volume, start, axis, heights, *, disc: float = 3.0, smooth_mm: float = 2.0) -> np.ndarray:
