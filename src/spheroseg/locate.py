@@ -87,6 +87,10 @@ RING_WAIST = 0.05
 #: Patient 7); farther, the axis has run through an open valve to the
 #: atrium's far wall (35-41 mm on phantoms), and the image is refused
 BASE_REACH_MM = 30.0
+#: ringed sections spanning this many mm give the long axis by their
+#: centres (PCA); a shorter series leaves it to the line from the probe
+#: (CETUS Patient 7's span 27 mm: the PCA's axis put its apex 11 mm off)
+AXIS_SPAN_MM = 40.0
 
 #: what a low score means, for ``Located.reason``
 _REASONS = {
@@ -562,22 +566,26 @@ def _along_ringed_sections(volume, smooth, inside, threshold: float, spread: flo
         rings = rings[:waist + 1]
     centres = np.array([c for _, c, _ in rings])
     middle = centres.mean(0)
-    # an apical view looks down the long axis from over the apex
-    axis = (middle - probe) / np.linalg.norm(middle - probe)
+    if np.ptp([h for h, _, _ in rings]) >= AXIS_SPAN_MM:  # the sections' centres line up on the axis
+        axis = np.linalg.svd(centres - middle, full_matrices=False)[2][0]
+        axis = axis if axis @ depth >= 0 else -axis
+    else:  # too few to tilt it: an apical view looks down the long axis from over the apex
+        axis = (middle - probe) / np.linalg.norm(middle - probe)
     if axis @ depth < np.cos(np.radians(AXIS_MAX_DEG)):
         return None  # not an apical view of it
-    apex_t, base_t = _cavity_ends(volume, probe, axis, (centres - probe) @ axis, 0.5 * contrast, reach)
+    start = middle - ((middle - probe) @ axis) * axis  # the axis's point nearest the probe
+    apex_t, base_t = _cavity_ends(volume, start, axis, (centres - start) @ axis, 0.5 * contrast, reach)
     base_radius = float(np.sqrt(max(a for _, _, a in rings) / np.pi))
     if dip >= RING_WAIST:  # the base at the waist, moved onto the mitral plane
-        base = _mitral_plane(volume, probe + ((centres[-1] - probe) @ axis) * axis, -axis,
+        base = _mitral_plane(volume, start + ((centres[-1] - start) @ axis) * axis, -axis,
                              BASE_DISC * float(np.sqrt(area[waist] / np.pi)), contrast)
     elif base_t is not None:
-        base = probe + base_t * axis
+        base = start + base_t * axis
     else:
         return None
     if apex_t is None:
         return None
-    apex = probe + apex_t * axis
+    apex = start + apex_t * axis
     length = float(np.linalg.norm(base - apex))
     if not (LENGTH_RANGE_MM[0] <= length <= LENGTH_RANGE_MM[1]):
         return None
