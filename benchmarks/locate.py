@@ -114,15 +114,25 @@ def beam_cases(n: int, seed: int = 7) -> list[dict]:
         ph = make_phantom(**scene, beam_space=True)
         row = {"formation": name, "phase": phase, "tilt_deg": scene["tilt_deg"],
                "shape": list(ph.beam_volume.array.shape)}
-        try:
-            row["locate_s"], found = _timed(locate, ph.beam_volume)
-            row.update(apex_mm=float(np.linalg.norm(found.apex - ph.apex)),
-                       base_mm=float(np.linalg.norm(found.base - ph.base)), confidence=found.confidence)
-        except NoVentricleError as error:
-            row["refused"] = str(error)
-        rows.append(row)
-        print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+        rows.append(_located(row, ph.beam_volume, ph, timed=True))
     return rows
+
+
+def _located(row: dict, volume, phantom, *, timed: bool = False) -> dict:
+    """``row`` with the located apex's and base's errors against
+    ``phantom``'s and the confidence (and the time, ``timed``), or why
+    ``volume`` was refused; printed."""
+    try:
+        if timed:
+            row["locate_s"], found = _timed(locate, volume)
+        else:
+            found = locate(volume)
+        row.update(apex_mm=float(np.linalg.norm(found.apex - phantom.apex)),
+                   base_mm=float(np.linalg.norm(found.base - phantom.base)), confidence=found.confidence)
+    except NoVentricleError as error:
+        row["refused"] = str(error)
+    print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+    return row
 
 
 def ringed_cases(n: int, seed: int = 41) -> list[dict]:
@@ -137,15 +147,7 @@ def ringed_cases(n: int, seed: int = 41) -> list[dict]:
     with mock.patch.object(module, "_pool", lambda *args, **kwargs: None):
         for name, phase, scene in scenes(n, seed):
             ph = make_phantom(**scene)
-            row = {"formation": name, "phase": phase, "tilt_deg": scene["tilt_deg"]}
-            try:
-                found = locate(ph.volume)
-                row.update(apex_mm=float(np.linalg.norm(found.apex - ph.apex)),
-                           base_mm=float(np.linalg.norm(found.base - ph.base)), confidence=found.confidence)
-            except NoVentricleError as error:
-                row["refused"] = str(error)
-            rows.append(row)
-            print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+            rows.append(_located({"formation": name, "phase": phase, "tilt_deg": scene["tilt_deg"]}, ph.volume, ph))
     return rows
 
 
