@@ -26,9 +26,9 @@ averages the speckle out):
 5. the apex is the pool's first section along the axis from the probe side;
 6. when no pool is a ventricle (a faint wall joins the cavity to the dark
    around it), the cavity is followed along its sections across the sector
-   that are still dark discs ringed by the wall, the long axis from the probe
-   through their centres; such a location's confidence is at most
-   :data:`JOINED_POOL`.
+   that are still dark discs ringed by the wall, the long axis through their
+   centres (from the probe when they are few); such a location's confidence
+   is at most :data:`JOINED_POOL`.
 
 ``confidence`` combines how well blood and tissue separate, how clear the
 waist is and how plausible the size and length are.
@@ -486,13 +486,15 @@ def _sections(sample, origin, axis, heights, *, radius: float = 36.0, spacing: f
     return points, sample(points)
 
 
-def _ringed_sections(sample, origin, axis, heights, threshold: float, spread: float) -> list:
+def _ringed_sections(sample, origin, axis, heights, threshold: float, spread: float, *,
+                     spacing: float = 1.5) -> list:
     """The cavity's sections that are closed all round by brighter tissue:
     ``(height, centre (world mm), area mm^2)`` of each plane across ``axis``
     whose dark region about the axis (the connected part of it nearest the
     axis, below ``threshold``) does not reach the square sampled and is
-    ringed by tissue brighter by :data:`WALL_MIN` ``spread``."""
-    points, grey = _sections(sample, origin, axis, heights)
+    ringed by tissue brighter by :data:`WALL_MIN` ``spread``; each plane
+    sampled every ``spacing`` mm."""
+    points, grey = _sections(sample, origin, axis, heights, spacing=spacing)
     n = grey.shape[1]
     middle = n // 2
     found = []
@@ -507,7 +509,7 @@ def _ringed_sections(sample, origin, axis, heights, threshold: float, spread: fl
         region = labels == label
         if region[0].any() or region[-1].any() or region[:, 0].any() or region[:, -1].any():
             continue  # joined to the dark around it (or cut by the sector's edge)
-        area = region.sum() * 1.5 ** 2
+        area = region.sum() * spacing ** 2
         if not (np.pi * 6.0 ** 2 <= area <= np.pi * 35.0 ** 2):
             continue
         ring = ndimage.binary_dilation(region, iterations=2) & ~region
@@ -529,9 +531,10 @@ def _along_ringed_sections(volume, smooth, inside, threshold: float, spread: flo
     (:func:`_ringed_sections`, on the coarse levelled image).  The longest
     series of neighbouring ones (of equals, the nearest the probe) is the
     cavity, cut at its waist when it has one (an open mitral valve joins the
-    atrium's sections on).  An apical view looks down the long axis from
-    over the apex: the axis is the line from the probe through the
-    sections' centres.  Along it the apex and, without a waist, the base
+    atrium's sections on).  The long axis is the line through the sections'
+    centres when they span :data:`AXIS_SPAN_MM`, and otherwise the line
+    from the probe through them (an apical view looks down the long axis
+    from over the apex).  Along it the apex and, without a waist, the base
     are where the full-resolution grey level leaves the blood's
     (:func:`_cavity_ends`); at a waist, the base is its section moved onto
     the mitral plane (:func:`_mitral_plane`).  Each rise must be at least
