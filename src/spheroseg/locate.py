@@ -348,10 +348,10 @@ def locate(volume, *, spacing: float | None = None) -> Located:
         raise NoVentricleError(f"no left ventricle found: no dark region of {VOLUME_RANGE_ML[0]:.0f}-"
                                f"{VOLUME_RANGE_ML[1]:.0f} mL, walled by brighter tissue, along the sector (the "
                                f"largest dark region is {largest:.0f} mL)")
-    local = threshold + np.interp(np.linalg.norm(best["apex"] - probe), centres, drift)
     if best.get("refined"):  # found on the full-resolution image already
         apex, base = best["apex"], best["base"]
     else:
+        local = threshold + np.interp(np.linalg.norm(best["apex"] - probe), centres, drift)
         apex = _endocardial_apex(volume, best["apex"], best["normal"], local)
         base = _mitral_plane(volume, best["base"], best["normal"], BASE_DISC * best["base_radius"],
                              separation * spread)
@@ -594,8 +594,8 @@ def _along_ringed_sections(volume, smooth, inside, threshold: float, spread: flo
         return None
     # a half-ellipsoid of the widest ringed section's radius
     volume_ml = 2.0 / 3.0 * np.pi * base_radius ** 2 * length / 1000.0
-    return {"apex": apex, "base": base, "normal": -axis, "volume_ml": float(volume_ml), "base_radius": base_radius,
-            "refined": True, "scores": {"pool": JOINED_POOL}, "score": 1.0}
+    return {"apex": apex, "base": base, "volume_ml": float(volume_ml), "refined": True,
+            "scores": {"pool": JOINED_POOL}, "score": 1.0}
 
 
 def _cavity_ends(volume, start, axis, held, rise: float, reach: float) -> tuple[float | None, float | None]:
