@@ -110,10 +110,11 @@ def _clicks(phantom):
             "base 30 mm short": (a, b + 30 * axis, "short of the mitral plane"),
             "apex and base swapped": (b, a, "swapped"),
             "base 20 mm into the atrium": (a, b - 20 * axis, "atrium"),
-            "base 20 mm short": (a, b + 20 * axis, "short of the mitral plane")}
+            "base 20 mm short": (a, b + 20 * axis, "short of the mitral plane"),
+            "apex 15 mm sideways": (a + 15 * np.cross(axis, [0.0, 1.0, 0.0]), b, "the apex looks wrong")}
 
 
-def test_the_four_click_errors_are_flagged_and_the_correct_clicks_are_not(p157):
+def test_the_click_errors_are_flagged_and_the_correct_clicks_are_not(p157):
     correct = segment(p157.volume, p157.apex, p157.base)
     assert correct.quality["poor"] is False and correct.initialisation["method"] == "given"
     for name, (apex, base, words) in _clicks(p157).items():
@@ -162,6 +163,8 @@ def test_cli_segment_without_points_records_the_located_points(tmp_path, p157):
     assert {"mask.mha", "mesh.vtk", "surface.json", "results.json"} <= {p.name for p in out.iterdir()}
     results = json.loads((out / "results.json").read_text())
     assert results["initialisation"]["method"] == "located"
+    confidence = results["initialisation"]["located"]["confidence"]
+    assert run.stdout.startswith(f"apex and base located (confidence {confidence:.2f}); cavity volume")
     assert np.linalg.norm(np.array(results["apex"]) - p157.apex) < 6.0
     assert np.linalg.norm(np.array(results["base"]) - p157.base) < 6.0
     assert abs(results["volume_ml"] - p157.truth_volume_ml) < 0.1 * p157.truth_volume_ml

@@ -403,8 +403,18 @@ def cmd_segment(args) -> int:
             replaces=_output_set())
     if args.profile:
         print(profile_lines(written["seconds"]), file=sys.stderr)
-    _say(args, f"cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, {1000 * result.seconds:.0f} ms); outputs in {out}")
+    _say(args, f"{_located(result)}cavity volume {result.volume_ml:.1f} mL ({result.iterations} iterations, "
+               f"{1000 * result.seconds:.0f} ms); outputs in {out}")
     return _warn_quality([result], args)
+
+
+def _located(result) -> str:
+    """What the summary line says first when the apex and base were
+    located rather than given (results.json has the points and the reason)."""
+    start = result.initialisation or {}
+    if start.get("method") != "located":
+        return ""
+    return f"apex and base located (confidence {start['located']['confidence']:.2f}); "
 
 
 def _warn_quality(frames, args) -> int:
@@ -467,7 +477,7 @@ def cmd_track(args) -> int:
         seconds = written["seconds"]
         print(profile_lines({"load": seconds["load"], "kernels": seconds["kernels"],
                              "segment": sum(seconds["segment"])}), file=sys.stderr)
-    _say(args, f"EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
+    _say(args, f"{_located(result)}EDV {result.edv_ml:.1f} mL (frame {result.ed_frame}), ESV {result.esv_ml:.1f} mL "
                f"(frame {result.es_frame}), EF {result.ef:.1f} %; outputs in {out}")
     return _warn_quality(result.frames, args)
 

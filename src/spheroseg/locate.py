@@ -743,8 +743,10 @@ def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) ->
     points away from the located one), the base off the located mitral plane
     (measured along its normal: into the atrium, or short of the plane
     towards the apex), the apex beyond that plane (in the atrium) and the
-    apex far from the located one (2.5 ``tolerance_mm``: haze over the apex
-    can hide the located apex by more than a centimetre).
+    apex more than ``tolerance_mm`` from the located one (a confident
+    location's apex was within 5 mm of the truth on 60 phantoms of every
+    image formation, tilt, poor window, clutter and dropout; haze that hides
+    the apex leaves the location without confidence).
 
     Parameters
     ----------
@@ -754,8 +756,8 @@ def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) ->
     apex, base : (3,) world mm
         The points given.
     tolerance_mm : float
-        How far (mm) the base may lie from the located mitral plane before it
-        is called wrong.
+        How far (mm) the base may lie from the located mitral plane, and the
+        apex from the located apex, before it is called wrong.
 
     Returns
     -------
@@ -783,7 +785,7 @@ def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) ->
                         f"{here(located.apex)}")
     else:
         miss = float(np.linalg.norm(apex - located.apex))
-        if miss > 2.5 * tolerance_mm:
+        if miss > tolerance_mm:
             warnings.append(f"the apex looks wrong: {miss:.0f} mm from the apex found at {here(located.apex)}")
     return warnings
 
