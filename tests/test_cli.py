@@ -304,6 +304,10 @@ def test_never_overwrites_the_input(capfd, case, tmp_path):
          "cannot read image"),
         (lambda d, img: ["segment", d / "huge.mhd", "--apex", 0, 0, 0, "--base", 0, 0, 9, "--out", d / "o"],
          "over the memory budget of 4 GB"),
+        (lambda d, img: ["segment", d / "zeros.mha", "--apex", 5, 5, 2, "--base", 5, 5, 9, "--out", d / "o"],
+         "zeros.mha: every voxel is 0: the image holds no echo data"),
+        (lambda d, img: ["segment", img, "--apex", 20, 20, 20, "--base", 20, 20, 20.001, "--out", d / "o"],
+         "apex and base are 0.001 mm apart"),
     ],
 )
 def test_bad_input_is_one_line(case, tmp_path, make_args, pattern):
@@ -313,6 +317,7 @@ def test_bad_input_is_one_line(case, tmp_path, make_args, pattern):
     (tmp_path / "notes.txt").write_text("hello")
     (tmp_path / "bad.mrk.json").write_text("{not json")
     sitk.WriteImage(sitk.GetImageFromArray(np.zeros((5, 6), np.uint8)), str(tmp_path / "flat.mha"))
+    sitk.WriteImage(sitk.GetImageFromArray(np.zeros((12, 11, 10), np.uint8)), str(tmp_path / "zeros.mha"), True)
     (tmp_path / "empty").mkdir()
     (tmp_path / "empty" / "readme.txt").write_text("no images here")
     (tmp_path / "cut.mha").write_bytes(img.read_bytes()[:4000])

@@ -42,6 +42,7 @@ def test_the_annulus_poses_its_plane():
     ((APEX, [1.0, np.nan, 2.0]), {}, ValueError, "^base must be 3 finite numbers"),
     ((APEX, None), {}, ValueError, "^give the base point"),
     ((APEX, APEX), {}, ValueError, "^apex and base must be distinct"),
+    ((APEX, APEX + [0, 0, 0.001]), {}, ValueError, r"^apex and base are 0.001 mm apart: they are the ends"),
     ((APEX, BASE), {"init": "surface"}, TypeError, "^init must be a spheroseg.Surface"),
     ((APEX, BASE), {"landmarks": [[1.0, 2.0, 300.0]]}, ValueError, r"^landmark 0 \("),
     ((APEX, BASE), {"levels": ()}, TypeError, "^levels must be"),

@@ -121,6 +121,21 @@ def test_bad_files(tmp_path):
         load(tmp_path / "flat.mha")
 
 
+
+def test_a_raw_file_larger_than_its_header_declares_is_refused(tmp_path, rng):
+    """ITK reads the first bytes of a too large .raw silently: a DimSize cut
+    along x scrambles the image."""
+    array = rng.integers(1, 200, (6, 5, 4)).astype(np.float32)
+    write_3d(tmp_path / "a.mhd", array)
+    np.testing.assert_array_equal(load(tmp_path / "a.mhd", no_data_value=None).array, array)
+    header = (tmp_path / "a.mhd").read_text()
+    assert "DimSize = 4 5 6" in header and "ElementDataFile = a.raw" in header
+    for dims, extra in (("3 5 6", 6 * 5 * 4), ("4 5 5", 5 * 4 * 4)):
+        (tmp_path / "cut.mhd").write_text(header.replace("DimSize = 4 5 6", f"DimSize = {dims}"))
+        with pytest.raises(ImageFileError, match=rf"^{tmp_path / 'cut.mhd'}: its data file a.raw holds 480 bytes, "
+                                                 rf"{extra} more than the header declares \(DimSize {dims}, MET_FLOAT\)"):
+            load(tmp_path / "cut.mhd")
+
 @pytest.mark.parametrize("suffix", [".mhd", ".nii.gz", ".nrrd", ".npy"])
 def test_save_mask_round_trip(tmp_path, suffix, rng):
     like = Volume(np.zeros((5, 6, 7)), spacing=(0.5, 0.6, 0.7), origin=(1.0, 2.0, 3.0))

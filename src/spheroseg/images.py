@@ -156,12 +156,53 @@ def _read_image(path: Path):
         pass  # not an image: ReadImage below says why, in one line
     else:
         check_image_size(path, reader.GetSize(), reader.GetNumberOfComponents())
+        _check_data_file(path)
     try:
         return _quietly(lambda: sitk.ReadImage(str(path)))
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()
         detail = next((line for line in first if "ERROR" in line or "Unable" in line), first[-1] if first else "")
         raise ImageFileError(f"{path}: cannot read image ({detail.strip()[:200]})") from None
+
+
+#: bytes per value of MetaImage element types
+_META_BYTES = {"MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4, "MET_UINT": 4,
+               "MET_LONG": 4, "MET_ULONG": 4, "MET_LONG_LONG": 8, "MET_ULONG_LONG": 8, "MET_FLOAT": 4,
+               "MET_DOUBLE": 8}
+
+
+def _check_data_file(path: Path) -> None:
+    """Refuse a MetaImage header (``.mhd``) whose raw data file holds more
+    bytes than it declares: ITK reads the first ones silently, and a wrong
+    ``DimSize`` or ``ElementType`` scrambles the image (a data file that is
+    too short, ITK refuses itself).  Compressed, listed and embedded data
+    are left to ITK."""
+    if image_format(path) != ".mhd":
+        return
+    keys = {}
+    for line in path.read_text(errors="replace").splitlines():
+        key, sep, value = line.partition("=")
+        if sep:
+            keys[key.strip()] = value.strip()
+    name = keys.get("ElementDataFile", "")
+    try:
+        dims = [int(n) for n in keys.get("DimSize", "").split()]
+        channels = int(keys.get("ElementNumberOfChannels", "1"))
+        header = int(keys.get("HeaderSize", "0"))
+    except ValueError:
+        return  # ITK says what is wrong with the header
+    if (keys.get("CompressedData", "False").lower() == "true" or name in ("", "LOCAL") or name.startswith("LIST")
+            or "%" in name or header < 0 or keys.get("ElementType") not in _META_BYTES or not dims):
+        return
+    data = path.parent / name
+    if not data.is_file():
+        return
+    declared = header + math.prod(dims) * channels * _META_BYTES[keys["ElementType"]]
+    size = data.stat().st_size
+    if size > declared:
+        raise ImageFileError(f"{path}: its data file {name} holds {size} bytes, {size - declared} more than the "
+                             f"header declares (DimSize {' '.join(map(str, dims))}, {keys['ElementType']}): "
+                             "a wrong size or type would scramble the image")
 
 
 def _load_npy(path: Path) -> np.ndarray:

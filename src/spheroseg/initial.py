@@ -19,7 +19,13 @@ from .options import SegmentOptions, format_point
 from .stepper import Level
 from .surface import Surface
 
-__all__ = ["InitialModel", "initial_model", "start_surface", "check_volume", "check_point", "check_landmarks"]
+__all__ = ["InitialModel", "initial_model", "start_surface", "check_volume", "check_point", "check_landmarks",
+           "MIN_LONG_AXIS_MM"]
+
+#: the least apex-to-base distance taken (mm): a mouse's left ventricle is
+#: some 6 mm long, and a descent from a start of a few micrometres ends in
+#: non-finite coefficients
+MIN_LONG_AXIS_MM = 1.0
 
 
 def check_volume(volume) -> None:
@@ -118,8 +124,12 @@ def initial_model(volume, apex, base=None, *, annulus=None, landmarks=None, init
     given_base = None if base is None else check_point(volume, base, "base")
     if annulus is None:
         base = given_base
-        if np.linalg.norm(apex - base) < 1e-6:
+        length = float(np.linalg.norm(apex - base))
+        if length < 1e-6:
             raise ValueError("apex and base must be distinct points")
+        if length < MIN_LONG_AXIS_MM:
+            raise ValueError(f"apex and base are {length:.3g} mm apart: they are the ends of the ventricle's long "
+                             f"axis (at least {MIN_LONG_AXIS_MM:g} mm)")
     else:
         base = Pose.from_annulus(apex, annulus, base=given_base).origin
     if init is not None and not isinstance(init, Surface):
