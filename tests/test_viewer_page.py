@@ -171,6 +171,11 @@ def test_click_segment_landmark_drag_undo_save(browser, phantom_file, tmp_path):
         page.wait_for_function("document.body.dataset.state === 'error'", polling=100, timeout=TIMEOUT_MS)
         assert "exists" in page.text_content("#saved")
         page.screenshot(path=str(tmp_path / "5-saved.png"))
+        # a change of view puts back the status the refused save replaced; the error stays beside Save
+        page.keyboard.press("+")
+        page.wait_for_function("document.body.dataset.state !== 'error'", polling=100, timeout=TIMEOUT_MS)
+        assert "exists" not in _status(page) and "exists" in page.text_content("#saved")
+        page.keyboard.press("0")
         assert errors == []
     finally:
         server.close()
@@ -393,13 +398,22 @@ def test_modes_keys_orientation_and_refused_clicks(browser, phantom_file, tmp_pa
         assert session.points.same(before) and page.evaluate("viewer.state.mode") == "apex"
         assert page.evaluate("viewer.state.points.apex") == session.points.apex.tolist()
 
-        # zoom: NiiVue's tiles show 1.25 times less (the overlay is placed by them); colour maps
+        # zoom: NiiVue's tiles show 1.25 times less (the overlay is placed by them), about the
+        # crosshair, which stays where it was on every tile; 0 returns to the view as loaded
         fov = page.evaluate("viewer.sliceTiles().find((t) => t.axCorSag === 1).fovMM.slice(0, 2)")
+        centre = crosshair_lps(page)
+        assert np.linalg.norm(centre) > 50  # far from the world's origin, which a zoom about it would keep
+        at = [screen_xy(page, tile, centre) for tile in (0, 1, 2)]
         page.keyboard.press("+")
         page.wait_for_function("viewer.nv.scene.pan2Dxyzmm[3] > 1.2", polling=100, timeout=TIMEOUT_MS)
         zoomed = page.evaluate("viewer.sliceTiles().find((t) => t.axCorSag === 1).fovMM.slice(0, 2)")
         np.testing.assert_allclose(np.array(fov) / zoomed, 1.25, rtol=1e-6)
+        page.keyboard.press("+")
+        page.wait_for_function("viewer.nv.scene.pan2Dxyzmm[3] > 1.5", polling=100, timeout=TIMEOUT_MS)
+        np.testing.assert_allclose([screen_xy(page, tile, centre) for tile in (0, 1, 2)], at, atol=1.0)
         page.keyboard.press("0")
+        page.wait_for_function("viewer.nv.scene.pan2Dxyzmm[3] === 1", polling=100, timeout=TIMEOUT_MS)
+        assert page.evaluate("Array.from(viewer.nv.scene.pan2Dxyzmm)") == [0, 0, 0, 1]
         page.select_option("#colormap", "hot")
         assert page.evaluate("viewer.nv.volumes[0].colormap") == "hot"
 

@@ -38,6 +38,7 @@ const state = {
   tracking: null, trackingRun: null, playing: null, drag: null, dragSent: 0, later3D: null, slicesQueued: false,
   timings: [],          // per job: click, first and final surface drawn on the slices, 3D drawn (ms)
   epicardium: null,     // the shown frame's epicardium (display mm), when the myocardium is drawn
+  beforeSaveError: null,  // [text, status] a refused save's error replaced (viewChanged)
 };
 let nv = null;
 
@@ -63,6 +64,7 @@ function decode(base64, Type) {
 // -- status and modes: every transition goes through say() and setMode() -----
 
 function say(text, status) {
+  state.beforeSaveError = null;
   $('status').textContent = text;
   if (status) {
     state.status = status;
@@ -611,18 +613,30 @@ function setOrientation(echo) {
   document.body.dataset.orientation = echo ? 'echo' : 'anatomical';
   if (state.shownLPS) state.shown = displayVertices(state.shownLPS);
   drawSlices();
+  viewChanged();
 }
 
 function zoom(factor) {
+  // about the crosshair, as NiiVue's own wheel zoom: the pan moves by the
+  // zoom's change times the crosshair's mm, so that the crosshair stays put
+  // on every tile (zooming about the world's origin would carry the
+  // ventricle off the screen); 0 returns to the view as loaded
   const pan = Array.from(nv.scene.pan2Dxyzmm);
-  pan[3] = factor === null ? 1 : Math.min(8, Math.max(0.5, pan[3] * factor));
-  nv.scene.pan2Dxyzmm = pan;
+  if (factor === null) {
+    nv.scene.pan2Dxyzmm = [0, 0, 0, 1];
+  } else {
+    const next = Math.min(8, Math.max(0.5, pan[3] * factor));
+    const mm = nv.frac2mm(nv.scene.crosshairPos);
+    nv.scene.pan2Dxyzmm = [0, 1, 2].map((i) => pan[i] + (pan[3] - next) * mm[i]).concat([next]);
+  }
   drawSlices();
+  viewChanged();
 }
 
 function setColormap(name) {
   nv.setColormap(nv.volumes[0].id, name);
   $('colormap').value = name;
+  viewChanged();
 }
 
 // -- sequences ----------------------------------------------------------------
@@ -662,7 +676,8 @@ function drawCurve() {
   const lo = Math.min(...v) * 0.95;
   const hi = Math.max(...v) * 1.05;
   const x = (k) => 30 + (k / Math.max(1, v.length - 1)) * (canvas.width - 50);
-  const y = (ml) => canvas.height - 14 - ((ml - lo) / (hi - lo)) * (canvas.height - 28);
+  // the top 12 px are the axis label's: ED's label above its point stays below it
+  const y = (ml) => canvas.height - 14 - ((ml - lo) / (hi - lo)) * (canvas.height - 40);
   ctx.strokeStyle = '#556';
   ctx.beginPath();
   ctx.moveTo(x(state.frame), 4);
@@ -712,6 +727,7 @@ function play() {
 
 async function save() {
   const folder = $('folder').value;
+  const before = [$('status').textContent, state.status];
   say('saving...', 'running');
   try {
     const saved = await api('/api/save', { folder, frame: state.frame });
@@ -721,7 +737,13 @@ async function save() {
   } catch (error) {
     $('saved').textContent = error.message;
     say(error.message, 'error');
+    state.beforeSaveError = before;  // the next change of view says it again; the error stays beside Save
   }
+}
+
+// after a refused save, a change of view puts back what the status said before it
+function viewChanged() {
+  if (state.beforeSaveError) say(...state.beforeSaveError);
 }
 
 // -- keys: the same whatever has the focus (except a text field) -----------------
