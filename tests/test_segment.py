@@ -177,7 +177,7 @@ def test_tracking_recovers_ejection_fraction():
         (dict(mode="levelset"), "mode"),
         (dict(step=0), "step"),
         (dict(patches=(1, 8)), "patches must be two integers"),
-        (dict(max_iterations=2.5), "max_iterations must be a non-negative integer"),
+        (dict(max_iterations=2.5), "max_iterations must be an integer"),
         (dict(backend="gpu"), "backend must be one of"),
         (dict(threads=0), "threads must be a positive integer"),
         (dict(landmarks=[(0.0, 0.0, -50.0)]), r"landmark 0 \(0.00, 0.00, -50.00\) lies outside"),

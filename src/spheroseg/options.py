@@ -189,8 +189,8 @@ class SegmentOptions:
             raise ValueError(f"adaptive_step must be True or False, got {self.adaptive_step!r}")
         for name in ("max_iterations", "order"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0):
-                raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+            if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool)):
+                raise ValueError(f"{name} must be an integer, got {value!r}")  # its range below
         if self.threads is not None and not (isinstance(self.threads, (int, np.integer))
                                              and not isinstance(self.threads, bool) and self.threads >= 1):
             raise ValueError(f"threads must be a positive integer (or None: numba's setting), got {self.threads!r}")
