@@ -135,6 +135,11 @@ def test_a_raw_file_larger_than_its_header_declares_is_refused(tmp_path, rng):
         with pytest.raises(ImageFileError, match=rf"^{tmp_path / 'cut.mhd'}: its data file a.raw holds 480 bytes, "
                                                  rf"{extra} more than the header declares \(DimSize {dims}, MET_FLOAT\)"):
             load(tmp_path / "cut.mhd")
+    # what SimpleITK writes, of every scalar type, is read: the check counts its bytes right
+    small = array % 100 + 1  # within every type's range
+    for dtype in (np.int8, np.uint8, np.int16, np.uint16, np.int32, np.uint32, np.int64, np.uint64, np.float64):
+        write_3d(tmp_path / f"{np.dtype(dtype).name}.mhd", small.astype(dtype))
+        np.testing.assert_array_equal(load(tmp_path / f"{np.dtype(dtype).name}.mhd", no_data_value=None).array, small)
 
 @pytest.mark.parametrize("suffix", [".mhd", ".nii.gz", ".nrrd", ".npy"])
 def test_save_mask_round_trip(tmp_path, suffix, rng):

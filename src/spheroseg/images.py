@@ -165,10 +165,10 @@ def _read_image(path: Path):
         raise ImageFileError(f"{path}: cannot read image ({detail.strip()[:200]})") from None
 
 
-#: bytes per value of MetaImage element types
+#: bytes per value of MetaImage element types (MET_LONG's size is the
+#: writer's platform's: not checked; ITK writes 64 bits as MET_LONG_LONG)
 _META_BYTES = {"MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4, "MET_UINT": 4,
-               "MET_LONG": 4, "MET_ULONG": 4, "MET_LONG_LONG": 8, "MET_ULONG_LONG": 8, "MET_FLOAT": 4,
-               "MET_DOUBLE": 8}
+               "MET_LONG_LONG": 8, "MET_ULONG_LONG": 8, "MET_FLOAT": 4, "MET_DOUBLE": 8}
 
 
 def _check_data_file(path: Path) -> None:
