@@ -4,7 +4,7 @@ import pytest
 from spheroseg import Volume, segment
 from spheroseg.coords import Pose, ProlateSpheroidal
 from spheroseg.epicardium import (
-    MAX_ITERATIONS, add_epicardium, conserving_start, enforce_thickness, initial_epicardium, segment_epicardium,
+    DARK_WALL, MAX_ITERATIONS, add_epicardium, conserving_start, enforce_thickness, initial_epicardium, segment_epicardium,
     wall_nepers,
 )
 from spheroseg.hermite import HermiteGrid
@@ -152,6 +152,21 @@ def test_intensity_interface_removes_the_midpoints_bias():
     with pytest.raises(ValueError, match="boundary must be"):
         segment_epicardium(volume, endo, boundary="outer")
 
+
+
+@pytest.mark.parametrize("contrast_db, polarity", [(12.0, "bright"), (-6.0, "dark")])
+def test_a_wall_darker_than_what_lies_beyond_it_is_flagged(contrast_db, polarity):
+    """With the points checked, the endocardium's report says when its wall
+    is darker than the tissue beyond it (the intensity interface may read
+    that tissue past a thin wall), and the epicardium takes that polarity."""
+    volume, pose = speckle_shells_image(contrast_db=contrast_db)
+    res = segment(volume, APEX, BASE)
+    assert (DARK_WALL in res.quality["warnings"]) is (polarity == "dark")
+    assert np.sign(res.quality["wall_contrast"]) == {"bright": 1, "dark": -1}[polarity]
+    assert res.quality["poor"] or polarity == "bright"
+    both = segment(volume, APEX, BASE, myocardium=True)
+    assert both.parameters["epicardium"]["polarity"] == polarity
+    assert "wall_contrast" not in segment(volume, APEX, BASE, check=False).quality
 
 def test_segment_with_myocardium_gives_the_wall():
     volume, pose = speckle_shells_image()

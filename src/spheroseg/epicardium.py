@@ -40,9 +40,16 @@ from .volume import Volume
 #: sweep; a wall still moving after this many has no clear outer boundary
 #: (a dark wall collapses slowly towards the endocardium) and is flagged
 MAX_ITERATIONS = 30
+#: the prior wall thickness (mm): the epicardium's start, within the normal
+#: adult range (6-10 mm; Lang et al. 2015)
+PRIOR_THICKNESS_MM = 8.0
+#: the endocardium's warning when its wall is darker than what lies beyond it
+DARK_WALL = ("the myocardium is darker than what lies beyond it: past a thin wall its grey level may be read "
+             "too high and the wall placed outside (the volume too large)")
 
-__all__ = ["MAX_ITERATIONS", "initial_epicardium", "conserving_start", "enforce_thickness", "wall_polarity",
-           "wall_nepers", "wall_term", "segment_epicardium", "add_epicardium"]
+__all__ = ["MAX_ITERATIONS", "PRIOR_THICKNESS_MM", "DARK_WALL", "initial_epicardium", "conserving_start",
+           "enforce_thickness", "wall_polarity", "check_wall_polarity", "wall_nepers", "wall_term",
+           "segment_epicardium", "add_epicardium"]
 
 
 def _node_offsets(surface: Surface, thickness_mm: float) -> np.ndarray:
@@ -164,6 +171,32 @@ def wall_polarity(volume: Volume, endocardium: Surface, epicardium: Surface, *, 
     return float(grey(wall) - grey(shell))
 
 
+def check_wall_polarity(result: SegmentationResult, volume: Volume, *,
+                        thickness_mm: float = PRIOR_THICKNESS_MM) -> str:
+    """Whether ``result``'s myocardium is brighter than what lies beyond it
+    ("bright") or not ("dark"): :func:`wall_polarity` of a wall
+    ``thickness_mm`` thick outside its endocardium.  A dark wall adds
+    :data:`DARK_WALL` to its quality report, and the report keeps the
+    contrast (``wall_contrast``, grey levels; NaN without data, taken as
+    bright).
+
+    The intensity interface reads the myocardium's grey level from band
+    means 2-8 mm outside the local means' wall
+    (:class:`spheroseg.dataterms.IntensityInterface`); past a thin wall
+    that is darker than what lies beyond it, the level rises and the wall
+    moves out.  Of the image-formation sweep only ``contrast_low`` (the
+    myocardium 5 dB darker than the tissue around the heart) has a dark
+    wall: volumes about 10 % large (docs/benchmarks.md)."""
+    contrast = wall_polarity(volume, result.surface, initial_epicardium(result.surface, thickness_mm=thickness_mm))
+    polarity = "dark" if contrast < 0 else "bright"
+    if result.quality is not None:
+        result.quality["wall_contrast"] = float(contrast)
+        if polarity == "dark":
+            result.quality["warnings"] = list(result.quality["warnings"]) + [DARK_WALL]
+            result.quality["poor"] = True
+    return polarity
+
+
 def wall_nepers(volume: Volume, endocardium: Surface, epicardium: Surface, *, per_patch: int = 6) -> float:
     """Grey levels per neper of echo intensity (:func:`speckle_nepers`)
     from the speckle of the wall: the nearest voxels at a quarter, half and
@@ -190,7 +223,7 @@ def wall_term(nepers: float = np.inf) -> type[LocalMeans]:
     return type("OuterWall", (LocalMeans,), {"polarity": -1.0, "boundary_nepers": float(nepers)})
 
 
-def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: float = 8.0,
+def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: float = PRIOR_THICKNESS_MM,
                        min_thickness_mm: float = 2.0, polarity: str = "auto", boundary: str = "intensity",
                        nepers: float | None = None, start: Surface | None = None, **options) -> SegmentationResult:
     """The epicardium of a segmented endocardium.

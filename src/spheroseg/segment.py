@@ -16,7 +16,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .locate import annotate, initialise
-from .epicardium import add_epicardium
+from .epicardium import PRIOR_THICKNESS_MM, add_epicardium, check_wall_polarity
 from .options import MODES
 from .results import Intermediate, SegmentationResult, TrackingResult
 from .surface import Surface
@@ -60,7 +60,10 @@ def segment(volume, apex=None, base=None, *, annulus=None, landmarks=None, init:
     check : bool
         Check given points against the located ventricle
         (:func:`spheroseg.locate.check_points`): a gross disagreement makes
-        ``quality["poor"]`` with a warning naming the point.
+        ``quality["poor"]`` with a warning naming the point.  With the
+        points checked or located, a myocardium darker than what lies
+        beyond it is a warning too
+        (:func:`spheroseg.epicardium.check_wall_polarity`).
     **options
         Keyword options of :class:`spheroseg.SegmentOptions`: ``system``,
         ``patches`` (8 x 8), ``mode`` (``"intensity"``), ``step`` (1 mm),
@@ -152,8 +155,14 @@ def segment(volume, apex=None, base=None, *, annulus=None, landmarks=None, init:
     apex, base, initialisation, located = initialise(volume, apex, base, annulus=annulus, init=init, check=check)
     result = Tracker(volume, apex, base, annulus=annulus, landmarks=landmarks, init=init, **options).run(iter_callback)
     annotate(result, initialisation, located)
+    epicardium_options = dict(epicardium_options or {})
+    if located is not None:  # the checks ran: the wall's polarity too, which the epicardium then need not read
+        thickness = epicardium_options.get("thickness_mm", PRIOR_THICKNESS_MM)
+        polarity = check_wall_polarity(result, volume, thickness_mm=thickness)
+        if "start" not in epicardium_options:
+            epicardium_options.setdefault("polarity", polarity)
     if myocardium:
-        result = add_epicardium(result, volume, rv_insertion=rv_insertion, **(epicardium_options or {}))
+        result = add_epicardium(result, volume, rv_insertion=rv_insertion, **epicardium_options)
     return result
 
 
@@ -230,6 +239,8 @@ def track(
         else:
             frames.append(tracker.run(iter_callback))
             annotate(frames[0], initialisation, located)
+            if located is not None:
+                check_wall_polarity(frames[0], volume)
         if myocardium:
             add_epicardium(frames[-1], volume, rv_insertion=rv_insertion, previous=frames[-2] if len(frames) > 1
                            else None, **(epicardium_options or {}))
