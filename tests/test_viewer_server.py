@@ -20,7 +20,8 @@ from conftest import interruptible
 
 import spheroseg
 from spheroseg.io import save_volume, write_markups
-from spheroseg.synthetic.phantom import make_phantom, make_sequence
+from spheroseg.epicardium import DARK_WALL
+from spheroseg.synthetic.phantom import FORMATIONS, make_phantom, make_sequence
 from spheroseg.viewer import open_viewer
 from spheroseg.viewer.server import MAX_BODY
 from spheroseg.viewer.session import Points
@@ -505,6 +506,24 @@ def test_given_points_are_checked_against_the_located_ventricle(server, phantom)
     finally:
         session_module.locate = restore
     assert len(calls) == 1
+
+
+def test_a_dark_wall_is_flagged_as_the_api_flags_it(tmp_path):
+    """The viewer's checks are segment's (:func:`spheroseg.segment.add_checks`):
+    a myocardium darker than the tissue beyond it is a warning on the page too."""
+    ph = make_phantom(seed=0, spacing=2.0, formation=FORMATIONS["contrast_low"])
+    path = tmp_path / "dark.mha"
+    save_volume(path, ph.volume)
+    write_markups(tmp_path / "points.mrk.json", apex=ph.apex, base=ph.base)
+    server = open_viewer(path, save_root=tmp_path, points=tmp_path / "points.mrk.json")
+    server.serve_in_thread()
+    try:
+        event = wait_for(server)
+        api = spheroseg.segment(server.session.frames[0], ph.apex, ph.base)
+        assert DARK_WALL in api.quality["warnings"]
+        assert event["poor"] and event["warnings"] == api.quality["warnings"]
+    finally:
+        server.close()
 
 def test_command_prints_the_address_once_it_answers(phantom, tmp_path):
     """The kernels load before the address is printed (a first run compiles

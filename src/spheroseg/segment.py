@@ -22,7 +22,18 @@ from .results import Intermediate, SegmentationResult, TrackingResult
 from .surface import Surface
 from .tracker import Tracker
 
-__all__ = ["segment", "track", "SegmentationResult", "TrackingResult", "Intermediate", "MODES"]
+__all__ = ["segment", "track", "add_checks", "SegmentationResult", "TrackingResult", "Intermediate", "MODES"]
+
+
+def add_checks(result: SegmentationResult, volume, initialisation: dict, located, *,
+               thickness_mm: float = PRIOR_THICKNESS_MM) -> str | None:
+    """What a result gets after its descent: how it was initialised and
+    the click checks (:func:`spheroseg.locate.annotate`) and, when the
+    ventricle was located (``located`` not None), the wall's polarity
+    (:func:`spheroseg.epicardium.check_wall_polarity` of a wall
+    ``thickness_mm`` thick), which it returns; None without it."""
+    annotate(result, initialisation, located)
+    return None if located is None else check_wall_polarity(result, volume, thickness_mm=thickness_mm)
 
 
 def segment(volume, apex=None, base=None, *, annulus=None, landmarks=None, init: Surface | None = None,
@@ -154,13 +165,11 @@ def segment(volume, apex=None, base=None, *, annulus=None, landmarks=None, init:
     """
     apex, base, initialisation, located = initialise(volume, apex, base, annulus=annulus, init=init, check=check)
     result = Tracker(volume, apex, base, annulus=annulus, landmarks=landmarks, init=init, **options).run(iter_callback)
-    annotate(result, initialisation, located)
     epicardium_options = dict(epicardium_options or {})
-    if located is not None:  # the checks ran: the wall's polarity too, which the epicardium then need not read
-        thickness = epicardium_options.get("thickness_mm", PRIOR_THICKNESS_MM)
-        polarity = check_wall_polarity(result, volume, thickness_mm=thickness)
-        if "start" not in epicardium_options:
-            epicardium_options.setdefault("polarity", polarity)
+    polarity = add_checks(result, volume, initialisation, located,
+                          thickness_mm=epicardium_options.get("thickness_mm", PRIOR_THICKNESS_MM))
+    if polarity is not None and "start" not in epicardium_options:  # the epicardium need not read it again
+        epicardium_options.setdefault("polarity", polarity)
     if myocardium:
         result = add_epicardium(result, volume, rv_insertion=rv_insertion, **epicardium_options)
     return result
@@ -238,9 +247,7 @@ def track(
                                        follow_base=follow_base))
         else:
             frames.append(tracker.run(iter_callback))
-            annotate(frames[0], initialisation, located)
-            if located is not None:
-                check_wall_polarity(frames[0], volume)
+            add_checks(frames[0], volume, initialisation, located)
         if myocardium:
             add_epicardium(frames[-1], volume, rv_insertion=rv_insertion, previous=frames[-2] if len(frames) > 1
                            else None, **(epicardium_options or {}))

@@ -29,11 +29,12 @@ from ..beamspace import BeamVolume, scan_convert
 from ..io import save_volume, write_markups
 from ..options import SegmentOptions
 from ..results import TrackingResult
+from ..segment import add_checks
 from ..surface import Surface
 from ..tracker import Tracker
 from ..volume import Volume
 
-from ..locate import NoVentricleError, annotate, initialise, locate
+from ..locate import NoVentricleError, initialise, locate
 
 #: the display mesh's resolution (around the axis, from apex to base): fixed,
 #: so the page builds its mesh once and only moves the vertices
@@ -526,12 +527,13 @@ class Session:
 
     def _check_points(self, result, frame: int, points: Points) -> None:
         """Check the clicked points against the located ventricle and say so
-        in ``result.quality``, as :func:`spheroseg.segment` does."""
+        in ``result.quality``, as :func:`spheroseg.segment` does
+        (:func:`spheroseg.segment.add_checks`)."""
         keywords = points.keywords()
         _, _, initialisation, located = initialise(
             self.frames[frame], keywords["apex"], keywords["base"], annulus=keywords["annulus"],
             locator=lambda volume: self._locate(volume, frame))
-        annotate(result, initialisation, located)
+        add_checks(result, self.frames[frame], initialisation, located)
 
     def _segment(self, job: int, frame: int, points: Points) -> None:
         tracker = Tracker(self.frames[frame], **points.keywords(), **self.options.as_parameters())
