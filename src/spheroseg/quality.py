@@ -29,6 +29,10 @@ report says what the descent saw and did:
     elsewhere (:func:`wall_bulge`): a leak through a stretch of wall without
     echo pushes one region out, while a ventricle larger or smaller than the
     clicks suggest scales all of it.
+``wall_contrast``
+    With the points checked or located: the wall's median grey level minus
+    that of the tissue beyond it (:func:`spheroseg.epicardium.check_wall_polarity`);
+    negative, a myocardium darker than what lies beyond it, is a warning.
 
 ``warnings`` lists what is out of the ordinary, in words, and ``poor`` is
 True when there is any.  The bounds are plausibility bounds, not tuned
