@@ -215,7 +215,7 @@ def _formation_sweep(sweep) -> list[str]:
          "where the second reading's band rises at its far end (a dark wall: its far end 0.03-0.04 of the "
          "contrast above its middle on contrast_low, 0.07-0.15 on the tests' dark speckle shells; 0.05-0.39 "
          "below on every bright wall here and there)", "psf_wide -0.9 / -0.9 %, the rim -4.5 / -4.5 %, Dice up "
-         "to 0.014 higher on every bright wall; on the tests' confocal speckle shells (an image of another "
+         "to 0.014 higher (gaussian_2mm's unchanged); on the tests' confocal speckle shells (an image of another "
          "making: isotropic Gaussian blur, 1.5 mm voxels), 12 dB bright walls blurred by 2 mm -7.8 / -7.3 % "
          "(were -13.8 / -13.2) and by 0.5 mm +2.6 / +2.6 % (were +4.5 / +4.7), but with a 2 mm Gaussian after a "
          "1 mm blur +1.0 to +3.6 % (were -0.8 to +0.9); here gaussian_2mm +3.8 / +4.2 % "
