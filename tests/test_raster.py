@@ -9,6 +9,7 @@ import spheroseg
 from spheroseg._raster import (FRESH_ZEROS_BYTES, SLOPE_MARGIN, SLOPE_SAMPLES, fresh_zeros, gradient_bound,
                                hermite_at, patch_slopes, status)
 from spheroseg.hermite import global_basis
+from spheroseg.raster import block_means
 from spheroseg.synthetic.phantom import make_phantom
 from spheroseg.surface import ImageGrid, Surface
 from spheroseg.volume import outside_sector
@@ -375,3 +376,23 @@ def test_the_compiled_basis_is_the_numpy_one(derivative):
         np.testing.assert_allclose(hermite_at(t, 0.4, derivative), global_basis(np.array(t), 0.4, derivative),
                                    rtol=1e-14, atol=1e-15)
 
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.float32])
+@pytest.mark.parametrize("factor", [(2, 2, 2), (3, 1, 2), (4, 3, 5)])
+def test_block_means_are_their_definition(dtype, factor):
+    """Block by block, numpy's mean over the samples with data: NaN where
+    half a block has none, the remainder past the last whole block cut off;
+    8-bit grey levels do not overflow."""
+    rng = np.random.default_rng(2)
+    array = rng.integers(200, 256, size=(23, 17, 26)).astype(dtype)
+    missing = rng.random(array.shape) < 0.3
+    missing[:4, :3, :5] = True  # whole blocks without data
+    means = block_means(array, missing, factor)
+    shape = np.array(array.shape) // factor
+    assert means.shape == tuple(shape)
+    for index in np.ndindex(*shape):
+        block = tuple(slice(i * f, (i + 1) * f) for i, f in zip(index, factor))
+        ok = ~missing[block]
+        expected = array[block][ok].astype(float).mean() if ok.sum() > 0.5 * ok.size else np.nan
+        np.testing.assert_allclose(means[index], expected, rtol=1e-6)
+    assert np.isnan(means[0, 0, 0])

@@ -42,6 +42,7 @@ import numpy as np
 from scipy import ndimage
 
 from .annulus import basal_profile
+from .raster import block_means
 
 __all__ = ["Located", "NoVentricleError", "locate", "check_points", "initialise", "annotate", "VOLUME_RANGE_ML",
            "JOINED_POOL"]
@@ -151,18 +152,11 @@ class Located:
 
 
 def _block_mean(array: np.ndarray, missing: np.ndarray, factor) -> np.ndarray:
-    """Means over blocks of ``factor`` samples (NaN where half of one has no data)."""
-    factor = np.asarray(factor, int)
-    shape = np.array(array.shape) // factor
+    """:func:`~spheroseg.raster.block_means`, refusing an image too small to hold a ventricle."""
+    shape = np.array(array.shape) // np.asarray(factor, int)
     if np.any(shape < 4):
         raise NoVentricleError(f"no left ventricle found: the image ({array.shape}) is too small to hold one")
-    cut = tuple(slice(0, n * f) for n, f in zip(shape, factor))
-    blocks = tuple(x for n, f in zip(shape, factor) for x in (n, f))
-    ok = (~missing[cut]).reshape(blocks)
-    total = np.where(ok, array[cut].reshape(blocks), 0).sum((1, 3, 5))
-    count = ok.sum((1, 3, 5))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0.5 * factor.prod(), total / count, np.nan)
+    return block_means(array, missing, factor)
 
 
 def _missing(volume) -> np.ndarray:

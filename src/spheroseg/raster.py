@@ -1,5 +1,5 @@
-"""Rasterisation: a surface's cavity as a voxel mask, and the padding around
-a scan-converted sector.
+"""Rasterisation: a surface's cavity as a voxel mask, the padding around a
+scan-converted sector, and an image's means over blocks of voxels.
 
 A service beside :class:`~spheroseg.Surface` and
 :class:`~spheroseg.Volume`, which stay numpy types: the loops over voxels
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["surface_mask", "outside_sector"]
+__all__ = ["surface_mask", "outside_sector", "block_means"]
 
 
 def surface_mask(surface, grid) -> np.ndarray:
@@ -109,3 +109,31 @@ def outside_sector(array: np.ndarray, *, min_fraction: float = 0.01) -> np.ndarr
     else:
         mask, count = face_connected_zeros(array)
     return mask if count > 0 and count >= min_fraction * n else None
+
+
+def block_means(array: np.ndarray, missing: np.ndarray, factor) -> np.ndarray:
+    """Means of ``array`` over blocks of ``factor`` samples along its axes,
+    over the samples not ``missing`` (a bool array of its shape): NaN where
+    half a block or more is missing; what lies past the last whole block is
+    left out.  Computed in the array's floating type (float32 at least, so
+    that 8-bit grey levels do not overflow)."""
+    factor = np.asarray(factor, int)
+    shape = np.array(array.shape) // factor
+    ok = ~np.asarray(missing, bool)
+    values = np.where(ok, array, 0).astype(np.result_type(array.dtype, np.float32), copy=False)
+    total, count = _block_sums(values, factor, shape), _block_sums(ok.astype(np.int32), factor, shape)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0.5 * factor.prod(), total / count, np.nan)
+
+
+def _block_sums(array: np.ndarray, factor, shape) -> np.ndarray:
+    # along each axis in turn the factor strided slices added: long inner
+    # loops, where a sum over a reshaped block's short axes is slow
+    for axis, (f, n) in enumerate(zip(factor, shape)):
+        def part(i, axis=axis, f=f, n=n):
+            return array[(slice(None),) * axis + (slice(i, n * f, f),)]
+        total = part(0)
+        for i in range(1, f):
+            total = total + part(i)
+        array = total
+    return array
