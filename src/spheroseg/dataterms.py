@@ -67,17 +67,18 @@ References
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
-from scipy import special
+from scipy import optimize, special
 
 __all__ = ["DataTerm", "Force", "FixedInterface", "GlobalMeans", "LocalMeans", "IntensityInterface", "DATA_TERMS",
            "band_offsets", "shell_offsets", "otsu_threshold", "speckle_nepers", "interface_nepers", "patch_of_rows",
            "nanmedian", "interface_level", "MAX_CONTRAST_DB", "speckle_smoothing_mm", "smoothed_edge_drop",
-           "EDGE_PSF_MM"]
+           "EDGE_PSF_MM", "FORMED_SPECKLE_SMOOTHING_MM", "speckle_correlations", "edge_blur_mm", "band_contamination"]
 
 #: fractions of f at which the cavity is sampled along each ray (the global means)
 CAVITY_FRACTIONS = np.array([0.15, 0.35, 0.55, 0.75, 0.95])
@@ -91,6 +92,11 @@ MAX_CONTRAST_DB = 40.0
 #: beam that blurs a wall's edge: an adult apical 3D scan's, 3 mm at 80 mm
 #: depth (it scales how far a scanner's smoothing lowers the edge's level)
 EDGE_PSF_MM = 3.0
+#: the most smoothing (mm, :func:`speckle_smoothing_mm`) of speckle as a
+#: scanner forms it: scan conversion's interpolation reads 0.3-0.5 mm, a
+#: scanner's filters of 1 mm and more 1-2 mm; below it the speckle's
+#: correlation gives the point-spread function (:func:`edge_blur_mm`)
+FORMED_SPECKLE_SMOOTHING_MM = 0.75
 
 
 def band_offsets(band: float) -> np.ndarray:
@@ -399,6 +405,15 @@ class IntensityInterface(LocalMeans):
     the smoothed edge (:func:`smoothed_edge_drop`) across a point-spread
     function of :data:`EDGE_PSF_MM`.
 
+    The band means are read about the local means' wall, some two widths of
+    the point-spread function inside the interface, so that across a wide
+    point-spread function the outer band's near offsets are still in the
+    blurred edge and ``c_out`` comes out low (the wall inwards).  On speckle
+    as the scanner formed it, the same correlation gives that width along
+    each image axis (:func:`edge_blur_mm`), and the band means lose the
+    deficit the blurred edge leaves in them (:meth:`unblurred_levels`,
+    :func:`band_contamination`).
+
     References
     ----------
     .. [1] Wagner RF, Smith SW, Sandrik JM, Lopez H. Statistics of speckle in
@@ -428,6 +443,8 @@ class IntensityInterface(LocalMeans):
         super().__init__(samples, band=band, band_out=band_out)
         self.nepers = None  #: grey levels per neper of intensity, once estimated
         self.smoothing_mm = 0.0  #: the grey levels' smoothing (mm), estimated with ``nepers``
+        #: covariance (mm^2, world axes) of the wall's blur in the speckle as formed, estimated with ``nepers``
+        self.edge_blur_covariance = None
 
     def reset(self) -> None:
         """Measure the region means again on the next observation."""
@@ -467,17 +484,41 @@ class IntensityInterface(LocalMeans):
         no bands."""
         if self.nepers is None:
             self.nepers = self.estimate_nepers(backend, volume, obs)
-            self.smoothing_mm = self.estimate_smoothing(backend, volume, obs)
+            self.smoothing_mm, self.edge_blur_covariance = self.estimate_blur(backend, volume, obs)
         contrast = np.maximum(c_out - c_in, 0.0)
         c_out = c_in + contrast
         k = self.nepers
+        self._measured = (c_in, c_out)  # what a result reports (their medians)
+        c_in, c_out = self.unblurred_levels(obs, c_in, c_out)
+        contrast = c_out - c_in
         threshold = interface_level(c_in, c_out, k)
         if self.smoothing_mm > 0:
             sigma = EDGE_PSF_MM / (2 * np.sqrt(2 * np.log(2)))
             threshold = threshold + k * smoothed_edge_drop(self.smoothing_mm / sigma, float(nanmedian(contrast)) / k)
-        self._measured = (c_in, c_out)  # what a result reports (their medians)
         self._frozen = (threshold - contrast / 2, threshold + contrast / 2,
                         max(float(nanmedian(contrast)) ** 2, self.min_scale))
+
+    def unblurred_levels(self, obs, c_in: np.ndarray, c_out: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The band means ``c_in``, ``c_out`` less what the wall's blurred
+        edge left in them (:func:`band_contamination`, the edge's blur
+        along the surface's normals the median of the quadratic form of
+        :attr:`edge_blur_covariance` on them), where the speckle is as the
+        scanner formed it: smoothed by less than
+        :data:`FORMED_SPECKLE_SMOOTHING_MM`.  Unchanged otherwise: a
+        smoothing's correlation hides the point-spread function's (a voxel
+        apart, its speckle correlates by 0.8-0.97 along every axis), and
+        :func:`smoothed_edge_drop` models the smoothed edge."""
+        k = self.nepers
+        contrast = float(nanmedian(c_out - c_in))
+        if self.edge_blur_covariance is None or not contrast > 0 or self.smoothing_mm >= FORMED_SPECKLE_SMOOTHING_MM:
+            return c_in, c_out
+        n = obs.normal  # (3, samples), unit
+        sigma = float(np.sqrt(nanmedian(np.einsum("is,ij,js->s", n, self.edge_blur_covariance, n))))
+        deficit_in = deficit_out = 0.0
+        for _ in range(2):  # the regions' contrast is the band means' less what the edge took from it
+            deficit_in, deficit_out = band_contamination(sigma, (contrast - k * (deficit_out - deficit_in)) / k,
+                                                         self.band_offsets)
+        return c_in - k * deficit_in, c_out - k * deficit_out
 
     def estimate_nepers(self, backend, volume, obs) -> float:
         """``k`` of :func:`interface_nepers` from the grey levels of the outer
@@ -487,19 +528,25 @@ class IntensityInterface(LocalMeans):
         outer = backend.samples_along(volume, obs, self.band_offsets, rows, order=0)  # (rows, offsets)
         return interface_nepers(outer, patch_of_rows(d.grid, d.order, rows), nanmedian(obs.outside - obs.inside))
 
-    def estimate_smoothing(self, backend, volume, obs) -> float:
-        """:func:`speckle_smoothing_mm` of the outer band at voxel centres
-        and their next voxels along the image's axes (0 in beam space:
-        no post-processing there)."""
+    def estimate_blur(self, backend, volume, obs) -> tuple[float, np.ndarray | None]:
+        """The speckle's correlation between the outer band's voxel centres
+        and their next voxels along the image's axes
+        (:func:`speckle_correlations`): :func:`speckle_smoothing_mm` and the
+        covariance (mm^2, world axes) of the wall's blur,
+        :func:`edge_blur_mm` along the image axes.  ``(0, None)`` in beam
+        space (no post-processing there, and axes of angles)."""
         if not hasattr(volume, "direction"):
-            return 0.0
+            return 0.0, None
         d = backend.discretisation
         rows = d.band_rows
-        steps = np.asarray(volume.direction, float) * np.asarray(volume.spacing, float)  # columns: one voxel
+        direction = np.asarray(volume.direction, float)
+        steps = direction * np.asarray(volume.spacing, float)  # columns: one voxel
         outer, *neighbours = (backend.samples_along(volume, replace(obs, world=obs.world + step[:, None]),
                                                     self.band_offsets, rows, order=0)
                               for step in (np.zeros(3), *steps.T))
-        return speckle_smoothing_mm(outer, np.stack(neighbours), patch_of_rows(d.grid, d.order, rows), volume.spacing)
+        correlations = speckle_correlations(outer, np.stack(neighbours), patch_of_rows(d.grid, d.order, rows))
+        blur = edge_blur_mm(correlations, volume.spacing)
+        return speckle_smoothing_mm(correlations, volume.spacing), (direction * blur**2) @ direction.T
 
 
 def interface_level(dark, bright, nepers):
@@ -548,40 +595,151 @@ def interface_nepers(samples: np.ndarray, patch: np.ndarray, contrast: float, *,
     return nepers
 
 
-def speckle_smoothing_mm(samples: np.ndarray, neighbours: np.ndarray, patch: np.ndarray, steps) -> float:
-    """Standard deviation (mm) of a smoothing that the grey levels went
-    through after log compression, from the speckle's correlation between
-    neighbouring voxels.
+def speckle_correlations(samples: np.ndarray, neighbours: np.ndarray, patch: np.ndarray) -> np.ndarray:
+    """Correlation coefficient of the speckle with its next voxel along each
+    image axis.
 
     ``samples`` ``(rays, offsets)`` are grey levels at voxel centres along
     rays whose patch is ``patch`` (as :func:`speckle_nepers`);
     ``neighbours`` ``(axes, rays, offsets)`` those of the next voxel along
-    each image axis, ``steps`` mm apart.  Centred on the mean of their
-    (patch, offset) bin, their correlation ``c`` along an axis gives the
-    width of a Gaussian correlation ``w^2 = -step^2 / (2 ln c)``.  Scanners
-    sample along the beam at half the axial point-spread function (under a
-    millimetre), so that along the axis nearest the beam raw speckle hardly
-    correlates from voxel to voxel; a Gaussian smoothing of standard
-    deviation ``s`` widens the correlation by ``2 s^2`` along every axis,
-    and persistence (averaging independent speckle) not at all.  The least
-    width over the axes gives ``s = w / sqrt(2)`` (the speckle's own width
-    along the beam counted in: about 0.4 mm on the raw phantoms).  0 when
-    the speckle does not correlate.
+    each axis.  Both are centred on the mean of their (patch, offset) bin
+    (each bin one tissue), so that the coefficient is the speckle's, not the
+    anatomy's.  0 for an axis without spread.
     """
     patch = np.asarray(patch)
     shape = (patch.max() + 1) * samples.shape[1]
     bins = (patch.reshape(-1, 1) * samples.shape[1] + np.arange(samples.shape[1])).ravel()
-    widths = []
-    for step, other in zip(np.broadcast_to(np.asarray(steps, float), (len(neighbours),)), neighbours):
+    correlations = []
+    for other in neighbours:
         ok = (np.isfinite(samples) & np.isfinite(other)).ravel()
         a, b, key = samples.ravel()[ok], other.ravel()[ok], bins[ok]
         count = np.maximum(np.bincount(key, minlength=shape), 1)
         a = a - (np.bincount(key, a, minlength=shape) / count)[key]
         b = b - (np.bincount(key, b, minlength=shape) / count)[key]
         norm = np.sqrt(np.sum(a * a) * np.sum(b * b))
-        c = np.sum(a * b) / norm if norm > 0 else 0.0
-        widths.append(-step**2 / (2 * np.log(min(c, 0.999))) if c > 0 else 0.0)
-    return float(np.sqrt(min(widths) / 2)) if widths else 0.0
+        correlations.append(np.sum(a * b) / norm if norm > 0 else 0.0)
+    return np.array(correlations, dtype=float)
+
+
+def _correlation_widths(correlations, steps) -> np.ndarray:
+    """``w^2 = -step^2 / (2 ln c)`` per axis: the squared width (mm^2) of a
+    Gaussian correlation of coefficient ``c`` at ``step`` (0 where ``c <= 0``)."""
+    c = np.asarray(correlations, dtype=float)
+    step = np.broadcast_to(np.asarray(steps, dtype=float), c.shape)
+    return np.where(c > 0, -step**2 / (2 * np.log(np.clip(c, 1e-300, 0.999))), 0.0)
+
+
+def speckle_smoothing_mm(correlations, steps) -> float:
+    """Standard deviation (mm) of a smoothing that the grey levels went
+    through after log compression, from the speckle's correlation between
+    neighbouring voxels (:func:`speckle_correlations`, one per image axis,
+    ``steps`` mm apart).
+
+    A correlation ``c`` along an axis gives the width of a Gaussian
+    correlation ``w^2 = -step^2 / (2 ln c)``.  Scanners sample along the
+    beam at half the axial point-spread function (under a millimetre), so
+    that along the axis nearest the beam raw speckle hardly correlates from
+    voxel to voxel; a Gaussian smoothing of standard deviation ``s`` widens
+    the correlation by ``2 s^2`` along every axis, and persistence
+    (averaging independent speckle) not at all.  The least width over the
+    axes gives ``s = w / sqrt(2)`` (the speckle's own width along the beam
+    counted in: about 0.4 mm on the raw phantoms).  0 when the speckle does
+    not correlate.
+    """
+    widths = _correlation_widths(correlations, steps)
+    return float(np.sqrt(widths.min() / 2)) if widths.size else 0.0
+
+
+@lru_cache(maxsize=1)
+def _log_correlation_table() -> tuple[np.ndarray, np.ndarray]:
+    # the log intensity's correlation (6 / pi^2) Li2(rho) against the intensity's rho, increasing
+    rho = np.linspace(0.0, 1.0, 2001)
+    return special.spence(1.0 - rho) * 6 / np.pi**2, rho
+
+
+def edge_blur_mm(correlations, steps) -> np.ndarray:
+    """Standard deviation (mm), along each image axis, of the blur of a
+    wall's mean echo intensity, from the correlation of log-compressed
+    speckle as the scanner formed it (:func:`speckle_correlations`, voxels
+    ``steps`` mm apart).
+
+    A Gaussian point-spread function of the echo amplitude, of standard
+    deviation ``sigma_h``, correlates the intensity of fully developed
+    speckle as ``rho(d) = exp(-d^2 / (2 sigma_h^2))`` and blurs the mean
+    intensity by ``|h|^2``, of standard deviation ``sigma_h / sqrt(2)``.
+    Logarithms correlate less: ``corr(ln I_1, ln I_2) = (6 / pi^2)
+    Li2(rho)`` for a circular Gaussian field [1]_, inverted here.  What
+    every axis shares (the least width over the axes, the widening of
+    scan conversion's interpolation; along the beam the point-spread
+    function is under a voxel) is removed first, as in
+    :func:`speckle_smoothing_mm`.  Only for speckle that was not smoothed
+    after log compression: a smoothing's correlation is not a
+    point-spread function's.
+
+    References
+    ----------
+    .. [1] Goodman JW. Speckle Phenomena in Optics. Roberts, 2007, ch. 3
+       (the joint statistics of speckle intensities).
+    """
+    steps = np.broadcast_to(np.asarray(steps, dtype=float), np.shape(correlations))
+    widths = _correlation_widths(correlations, steps)
+    own = np.maximum(widths - widths.min(), 0.0)
+    log_rho = np.where(own > 0, np.exp(-steps**2 / (2 * np.where(own > 0, own, 1.0))), 0.0)
+    table, rho = _log_correlation_table()
+    intensity_rho = np.clip(np.interp(log_rho, table, rho), 1e-12, 0.999)
+    return np.where(own > 0, np.sqrt(-steps**2 / (2 * np.log(intensity_rho))) / np.sqrt(2), 0.0)
+
+
+def _log_edge(x: float, sigma: float, eps: float) -> float:
+    # nepers of mean intensity relative to the bright side at x (mm) across an edge blurred by sigma
+    return math.log(eps + (1 - eps) * 0.5 * math.erfc(-x / (sigma * math.sqrt(2.0))))
+
+
+def band_contamination(sigma_mm: float, contrast_nepers: float, offsets) -> tuple[float, float]:
+    """How far (nepers of intensity) the band means about the local means'
+    wall lie above the dark region's level and below the bright region's,
+    across a wall whose mean intensity is blurred by a Gaussian of standard
+    deviation ``sigma_mm``.
+
+    Along the normal ``x`` (mm, 0 at the wall), the mean log intensity is
+    ``ln(eps + (1 - eps) Phi(x / sigma))`` below the bright side's (``eps
+    = exp(-contrast_nepers)``, ``Phi`` the normal distribution).  The local
+    means' wall ``x0`` is where it is half way between its means at ``x0 -
+    offsets`` and at ``x0 + offsets`` (the inner and outer band means, as
+    :class:`LocalMeans` reads them); it lies on the dark side by about two
+    ``sigma`` at echo contrasts, so that the near offsets of the outer band
+    are still in the blurred edge.  Returns ``(inside, outside)``: the inner
+    band's mean less the dark level (``>= 0``), the outer band's less the
+    bright level (``<= 0``).  ``(0, 0)`` for an unblurred wall.
+    """
+    offsets = [float(d) for d in np.ravel(offsets)]
+    if not sigma_mm > 0 or not contrast_nepers > 0:
+        return 0.0, 0.0
+    contrast_nepers = min(float(contrast_nepers), 100.0)  # 434 dB: beyond it the dark side reads as no echo
+    sigma, eps = float(sigma_mm), math.exp(-contrast_nepers)
+
+    def means(x0):
+        inside = sum(_log_edge(x0 - d, sigma, eps) for d in offsets) / len(offsets)
+        outside = sum(_log_edge(x0 + d, sigma, eps) for d in offsets) / len(offsets)
+        return inside, outside
+
+    def balance(x0):
+        return _log_edge(x0, sigma, eps) - sum(means(x0)) / 2
+
+    # positive at the wall, negative on the dark side where the outer band still reaches the bright side, and 0
+    # again beyond it (both bands in the dark): the root nearest the wall, walked to from it
+    step, reach = 0.5 * sigma + 0.25, max(offsets) + 6 * sigma
+    right, value = 0.0, balance(0.0)
+    while value > 0 and right > -reach:
+        left = right - step
+        value = balance(left)
+        if value > 0:
+            right = left
+    if value > 0:  # no local means' wall: nothing to remove
+        return 0.0, 0.0
+    x0 = optimize.brentq(balance, left, right, xtol=1e-4)
+    inside, outside = means(x0)
+    return inside + contrast_nepers, outside
 
 
 #: Gauss-Hermite nodes and weights (probabilists': weight exp(-z^2 / 2)) of the edge's expectation
