@@ -5,7 +5,8 @@ import pytest
 
 from spheroseg.backends import NumpyBackend, select_backend
 from spheroseg.dataterms import (DATA_TERMS, FORMED_SPECKLE_SMOOTHING_MM, FixedInterface, GlobalMeans,
-                                  IntensityInterface, LocalMeans, band_contamination, band_offsets, edge_blur_mm,
+                                  IntensityInterface, LocalMeans, band_contamination, band_offsets, beyond_wall_excess,
+                                  edge_blur_mm,
                                   interface_level, interface_nepers, nanmedian, otsu_threshold, shell_offsets,
                                   smoothed_edge_drop, speckle_correlations, speckle_nepers, speckle_smoothing_mm)
 from spheroseg.energy import SampledSurface
@@ -282,9 +283,11 @@ def test_band_contamination_is_the_blurred_edge_read_as_the_local_means_read_it(
     wall = np.flatnonzero(near[:-1] & (np.sign(balance[:-1]) != np.sign(balance[1:])))[0]
     deficit_in, deficit_out = band_contamination(sigma_mm, nepers, offsets)
     assert deficit_in == pytest.approx(inside[wall] + nepers, abs=2e-3)
-    assert deficit_out == pytest.approx(outside[wall], abs=2e-3)
-    assert deficit_in >= 0 >= deficit_out
-    assert band_contamination(0.0, nepers, offsets) == (0.0, 0.0)
+    np.testing.assert_allclose(deficit_out, profile[centre[wall] + shift], atol=2e-3)  # each offset's reading
+    assert deficit_out.mean() == pytest.approx(outside[wall], abs=2e-3)
+    assert deficit_in >= 0 and np.all(deficit_out <= 0)
+    unblurred = band_contamination(0.0, nepers, offsets)
+    assert unblurred[0] == 0.0 and np.array_equal(unblurred[1], np.zeros(4))
 
 
 def test_the_wall_blur_is_removed_only_from_speckle_as_formed(two_regions):
@@ -299,16 +302,66 @@ def test_the_wall_blur_is_removed_only_from_speckle_as_formed(two_regions):
     term.edge_blur_covariance = 1.5**2 * np.eye(3)
     c_in, c_out = np.full(model.n_samples, C_IN), np.full(model.n_samples, C_OUT)
     deficit_in, deficit_out = band_contamination(1.5, (C_OUT - C_IN) / 10.0, term.band_offsets)
-    deficit_in, deficit_out = band_contamination(1.5, (C_OUT - C_IN) / 10.0 - (deficit_out - deficit_in),
+    deficit_in, deficit_out = band_contamination(1.5, (C_OUT - C_IN) / 10.0 - (deficit_out.mean() - deficit_in),
                                                  term.band_offsets)
     levels = term.unblurred_levels(obs, c_in, c_out)
     np.testing.assert_allclose(levels[0], C_IN - 10.0 * deficit_in)
-    np.testing.assert_allclose(levels[1], C_OUT - 10.0 * deficit_out)
+    np.testing.assert_allclose(levels[1], C_OUT - 10.0 * deficit_out.mean())
+    np.testing.assert_allclose(levels[2], 10.0 * deficit_out)  # grey levels at each of the outer band's offsets
     assert levels[1][0] > C_OUT + 1.0  # the outer band read the wall's level a grey level low or more
-    term.smoothing_mm = FORMED_SPECKLE_SMOOTHING_MM
-    assert term.unblurred_levels(obs, c_in, c_out) == (c_in, c_out)
-    term.smoothing_mm, term.edge_blur_covariance = 0.0, None
-    assert term.unblurred_levels(obs, c_in, c_out) == (c_in, c_out)
+    for smoothing_mm, covariance in ((FORMED_SPECKLE_SMOOTHING_MM, term.edge_blur_covariance), (0.0, None)):
+        term.smoothing_mm, term.edge_blur_covariance = smoothing_mm, covariance
+        same_in, same_out, none = term.unblurred_levels(obs, c_in, c_out)
+        assert same_in is c_in and same_out is c_out and np.array_equal(none, np.zeros(4))
+
+
+@pytest.mark.parametrize("contrast_db", [15.0, 25.0, 40.0])
+@pytest.mark.parametrize("sigma_mm", [1.0, 2.0, 3.0])
+def test_a_blurred_edge_reads_nothing_beyond_the_wall(sigma_mm, contrast_db):
+    """The outer band's readings of a blurred edge about the local means'
+    wall (checked above against a numerically blurred one), with no blur
+    removed: they rise across the band but by shrinking steps, so nothing
+    is taken for tissue beyond the wall, up to a blur of 3 mm (standard
+    deviation) at 15-40 dB."""
+    _, readings = band_contamination(sigma_mm, contrast_db / 10 * np.log(10), np.array([2.0, 4.0, 6.0, 8.0]))
+    steps = np.diff(readings)
+    assert np.all(steps > 0) and readings[2:].mean() > readings[:2].mean()  # it rises, far half above near half
+    assert beyond_wall_excess(10.0 * readings) == 0.0
+
+
+def test_beyond_wall_excess_is_what_the_far_half_reads_above_the_wall():
+    """A wall at 100 grey levels over the band's near half and tissue 12
+    above it over the far half: the band's mean is 6 above the wall's; a
+    steady rise the same; a profile that falls beyond the wall (a bright
+    wall), a flat one, one with a missing offset: nothing."""
+    assert beyond_wall_excess([100.0, 100.0, 112.0, 112.0]) == pytest.approx(6.0)
+    assert beyond_wall_excess([100.0, 104.0, 108.0, 112.0]) == pytest.approx(4.0)
+    assert beyond_wall_excess([100.0, 101.0, 104.0, 112.0, 115.0]) == pytest.approx(6.4 - 0.5)
+    for profile in ([100.0, 104.0, 100.0, 95.0], [100.0] * 4, [100.0, 100.0, np.nan, 112.0], [100.0]):
+        assert beyond_wall_excess(profile) == 0.0
+    assert beyond_wall_excess([100.0, 110.0, 113.0, 114.0]) == 0.0  # a blurred edge's shrinking steps
+
+
+def test_the_interface_reads_the_wall_not_the_tissue_beyond_a_thin_dark_wall(monkeypatch):
+    """A phantom whose myocardium is 5 dB darker than the tissue around the
+    heart (``contrast_low``; its apical wall 4-5 mm thick along the normal,
+    the outer band reaching 8 mm): the interface takes what the band's far
+    half read beyond the wall off the myocardium's level, and the volume is
+    within 5 %.  Taken as the wall's level, that tissue moves the wall out
+    (over 8 %) and the checks flag it."""
+    from spheroseg import dataterms
+    from spheroseg.epicardium import DARK_WALL
+    from spheroseg.synthetic.phantom import FORMATIONS, make_phantom
+
+    ph = make_phantom(seed=0, spacing=1.5, formation=FORMATIONS["contrast_low"])
+    result = segment(ph.volume, ph.apex, ph.base)
+    assert abs(result.volume_ml / ph.truth_volume_ml - 1) < 0.05
+    assert result.quality["beyond_wall"] > 0 > result.quality["wall_contrast"]
+    assert DARK_WALL not in result.quality["warnings"]
+    monkeypatch.setattr(dataterms, "beyond_wall_excess", lambda profile: 0.0)
+    read_beyond = segment(ph.volume, ph.apex, ph.base)
+    assert read_beyond.volume_ml / ph.truth_volume_ml - 1 > 0.08
+    assert read_beyond.quality["beyond_wall"] == 0.0 and DARK_WALL in read_beyond.quality["warnings"]
 
 
 @pytest.mark.parametrize("contrast_db", [20.0, 35.0])

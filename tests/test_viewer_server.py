@@ -21,7 +21,7 @@ from conftest import interruptible
 import spheroseg
 from spheroseg.io import save_volume, write_markups
 from spheroseg.epicardium import DARK_WALL
-from spheroseg.synthetic.phantom import FORMATIONS, make_phantom, make_sequence
+from spheroseg.synthetic.phantom import FORMATIONS, POSTPROCESSINGS, make_phantom, make_sequence
 from spheroseg.viewer import open_viewer
 from spheroseg.viewer.server import MAX_BODY
 from spheroseg.viewer.session import Points
@@ -510,8 +510,11 @@ def test_given_points_are_checked_against_the_located_ventricle(server, phantom)
 
 def test_a_dark_wall_is_flagged_as_the_api_flags_it(tmp_path):
     """The viewer's checks are segment's (:func:`spheroseg.segment.add_checks`):
-    a myocardium darker than the tissue beyond it is a warning on the page too."""
-    ph = make_phantom(seed=0, spacing=2.0, formation=FORMATIONS["contrast_low"])
+    a myocardium darker than the tissue beyond it, smoothed so that the
+    intensity interface cannot tell the wall from that tissue, is a warning
+    on the page too."""
+    ph = make_phantom(seed=0, spacing=2.0, formation=FORMATIONS["contrast_low"],
+                      **POSTPROCESSINGS["gaussian_2mm"])
     path = tmp_path / "dark.mha"
     save_volume(path, ph.volume)
     write_markups(tmp_path / "points.mrk.json", apex=ph.apex, base=ph.base)

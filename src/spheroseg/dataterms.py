@@ -68,6 +68,7 @@ References
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import replace
 from functools import lru_cache
 from typing import NamedTuple
@@ -78,7 +79,8 @@ from scipy import special
 __all__ = ["DataTerm", "Force", "FixedInterface", "GlobalMeans", "LocalMeans", "IntensityInterface", "DATA_TERMS",
            "band_offsets", "shell_offsets", "otsu_threshold", "speckle_nepers", "interface_nepers", "patch_of_rows",
            "nanmedian", "interface_level", "MAX_CONTRAST_DB", "speckle_smoothing_mm", "smoothed_edge_drop",
-           "EDGE_PSF_MM", "FORMED_SPECKLE_SMOOTHING_MM", "speckle_correlations", "edge_blur_mm", "band_contamination"]
+           "EDGE_PSF_MM", "FORMED_SPECKLE_SMOOTHING_MM", "speckle_correlations", "edge_blur_mm", "band_contamination",
+           "beyond_wall_excess"]
 
 #: fractions of f at which the cavity is sampled along each ray (the global means)
 CAVITY_FRACTIONS = np.array([0.15, 0.35, 0.55, 0.75, 0.95])
@@ -445,6 +447,11 @@ class IntensityInterface(LocalMeans):
         self.smoothing_mm = 0.0  #: the grey levels' smoothing (mm), estimated with ``nepers``
         #: covariance (mm^2, world axes) of the wall's blur in the speckle as formed, estimated with ``nepers``
         self.edge_blur_covariance = None
+        #: grey levels taken off the myocardium's level at the last
+        #: :meth:`freeze`: what the outer band's far half read beyond a
+        #: thin wall darker than what lies beyond it
+        #: (:func:`beyond_wall_excess`); 0 when it read none
+        self.beyond_wall = 0.0
 
     def reset(self) -> None:
         """Measure the region means again on the next observation."""
@@ -481,7 +488,9 @@ class IntensityInterface(LocalMeans):
         the surface of ``obs`` (an observation with its bands).  The
         schedule hands over the local means' last ones, measured about the
         wall they settled on, so that this stage's first observation needs
-        no bands."""
+        no bands.  The levels lose the blurred edge's deficits
+        (:meth:`unblurred_levels`) and ``c_out`` what the outer band read
+        beyond a thin wall (:attr:`beyond_wall`)."""
         if self.nepers is None:
             self.nepers = self.estimate_nepers(backend, volume, obs)
             self.smoothing_mm, self.edge_blur_covariance = self.estimate_blur(backend, volume, obs)
@@ -489,7 +498,13 @@ class IntensityInterface(LocalMeans):
         c_out = c_in + contrast
         k = self.nepers
         self._measured = (c_in, c_out)  # what a result reports (their medians)
-        c_in, c_out = self.unblurred_levels(obs, c_in, c_out)
+        c_in, c_out, deficits = self.unblurred_levels(obs, c_in, c_out)
+        outer = backend.samples_along(volume, obs, self.band_offsets, backend.discretisation.band_rows)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # an offset off the data everywhere: NaN, no excess
+            profile = np.nanmedian(outer, axis=0)
+        self.beyond_wall = beyond_wall_excess(profile - deficits)
+        c_out = c_out - self.beyond_wall
         contrast = c_out - c_in
         threshold = interface_level(c_in, c_out, k)
         if self.smoothing_mm > 0:
@@ -498,27 +513,31 @@ class IntensityInterface(LocalMeans):
         self._frozen = (threshold - contrast / 2, threshold + contrast / 2,
                         max(float(nanmedian(contrast)) ** 2, self.min_scale))
 
-    def unblurred_levels(self, obs, c_in: np.ndarray, c_out: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def unblurred_levels(self, obs, c_in: np.ndarray,
+                         c_out: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The band means ``c_in``, ``c_out`` less what the wall's blurred
         edge left in them (:func:`band_contamination`, the edge's blur
         along the surface's normals the median of the quadratic form of
         :attr:`edge_blur_covariance` on them), where the speckle is as the
         scanner formed it: smoothed by less than
-        :data:`FORMED_SPECKLE_SMOOTHING_MM`.  Unchanged otherwise: a
-        smoothing's correlation hides the point-spread function's (a voxel
-        apart, its speckle correlates by 0.8-0.97 along every axis), and
-        :func:`smoothed_edge_drop` models the smoothed edge."""
+        :data:`FORMED_SPECKLE_SMOOTHING_MM`, and what it left at each of the
+        outer band's offsets (grey levels, ``<= 0``).  Unchanged, and
+        zeros, otherwise: a smoothing's correlation hides the point-spread
+        function's (a voxel apart, its speckle correlates by 0.8-0.97 along
+        every axis), and :func:`smoothed_edge_drop` models the smoothed
+        edge."""
         k = self.nepers
         contrast = float(nanmedian(c_out - c_in))
+        none = np.zeros(len(self.band_offsets))
         if self.edge_blur_covariance is None or not contrast > 0 or self.smoothing_mm >= FORMED_SPECKLE_SMOOTHING_MM:
-            return c_in, c_out
+            return c_in, c_out, none
         n = obs.normal  # (3, samples), unit
         sigma = float(np.sqrt(nanmedian(np.einsum("is,ij,js->s", n, self.edge_blur_covariance, n))))
-        deficit_in = deficit_out = 0.0
+        deficit_in, deficits_out = 0.0, none
         for _ in range(2):  # the regions' contrast is the band means' less what the edge took from it
-            deficit_in, deficit_out = band_contamination(sigma, (contrast - k * (deficit_out - deficit_in)) / k,
-                                                         self.band_offsets)
-        return c_in - k * deficit_in, c_out - k * deficit_out
+            deficit_in, deficits_out = band_contamination(
+                sigma, (contrast - k * (deficits_out.mean() - deficit_in)) / k, self.band_offsets)
+        return c_in - k * deficit_in, c_out - k * deficits_out.mean(), k * deficits_out
 
     def estimate_nepers(self, backend, volume, obs) -> float:
         """``k`` of :func:`interface_nepers` from the grey levels of the outer
@@ -695,7 +714,7 @@ def _log_edge(t, eps: float):
     return np.log(eps + (1 - eps) * special.ndtr(t))
 
 
-def band_contamination(sigma_mm: float, contrast_nepers: float, offsets) -> tuple[float, float]:
+def band_contamination(sigma_mm: float, contrast_nepers: float, offsets) -> tuple[float, np.ndarray]:
     """How far (nepers of intensity) the band means about the local means'
     wall lie above the dark region's level and below the bright region's,
     across a wall whose mean intensity is blurred by a Gaussian of standard
@@ -709,20 +728,21 @@ def band_contamination(sigma_mm: float, contrast_nepers: float, offsets) -> tupl
     :class:`LocalMeans` reads them); it lies on the dark side by about two
     ``sigma`` at echo contrasts, so that the near offsets of the outer band
     are still in the blurred edge.  Returns ``(inside, outside)``: the inner
-    band's mean less the dark level (``>= 0``), the outer band's less the
-    bright level (``<= 0``).  ``(0, 0)`` for an unblurred wall.
+    band's mean less the dark level (``>= 0``), and at each of ``offsets``
+    the outer band's reading less the bright level (``<= 0``, an array:
+    its mean is the outer band mean's).  ``0`` for an unblurred wall.
     """
-    if not sigma_mm > 0 or not contrast_nepers > 0:
-        return 0.0, 0.0
-    contrast_nepers = min(float(contrast_nepers), 100.0)  # 434 dB: beyond it the dark side reads as no echo
-    sigma, eps = float(sigma_mm), math.exp(-contrast_nepers)
     d = np.ravel(np.asarray(offsets, dtype=float))
     n = len(d)
+    if not sigma_mm > 0 or not contrast_nepers > 0:
+        return 0.0, np.zeros(n)
+    contrast_nepers = min(float(contrast_nepers), 100.0)  # 434 dB: beyond it the dark side reads as no echo
+    sigma, eps = float(sigma_mm), math.exp(-contrast_nepers)
     reads = np.concatenate([[0.0], -d, d]) / sigma  # the wall, the inner band, the outer band
 
-    def means(x0):  # (wall, inner band, outer band) for walls at x0 (mm, an array)
+    def means(x0):  # (wall, inner band's mean, outer band's readings) for walls at x0 (mm, an array)
         g = _log_edge(np.asarray(x0)[..., None] / sigma + reads, eps)
-        return g[..., 0], g[..., 1:1 + n].mean(axis=-1), g[..., 1 + n:].mean(axis=-1)
+        return g[..., 0], g[..., 1:1 + n].mean(axis=-1), g[..., 1 + n:]
 
     # the balance is positive at the interface, negative on the dark side where the outer band still reaches the
     # bright side, and 0 again beyond it (both bands in the dark): the root nearest the interface, first on a grid
@@ -730,14 +750,45 @@ def band_contamination(sigma_mm: float, contrast_nepers: float, offsets) -> tupl
     # nepers of a root finder's)
     x0 = -np.linspace(0.0, float(d.max()) + 6 * sigma, 161)
     wall, inside, outside = means(x0)
-    balance = wall - (inside + outside) / 2
+    balance = wall - (inside + outside.mean(axis=-1)) / 2
     below = np.flatnonzero(balance <= 0)
     if balance[0] <= 0 or not below.size:  # no local means' wall: nothing to remove
-        return 0.0, 0.0
+        return 0.0, np.zeros(n)
     i = below[0]
     root = x0[i - 1] + (x0[i] - x0[i - 1]) * balance[i - 1] / (balance[i - 1] - balance[i])
     _, inside, outside = means(root)
-    return float(inside) + contrast_nepers, float(outside)
+    return float(inside) + contrast_nepers, outside
+
+
+def beyond_wall_excess(profile) -> float:
+    """How far (grey levels) the outer band's mean lies above the mean of
+    its near half because its far half reads brighter tissue beyond the
+    wall; 0 when it does not.
+
+    ``profile`` is the outer band's grey level at each of its offsets (in
+    increasing order; the medians over the surface), what the blurred edge
+    takes from each removed where it is known (:func:`band_contamination`).
+    Past a wall thinner than the band and darker than what lies beyond it,
+    the far offsets read that tissue and the profile rises towards its far
+    end.  A blurred edge alone, whose width was not read (smoothed speckle),
+    also rises across the band, but by ever smaller steps: the mean log
+    intensity ``ln(eps + (1 - eps) Phi(x / sigma))`` is concave (the normal
+    distribution function is log-concave) and its steps shrink by a factor
+    of two or more from one offset to the next wherever they are not small
+    already.  So the far half counts as beyond the wall where it reads above
+    the near half and the last step is at least half the first; the
+    excess is then half their difference (the band's mean less its near
+    half's).
+    """
+    profile = np.ravel(np.asarray(profile, dtype=float))
+    half = len(profile) // 2
+    if half < 1 or not np.all(np.isfinite(profile)):
+        return 0.0
+    near, far = profile[:half].mean(), profile[-half:].mean()
+    steps = np.diff(profile)
+    if far > near and steps[-1] >= steps[0] / 2:
+        return float(profile.mean() - near)
+    return 0.0
 
 
 #: Gauss-Hermite nodes and weights (probabilists': weight exp(-z^2 / 2)) of the edge's expectation

@@ -29,10 +29,15 @@ report says what the descent saw and did:
     elsewhere (:func:`wall_bulge`): a leak through a stretch of wall without
     echo pushes one region out, while a ventricle larger or smaller than the
     clicks suggest scales all of it.
+``beyond_wall``
+    Grey levels the intensity interface took off the myocardium's level
+    because its outer band read brighter tissue beyond a thin wall
+    (:func:`spheroseg.dataterms.beyond_wall_excess`); 0 when it read none.
 ``wall_contrast``
     With the points checked or located: the wall's median grey level minus
     that of the tissue beyond it (:func:`spheroseg.epicardium.check_wall_polarity`);
-    negative, a myocardium darker than what lies beyond it, is a warning.
+    negative, a myocardium darker than what lies beyond it, is a warning
+    unless the intensity interface read past it (``beyond_wall`` above 0).
 
 ``warnings`` lists what is out of the ordinary, in words, and ``poor`` is
 True when there is any.  The bounds are plausibility bounds, not tuned
@@ -162,13 +167,16 @@ class FrameQuality:
             self._initial_volume_ml = self.initial.volume_ml()
         return self._initial_volume_ml
 
-    def report(self, surface, *, observed, converged: bool, landmarks: np.ndarray, no_speckle: bool) -> dict:
+    def report(self, surface, *, observed, converged: bool, landmarks: np.ndarray, no_speckle: bool,
+               beyond_wall: float = 0.0) -> dict:
         """:func:`quality_report` of ``surface``, given what the last
         iteration ``observed`` (``(u, force, spread)``: the grey levels at
         the sample points, the data term's force, the grey-level spread
         around the initial surface; None before any iteration), whether it
-        ``converged``, the ``landmarks`` held (world mm) and whether the
-        frame fell back to the local means for ``no_speckle``."""
+        ``converged``, the ``landmarks`` held (world mm), whether the
+        frame fell back to the local means for ``no_speckle`` and what the
+        intensity interface took off the myocardium's level
+        (``beyond_wall``, grey levels)."""
         if observed is not None:
             u, force, spread = observed
             # abs: a bright wall's term (LocalMeans.polarity -1) has c_in above c_out
@@ -185,6 +193,7 @@ class FrameQuality:
                 volume_ratio=surface.volume_ml() / self.initial_volume_ml,
                 bulge=wall_bulge(surface, self.initial, reference=self._axis_distances),
                 landmark_residuals_mm=landmark_residuals(surface, landmarks))
+        report["beyond_wall"] = float(beyond_wall)
         if no_speckle:
             report["warnings"].append("no speckle around the surface to undo the log compression with (a noise-free "
                                       "or smoothed image?): the wall is the local means' (mode='local')")

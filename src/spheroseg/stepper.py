@@ -361,6 +361,14 @@ class Stepper:
         term = self.terms[self.levels[-1].data_term]
         return float(term.nepers) if isinstance(term, IntensityInterface) and term.nepers is not None else None
 
+    def beyond_wall(self) -> float:
+        """Grey levels the finest level's intensity interface took off the
+        myocardium's level for what its outer band read beyond a thin wall
+        (:attr:`IntensityInterface.beyond_wall`); 0 with another data term
+        or before its levels were set."""
+        term = self.terms[self.levels[-1].data_term]
+        return float(term.beyond_wall) if isinstance(term, IntensityInterface) and term.frozen else 0.0
+
     # what changes between runs -----------------------------------------------
 
     def count_threads(self) -> None:

@@ -332,7 +332,7 @@ class Tracker:
         surface = self.surface
         quality = None if not report else self._quality.report(
             surface, observed=stepper.last, converged=self.status == 0, landmarks=self.landmarks,
-            no_speckle=stepper.no_speckle)
+            no_speckle=stepper.no_speckle, beyond_wall=stepper.beyond_wall())
         return SegmentationResult(
             surface=surface, iterations=self.iteration, converged=stepper.converged,
             c_in=float(nanmedian(c_in)), c_out=float(nanmedian(c_out)), seconds=stepper.seconds,
