@@ -4,8 +4,8 @@ import pytest
 from spheroseg import Volume, segment
 from spheroseg.coords import Pose, ProlateSpheroidal
 from spheroseg.epicardium import (
-    DARK_WALL, MAX_ITERATIONS, add_epicardium, conserving_start, enforce_thickness, initial_epicardium, segment_epicardium,
-    wall_nepers,
+    DARK_EPICARDIUM, DARK_WALL, MAX_ITERATIONS, add_epicardium, conserving_start, enforce_thickness,
+    initial_epicardium, segment_epicardium, wall_nepers,
 )
 from spheroseg.hermite import HermiteGrid
 from spheroseg.myocardium import SEGMENT_NAMES, cell_centres, myocardial_volume_ml, wall_thickness
@@ -158,7 +158,8 @@ def test_intensity_interface_removes_the_midpoints_bias():
 def test_a_wall_darker_than_what_lies_beyond_it_is_flagged(contrast_db, polarity):
     """With the points checked, the endocardium's report says when its wall
     is darker than the tissue beyond it (the intensity interface may read
-    that tissue past a thin wall), and the epicardium takes that polarity."""
+    that tissue past a thin wall), and the epicardium takes that polarity
+    and says its outer edge is weak."""
     volume, pose = speckle_shells_image(contrast_db=contrast_db)
     res = segment(volume, APEX, BASE)
     assert (DARK_WALL in res.quality["warnings"]) is (polarity == "dark")
@@ -166,6 +167,7 @@ def test_a_wall_darker_than_what_lies_beyond_it_is_flagged(contrast_db, polarity
     assert res.quality["poor"] or polarity == "bright"
     both = segment(volume, APEX, BASE, myocardium=True)
     assert both.parameters["epicardium"]["polarity"] == polarity
+    assert (DARK_EPICARDIUM in both.quality["epicardium"]["warnings"]) is (polarity == "dark")
     assert "wall_contrast" not in segment(volume, APEX, BASE, check=False).quality
 
 def test_segment_with_myocardium_gives_the_wall():

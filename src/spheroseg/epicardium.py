@@ -46,9 +46,13 @@ PRIOR_THICKNESS_MM = 8.0
 #: the endocardium's warning when its wall is darker than what lies beyond it
 DARK_WALL = ("the myocardium is darker than what lies beyond it: past a thin wall its grey level may be read "
              "too high and the wall placed outside (the volume too large)")
+#: the epicardium's warning on such a wall: the local means of its weak outer
+#: edge lean on the cavity's darker blood and pull it in
+DARK_EPICARDIUM = ("the myocardium is darker than what lies beyond it: its outer edge is weak and the epicardium "
+                   "may lie inside it (the mass too low)")
 
-__all__ = ["MAX_ITERATIONS", "PRIOR_THICKNESS_MM", "DARK_WALL", "initial_epicardium", "conserving_start",
-           "enforce_thickness", "wall_polarity", "check_wall_polarity", "wall_nepers", "wall_term",
+__all__ = ["MAX_ITERATIONS", "PRIOR_THICKNESS_MM", "DARK_WALL", "DARK_EPICARDIUM", "initial_epicardium",
+           "conserving_start", "enforce_thickness", "wall_polarity", "check_wall_polarity", "wall_nepers", "wall_term",
            "segment_epicardium", "add_epicardium"]
 
 
@@ -287,7 +291,8 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     SegmentationResult
         Its ``surface`` is the epicardium, on the endocardium's grid; its
         ``quality`` the wall's (:func:`spheroseg.quality.wall_report` of the
-        thickness on 48 x 48 :func:`spheroseg.myocardium.cell_centres`).
+        thickness on 48 x 48 :func:`spheroseg.myocardium.cell_centres`),
+        with :data:`DARK_EPICARDIUM` on a dark wall.
     """
     if polarity not in ("auto", "bright", "dark"):
         raise ValueError(f"polarity must be 'auto', 'bright' or 'dark', got {polarity!r}")
@@ -325,6 +330,9 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
     result = Tracker(volume, apex, endocardium.pose.origin, init=start, **options).run(report=False, base_ring=False)
     result.surface, thickness = _enforced(endocardium, result.surface, min_thickness_mm, 48)
     result.quality = wall_report(thickness, min_thickness_mm=min_thickness_mm, settled=result.status != 1)
+    if polarity == "dark":
+        result.quality["warnings"].append(DARK_EPICARDIUM)
+        result.quality["poor"] = True
     result.parameters = {**result.parameters, "thickness_mm": thickness_mm, "min_thickness_mm": min_thickness_mm,
                          "polarity": polarity, "boundary": boundary,
                          "nepers": float(nepers) if boundary == "intensity" else None}
