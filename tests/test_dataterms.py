@@ -322,11 +322,16 @@ def test_a_blurred_edge_reads_nothing_beyond_the_wall(sigma_mm, contrast_db):
     wall (checked above against a numerically blurred one), with no blur
     removed: they rise across the band but by shrinking steps, so nothing
     is taken for tissue beyond the wall, up to a blur of 3 mm (standard
-    deviation) at 15-40 dB."""
+    deviation) at 15-40 dB, and never all of the rise at 4 mm and up to
+    60 dB."""
     _, readings = band_contamination(sigma_mm, contrast_db / 10 * np.log(10), np.array([2.0, 4.0, 6.0, 8.0]))
     steps = np.diff(readings)
     assert np.all(steps > 0) and readings[2:].mean() > readings[:2].mean()  # it rises, far half above near half
-    assert beyond_wall_excess(10.0 * readings) == 0.0
+    assert beyond_wall_excess(10.0 * readings) == (0.0, 0.0)
+    # wider still, some of it may be taken, never all: the last step stays under three quarters of the first
+    _, readings = band_contamination(4.0, contrast_db / 10 * np.log(10) * 1.5, np.array([2.0, 4.0, 6.0, 8.0]))
+    excess, fraction = beyond_wall_excess(10.0 * readings)
+    assert 0 < fraction < 1 and excess == pytest.approx(fraction * 10.0 * (readings.mean() - readings[:2].mean()))
 
 
 def test_beyond_wall_excess_is_what_the_far_half_reads_above_the_wall():
@@ -334,12 +339,18 @@ def test_beyond_wall_excess_is_what_the_far_half_reads_above_the_wall():
     above it over the far half: the band's mean is 6 above the wall's; a
     steady rise the same; a profile that falls beyond the wall (a bright
     wall), a flat one, one with a missing offset: nothing."""
-    assert beyond_wall_excess([100.0, 100.0, 112.0, 112.0]) == pytest.approx(6.0)
-    assert beyond_wall_excess([100.0, 104.0, 108.0, 112.0]) == pytest.approx(4.0)
-    assert beyond_wall_excess([100.0, 101.0, 104.0, 112.0, 115.0]) == pytest.approx(6.4 - 0.5)
+    assert beyond_wall_excess([100.0, 100.0, 112.0, 112.0]) == pytest.approx((6.0, 1.0))
+    assert beyond_wall_excess([100.0, 104.0, 108.0, 112.0]) == pytest.approx((4.0, 1.0))
+    assert beyond_wall_excess([100.0, 101.0, 104.0, 112.0, 115.0]) == pytest.approx((6.4 - 0.5, 1.0))
     for profile in ([100.0, 104.0, 100.0, 95.0], [100.0] * 4, [100.0, 100.0, np.nan, 112.0], [100.0]):
-        assert beyond_wall_excess(profile) == 0.0
-    assert beyond_wall_excess([100.0, 110.0, 113.0, 114.0]) == 0.0  # a blurred edge's shrinking steps
+        assert beyond_wall_excess(profile) == (0.0, 0.0)
+    assert beyond_wall_excess([100.0, 110.0, 113.0, 114.0]) == (0.0, 0.0)  # a blurred edge's shrinking steps
+    # between a last step half the first and three quarters of it, in proportion: no jump
+    assert beyond_wall_excess([100.0, 108.0, 113.0, 117.0]) == (0.0, 0.0)
+    assert beyond_wall_excess([100.0, 108.0, 114.0, 119.0]) == pytest.approx((0.5 * (110.25 - 104.0), 0.5))
+    assert beyond_wall_excess([100.0, 108.0, 114.0, 120.0]) == pytest.approx((110.5 - 104.0, 1.0))
+    ramp = [beyond_wall_excess([100.0, 108.0, 114.0, 118.0 + t])[0] for t in np.linspace(0.0, 2.0, 41)]
+    assert np.all(np.diff(ramp) >= 0) and np.max(np.diff(ramp)) < 0.4
 
 
 def test_the_interface_reads_the_wall_not_the_tissue_beyond_a_thin_dark_wall(monkeypatch):
@@ -358,7 +369,7 @@ def test_the_interface_reads_the_wall_not_the_tissue_beyond_a_thin_dark_wall(mon
     assert abs(result.volume_ml / ph.truth_volume_ml - 1) < 0.05
     assert result.quality["beyond_wall"] > 0 > result.quality["wall_contrast"]
     assert DARK_WALL not in result.quality["warnings"]
-    monkeypatch.setattr(dataterms, "beyond_wall_excess", lambda profile: 0.0)
+    monkeypatch.setattr(dataterms, "beyond_wall_excess", lambda profile: (0.0, 0.0))
     read_beyond = segment(ph.volume, ph.apex, ph.base)
     assert read_beyond.volume_ml / ph.truth_volume_ml - 1 > 0.08
     assert read_beyond.quality["beyond_wall"] == 0.0 and DARK_WALL in read_beyond.quality["warnings"]

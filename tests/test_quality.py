@@ -8,7 +8,7 @@ import pytest
 from spheroseg import segment
 from spheroseg.metrics import dice
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom
-from spheroseg.quality import FrameQuality, landmark_residuals, quality_report
+from spheroseg.quality import PARTLY_BEYOND_WALL, FrameQuality, landmark_residuals, quality_report
 from spheroseg.surface import Surface
 
 
@@ -219,3 +219,23 @@ def test_frame_quality_of_the_initial_surface():
     assert report["contrast"] == pytest.approx(40.0 / 20.0) and report["no_data_fraction"] == 0.25
     assert report["low_contrast_fraction"] == pytest.approx(1 / 3)
     assert report["poor"] and "no speckle" in report["warnings"][-1]
+    assert report["beyond_wall"] == 0.0
+
+
+@pytest.mark.parametrize("fraction, warned", [(1.0, False), (0.5, True), (0.0, False)])
+def test_frame_quality_says_when_part_of_the_band_rise_was_taken_off(fraction, warned):
+    """What the intensity interface took off the myocardium's level is
+    reported; where it took part of the outer band's rise only (a rise
+    between a blurred edge's and tissue beyond the wall), that is a
+    warning."""
+    apex, base = np.array([0.0, 10.0, 90.0]), np.array([0.0, 0.0, 10.0])
+    initial = Surface.from_apex_base(apex, base)
+
+    class Force:
+        c_in, c_out = np.array([10.0, 10.0]), np.array([50.0, 50.0])
+
+    report = FrameQuality(initial, apex).report(initial, observed=(np.array([30.0, 30.0]), Force, 20.0),
+                                                converged=True, landmarks=np.empty((0, 3)), no_speckle=False,
+                                                beyond_wall=(3.0 * fraction, fraction))
+    assert report["beyond_wall"] == 3.0 * fraction
+    assert (PARTLY_BEYOND_WALL in report["warnings"]) is warned and report["poor"] is warned

@@ -80,7 +80,7 @@ __all__ = ["DataTerm", "Force", "FixedInterface", "GlobalMeans", "LocalMeans", "
            "band_offsets", "shell_offsets", "otsu_threshold", "speckle_nepers", "interface_nepers", "patch_of_rows",
            "nanmedian", "interface_level", "MAX_CONTRAST_DB", "speckle_smoothing_mm", "smoothed_edge_drop",
            "EDGE_PSF_MM", "FORMED_SPECKLE_SMOOTHING_MM", "speckle_correlations", "edge_blur_mm", "band_contamination",
-           "beyond_wall_excess"]
+           "beyond_wall_excess", "SHRINKING_EDGE_STEP", "GROWING_FAR_STEP"]
 
 #: fractions of f at which the cavity is sampled along each ray (the global means)
 CAVITY_FRACTIONS = np.array([0.15, 0.35, 0.55, 0.75, 0.95])
@@ -99,6 +99,13 @@ EDGE_PSF_MM = 3.0
 #: scanner's filters of 1 mm and more 1-2 mm; below it the speckle's
 #: correlation gives the point-spread function (:func:`edge_blur_mm`)
 FORMED_SPECKLE_SMOOTHING_MM = 0.75
+#: the outer band's last step over its first (:func:`beyond_wall_excess`):
+#: at most this across a blurred edge alone (a blur of up to 3 mm, standard
+#: deviation, at 15-40 dB), and at least the next where the far half reads
+#: tissue beyond the wall (a blurred edge reaches it only with a blur of
+#: over 4 mm)
+SHRINKING_EDGE_STEP = 0.5
+GROWING_FAR_STEP = 0.75
 
 
 def band_offsets(band: float) -> np.ndarray:
@@ -452,6 +459,9 @@ class IntensityInterface(LocalMeans):
         #: thin wall darker than what lies beyond it
         #: (:func:`beyond_wall_excess`); 0 when it read none
         self.beyond_wall = 0.0
+        #: the fraction of the far half's rise that :attr:`beyond_wall` took
+        #: (1: all of it; between 0 and 1 where the rise may be an edge's)
+        self.beyond_wall_fraction = 0.0
 
     def reset(self) -> None:
         """Measure the region means again on the next observation."""
@@ -503,7 +513,7 @@ class IntensityInterface(LocalMeans):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # an offset off the data everywhere: NaN, no excess
             profile = np.nanmedian(outer, axis=0)
-        self.beyond_wall = beyond_wall_excess(profile - deficits)
+        self.beyond_wall, self.beyond_wall_fraction = beyond_wall_excess(profile - deficits)
         c_out = c_out - self.beyond_wall
         contrast = c_out - c_in
         threshold = interface_level(c_in, c_out, k)
@@ -760,10 +770,11 @@ def band_contamination(sigma_mm: float, contrast_nepers: float, offsets) -> tupl
     return float(inside) + contrast_nepers, outside
 
 
-def beyond_wall_excess(profile) -> float:
+def beyond_wall_excess(profile) -> tuple[float, float]:
     """How far (grey levels) the outer band's mean lies above the mean of
     its near half because its far half reads brighter tissue beyond the
-    wall; 0 when it does not.
+    wall, and the fraction of that rise taken for it: ``(excess,
+    fraction)``, ``(0, 0)`` when the far half reads nothing beyond.
 
     ``profile`` is the outer band's grey level at each of its offsets (in
     increasing order; the medians over the surface), what the blurred edge
@@ -776,19 +787,26 @@ def beyond_wall_excess(profile) -> float:
     distribution function is log-concave), and about the local means' wall
     the last of the band's steps is under half the first for blurs up to
     3 mm (standard deviation) at 15-40 dB (:func:`band_contamination`'s
-    readings).  So the far half counts as beyond the wall where it reads
-    above the near half and the last step is at least half the first; the
-    excess is then the band's mean less its near half's.
+    readings), and under three quarters of it up to 4 mm at 15-60 dB.  So
+    where the far half reads above the near half, the rise is the band's
+    mean less its near half's, and the fraction taken is all of it where
+    the last step is three quarters of the first or more (or the first
+    does not rise), none where it is half or less
+    (:data:`SHRINKING_EDGE_STEP`, :data:`GROWING_FAR_STEP`), and in
+    proportion between: a profile near that bound does not make the level
+    jump from one frame to the next.
     """
     profile = np.ravel(np.asarray(profile, dtype=float))
     half = len(profile) // 2
     if half < 1 or not np.all(np.isfinite(profile)):
-        return 0.0
+        return 0.0, 0.0
     near, far = profile[:half].mean(), profile[-half:].mean()
-    steps = np.diff(profile)
-    if far > near and steps[-1] >= steps[0] / 2:
-        return float(profile.mean() - near)
-    return 0.0
+    if not far > near:
+        return 0.0, 0.0
+    first, last = np.diff(profile)[[0, -1]]
+    fraction = 1.0 if not first > 0 else float(np.clip((last / first - SHRINKING_EDGE_STEP) /
+                                                       (GROWING_FAR_STEP - SHRINKING_EDGE_STEP), 0.0, 1.0))
+    return fraction * float(profile.mean() - near), fraction
 
 
 #: Gauss-Hermite nodes and weights (probabilists': weight exp(-z^2 / 2)) of the edge's expectation

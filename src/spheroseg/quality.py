@@ -33,6 +33,8 @@ report says what the descent saw and did:
     Grey levels the intensity interface took off the myocardium's level
     because its outer band read brighter tissue beyond a thin wall
     (:func:`spheroseg.dataterms.beyond_wall_excess`); 0 when it read none.
+    Where the band's rise was neither clearly tissue beyond nor clearly a
+    blurred edge and only part of it was taken, that is a warning.
 ``wall_contrast``
     With the points checked or located: the wall's median grey level minus
     that of the tissue beyond it (:func:`spheroseg.epicardium.check_wall_polarity`);
@@ -60,7 +62,12 @@ from .dataterms import nanmedian
 from .fit import point_to_surface_distance
 
 __all__ = ["quality_report", "quality_warning", "wall_bulge", "axis_distances", "landmark_residuals", "wall_report",
-           "FrameQuality"]
+           "FrameQuality", "PARTLY_BEYOND_WALL"]
+
+#: the warning where the intensity interface took only part of its outer
+#: band's rise for tissue beyond the wall (:func:`spheroseg.dataterms.beyond_wall_excess`)
+PARTLY_BEYOND_WALL = ("the outer band may read brighter tissue beyond a thin wall, or a blurred edge: the "
+                      "myocardium's level was lowered by part of its rise only, and the wall may lie outside")
 
 #: the bounds of a plausible result
 LIMITS = {"contrast": 0.5, "low_contrast_fraction": 0.3, "no_data_fraction": 0.1, "apex_shift_mm": 10.0,
@@ -168,7 +175,7 @@ class FrameQuality:
         return self._initial_volume_ml
 
     def report(self, surface, *, observed, converged: bool, landmarks: np.ndarray, no_speckle: bool,
-               beyond_wall: float = 0.0) -> dict:
+               beyond_wall: tuple[float, float] = (0.0, 0.0)) -> dict:
         """:func:`quality_report` of ``surface``, given what the last
         iteration ``observed`` (``(u, force, spread)``: the grey levels at
         the sample points, the data term's force, the grey-level spread
@@ -176,7 +183,8 @@ class FrameQuality:
         ``converged``, the ``landmarks`` held (world mm), whether the
         frame fell back to the local means for ``no_speckle`` and what the
         intensity interface took off the myocardium's level
-        (``beyond_wall``, grey levels)."""
+        (``beyond_wall``: grey levels, and the fraction of the outer band's
+        rise they are)."""
         if observed is not None:
             u, force, spread = observed
             # abs: a bright wall's term (LocalMeans.polarity -1) has c_in above c_out
@@ -193,7 +201,11 @@ class FrameQuality:
                 volume_ratio=surface.volume_ml() / self.initial_volume_ml,
                 bulge=wall_bulge(surface, self.initial, reference=self._axis_distances),
                 landmark_residuals_mm=landmark_residuals(surface, landmarks))
-        report["beyond_wall"] = float(beyond_wall)
+        excess, fraction = beyond_wall
+        report["beyond_wall"] = float(excess)
+        if 0 < fraction < 1:
+            report["warnings"].append(PARTLY_BEYOND_WALL)
+            report["poor"] = True
         if no_speckle:
             report["warnings"].append("no speckle around the surface to undo the log compression with (a noise-free "
                                       "or smoothed image?): the wall is the local means' (mode='local')")

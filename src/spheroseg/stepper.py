@@ -361,13 +361,17 @@ class Stepper:
         term = self.terms[self.levels[-1].data_term]
         return float(term.nepers) if isinstance(term, IntensityInterface) and term.nepers is not None else None
 
-    def beyond_wall(self) -> float:
+    def beyond_wall(self) -> tuple[float, float]:
         """Grey levels the finest level's intensity interface took off the
-        myocardium's level for what its outer band read beyond a thin wall
-        (:attr:`IntensityInterface.beyond_wall`); 0 with another data term
-        or before its levels were set."""
+        myocardium's level for what its outer band read beyond a thin wall,
+        and the fraction of that band's rise they are
+        (:attr:`IntensityInterface.beyond_wall`,
+        :attr:`~IntensityInterface.beyond_wall_fraction`); ``(0, 0)`` with
+        another data term or before its levels were set."""
         term = self.terms[self.levels[-1].data_term]
-        return float(term.beyond_wall) if isinstance(term, IntensityInterface) and term.frozen else 0.0
+        if isinstance(term, IntensityInterface) and term.frozen:
+            return float(term.beyond_wall), float(term.beyond_wall_fraction)
+        return 0.0, 0.0
 
     # what changes between runs -----------------------------------------------
 
