@@ -228,8 +228,8 @@ def _formation_sweep(sweep) -> list[str]:
          "last step's test"),
         ("the 2 mm offset alone (the deficit removed)", "contrast_low +0.9 / +1.2 %, but default Dice 0.961 / "
          "0.966, psf_wide +4.4 / -3.9 %, the rim -9.9 / -9.6 %", "no"),
-        ("... and the near half's level where the far half reads below it (darker tissue beyond a bright wall) "
-         "too", "contrast_high -0.2 / -0.3 % (was -2.7 / -2.2), but default +2.2 / +1.8 % (was +0.4 / +0.7), "
+        ("the rule kept, and the near half's level also where the far half reads below it (darker tissue "
+         "beyond a bright wall)", "contrast_high -0.2 / -0.3 % (was -2.7 / -2.2), but default +2.2 / +1.8 % (was +0.4 / +0.7), "
          "psf_narrow +4.0 / +4.1 %, psf_wide +3.3 / -1.5 %, blood_high +2.6 %, clutter_strong +3.5 %: on bright "
          "walls the darker tissue beyond offsets the interface's outward bias on a sharp edge", "no"),
         ("... with that outward bias modelled too: the trilinear sampler averages the log edge over a voxel "
