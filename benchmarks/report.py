@@ -185,7 +185,8 @@ def _formation_sweep(sweep) -> list[str]:
             "of its four offsets, the blurred edge's deficit there removed (`band_contamination`); where the far "
             "half reads above the near half, the excess over the near half comes off the wall's level "
             "(`dataterms.beyond_wall_excess`, `quality['beyond_wall']`): all of it where the last step is three "
-            "quarters of the first or more, none where it is half or less, in proportion between (flagged). A "
+            "quarters of the first or more, none where it is half or less, in proportion between (a dark wall then "
+            "flagged). A "
             "blurred edge alone rises across the band too, but by shrinking steps (the normal distribution "
             "function is log-concave; about the local means' wall the last step is under half the first for "
             "blurs up to 3 mm, standard deviation, at 15-40 dB, and under three quarters up to 4 mm: tests check "
@@ -195,7 +196,7 @@ def _formation_sweep(sweep) -> list[str]:
             "contrast off contrast_low's scenes and nothing anywhere else (of the other formations, the "
             "post-processings and the rim, only the rim's tilted scene reads higher in its far half, by 0.011, "
             "and its last step falls): contrast_low +3.6 / +3.5 %, Dice 0.966 / 0.968 (the table's 'after'), "
-            "unflagged; every other result unchanged. A dark wall is still flagged where nothing was taken off. "
+            "unflagged; every other result unchanged. A dark wall is still flagged where not all was taken off. "
             "Measured besides, with this code against the last (volume errors):", ""]
     out += _tried([
         ("contrast_low after the post-processings (speckle seed 0)", "gaussian_1mm +11.0 to +3.7 %, median_1mm "

@@ -359,7 +359,8 @@ def test_the_interface_reads_the_wall_not_the_tissue_beyond_a_thin_dark_wall(mon
     the outer band reaching 8 mm): the interface takes what the band's far
     half read beyond the wall off the myocardium's level, and the volume is
     within 5 %.  Taken as the wall's level, that tissue moves the wall out
-    (over 8 %) and the checks flag it."""
+    (over 8 %) and the checks flag it, as they do where only part of the
+    band's rise was taken off."""
     from spheroseg import dataterms
     from spheroseg.epicardium import DARK_WALL
     from spheroseg.synthetic.phantom import FORMATIONS, make_phantom
@@ -373,6 +374,9 @@ def test_the_interface_reads_the_wall_not_the_tissue_beyond_a_thin_dark_wall(mon
     read_beyond = segment(ph.volume, ph.apex, ph.base)
     assert read_beyond.volume_ml / ph.truth_volume_ml - 1 > 0.08
     assert read_beyond.quality["beyond_wall"] == 0.0 and DARK_WALL in read_beyond.quality["warnings"]
+    monkeypatch.setattr(dataterms, "beyond_wall_excess", lambda profile: (2.0, 0.5))  # part of a rise taken
+    partly = segment(ph.volume, ph.apex, ph.base)
+    assert partly.quality["beyond_wall_fraction"] == 0.5 and DARK_WALL in partly.quality["warnings"]
 
 
 @pytest.mark.parametrize("contrast_db", [20.0, 35.0])

@@ -182,24 +182,25 @@ def check_wall_polarity(result: SegmentationResult, volume: Volume, *,
     ``thickness_mm`` thick outside its endocardium.  The report keeps the
     contrast (``wall_contrast``, grey levels; NaN without data, taken as
     bright), and a dark wall adds :data:`DARK_WALL` to it unless the
-    intensity interface read past it (``quality["beyond_wall"]`` above 0).
+    intensity interface took all of what its outer band read beyond it off
+    the wall's level (``quality["beyond_wall_fraction"]`` 1).
 
     The intensity interface reads the myocardium's grey level from band
     means 2-8 mm outside the local means' wall
     (:class:`spheroseg.dataterms.IntensityInterface`); past a thin wall
     that is darker than what lies beyond it, the far offsets read that
-    tissue.  Where the band's profile shows it
+    tissue.  Where the band's profile shows it clearly
     (:func:`spheroseg.dataterms.beyond_wall_excess`) the interface takes it
     off; where it does not (a dark wall as thick as the band, or a profile
-    a smoothing blurred into one rise), the level may be read too high and
-    the wall moved out.  Of the image-formation sweep only
+    a smoothing blurred into one rise, whose steps may be an edge's), the
+    level may be read too high and the wall moved out.  Of the image-formation sweep only
     ``contrast_low`` (the myocardium 5 dB darker than the tissue around the
     heart) has a dark wall (docs/benchmarks.md)."""
     contrast = wall_polarity(volume, result.surface, initial_epicardium(result.surface, thickness_mm=thickness_mm))
     polarity = "dark" if contrast < 0 else "bright"
     if result.quality is not None:
         result.quality["wall_contrast"] = float(contrast)
-        if polarity == "dark" and not result.quality.get("beyond_wall", 0.0) > 0:
+        if polarity == "dark" and result.quality.get("beyond_wall_fraction", 0.0) < 1:
             result.quality["warnings"] = list(result.quality["warnings"]) + [DARK_WALL]
             result.quality["poor"] = True
     return polarity

@@ -29,17 +29,18 @@ report says what the descent saw and did:
     elsewhere (:func:`wall_bulge`): a leak through a stretch of wall without
     echo pushes one region out, while a ventricle larger or smaller than the
     clicks suggest scales all of it.
-``beyond_wall``
+``beyond_wall``, ``beyond_wall_fraction``
     Grey levels the intensity interface took off the myocardium's level
     because its outer band read brighter tissue beyond a thin wall
-    (:func:`spheroseg.dataterms.beyond_wall_excess`); 0 when it read none.
-    Where the band's rise was neither clearly tissue beyond nor clearly a
-    blurred edge and only part of it was taken, that is a warning.
+    (:func:`spheroseg.dataterms.beyond_wall_excess`), and the fraction of
+    the band's rise they are (1: all of it; less where the rise may be a
+    blurred edge's); 0 when it read none.
 ``wall_contrast``
     With the points checked or located: the wall's median grey level minus
     that of the tissue beyond it (:func:`spheroseg.epicardium.check_wall_polarity`);
     negative, a myocardium darker than what lies beyond it, is a warning
-    unless the intensity interface read past it (``beyond_wall`` above 0).
+    unless the intensity interface took all of the band's rise beyond it
+    off (``beyond_wall_fraction`` 1).
 
 ``warnings`` lists what is out of the ordinary, in words, and ``poor`` is
 True when there is any.  The bounds are plausibility bounds, not tuned
@@ -62,12 +63,7 @@ from .dataterms import nanmedian
 from .fit import point_to_surface_distance
 
 __all__ = ["quality_report", "quality_warning", "wall_bulge", "axis_distances", "landmark_residuals", "wall_report",
-           "FrameQuality", "PARTLY_BEYOND_WALL"]
-
-#: the warning where the intensity interface took only part of its outer
-#: band's rise for tissue beyond the wall (:func:`spheroseg.dataterms.beyond_wall_excess`)
-PARTLY_BEYOND_WALL = ("the outer band may read brighter tissue beyond a thin wall, or a blurred edge: the "
-                      "myocardium's level was lowered by part of its rise only, and the wall may lie outside")
+           "FrameQuality"]
 
 #: the bounds of a plausible result
 LIMITS = {"contrast": 0.5, "low_contrast_fraction": 0.3, "no_data_fraction": 0.1, "apex_shift_mm": 10.0,
@@ -201,11 +197,7 @@ class FrameQuality:
                 volume_ratio=surface.volume_ml() / self.initial_volume_ml,
                 bulge=wall_bulge(surface, self.initial, reference=self._axis_distances),
                 landmark_residuals_mm=landmark_residuals(surface, landmarks))
-        excess, fraction = beyond_wall
-        report["beyond_wall"] = float(excess)
-        if 0 < fraction < 1:
-            report["warnings"].append(PARTLY_BEYOND_WALL)
-            report["poor"] = True
+        report["beyond_wall"], report["beyond_wall_fraction"] = (float(v) for v in beyond_wall)
         if no_speckle:
             report["warnings"].append("no speckle around the surface to undo the log compression with (a noise-free "
                                       "or smoothed image?): the wall is the local means' (mode='local')")

@@ -47,8 +47,9 @@ class SegmentationResult:
     quality : dict
         How far the result can be trusted (:mod:`spheroseg.quality`):
         ``contrast``, ``low_contrast_fraction``, ``no_data_fraction``,
-        ``converged``, ``apex_shift_mm``, ``volume_ratio``, ``beyond_wall``,
-        ``warnings`` and ``poor``; with an epicardium also ``epicardium``
+        ``converged``, ``apex_shift_mm``, ``volume_ratio``, ``beyond_wall``
+        and ``beyond_wall_fraction``, ``warnings`` and ``poor``; with an
+        epicardium also ``epicardium``
         (:func:`spheroseg.quality.wall_report`).
     epicardium : Surface or None
         The epicardium (``segment(..., myocardium=True)``): same system,
