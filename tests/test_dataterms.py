@@ -286,6 +286,9 @@ def test_band_contamination_is_the_blurred_edge_read_as_the_local_means_read_it(
     np.testing.assert_allclose(deficit_out, profile[centre[wall] + shift], atol=2e-3)  # each offset's reading
     assert deficit_out.mean() == pytest.approx(outside[wall], abs=2e-3)
     assert deficit_in >= 0 and np.all(deficit_out <= 0)
+    past = offsets + 8.0  # readings past the band, about the same wall
+    np.testing.assert_allclose(band_contamination(sigma_mm, nepers, offsets, reads=past)[1],
+                               profile[centre[wall] + shift + shift[-1]], atol=2e-3)
     unblurred = band_contamination(0.0, nepers, offsets)
     assert unblurred[0] == 0.0 and np.array_equal(unblurred[1], np.zeros(4))
 
@@ -356,6 +359,27 @@ def test_profile_blur_is_the_blur_whose_deficits_leave_the_profile_flat(sigma_mm
     wider = 100.0 + 10.0 * band_contamination(MAX_EDGE_BLUR_MM + 1.0, nepers, offsets)[1]
     assert 0.3 < profile_blur_mm(wider, sigma_mm=0.3, contrast_nepers=nepers, nepers=10.0,
                                  offsets=offsets) <= MAX_EDGE_BLUR_MM
+
+
+def test_profile_blur_falls_back_where_the_rise_goes_on_past_the_band():
+    """A band profile blurred by 2 mm (30 dB, 10 grey levels per neper),
+    the readings past it (10-16 mm) those of the same edge: the blur is
+    read, as where the tissue beyond is darker; where that tissue reads
+    above the plateau by as much as the read raised it (a blurred dark
+    wall whose band rises towards it), the given blur stands, and half as
+    much keeps half of the read."""
+    nepers, offsets, past = 3 * np.log(10), np.array([2.0, 4.0, 6.0, 8.0]), np.array([10.0, 12.0, 14.0, 16.0])
+    profile = 100.0 + 10.0 * band_contamination(2.0, nepers, offsets)[1]
+    plateau_edge = 100.0 + 10.0 * band_contamination(2.0, nepers, offsets, reads=past)[1]
+    raised = 10.0 * (band_contamination(0.3, nepers, offsets)[1].mean()
+                     - band_contamination(2.0, nepers, offsets)[1].mean())
+    options = dict(sigma_mm=0.3, contrast_nepers=nepers, nepers=10.0, offsets=offsets)
+    assert profile_blur_mm(profile, **options) == pytest.approx(2.0, abs=0.02)
+    for far in (plateau_edge, plateau_edge - 5.0):
+        assert profile_blur_mm(profile, beyond=(past, far), **options) == pytest.approx(2.0, abs=0.02)
+    assert profile_blur_mm(profile, beyond=(past, plateau_edge + raised), **options) == pytest.approx(0.3, abs=0.01)
+    half = profile_blur_mm(profile, beyond=(past, plateau_edge + raised / 2), **options)
+    assert half == pytest.approx(0.3 + (2.0 - 0.3) / 2, abs=0.02)
 
 
 def test_profile_blur_takes_what_beyond_wall_excess_leaves():
@@ -491,16 +515,14 @@ def white_speckle_cavity(blur_mm, seed=0):
     (blood 30 dB below tissue) blurred by an isotropic Gaussian, times
     speckle independent from voxel to voxel, log-compressed at 15 grey
     levels per neper.  Its speckle does not show the blur."""
-    from scipy import ndimage
+    from spheroseg.synthetic.echo import multiplicative_speckle
 
-    rng = np.random.default_rng(seed)
     shape = (90, 80, 80)
     k, j, i = np.mgrid[:shape[0], :shape[1], :shape[2]].astype(float)
     centre, axes = np.array([40.0, 40.0, 55.0]), np.array([24.0, 24.0, 40.0])
     inside = ((i - centre[0]) / axes[0]) ** 2 + ((j - centre[1]) / axes[1]) ** 2 + ((k - centre[2]) / axes[2]) ** 2 <= 1
     inside &= k <= centre[2]
-    intensity = ndimage.gaussian_filter(np.where(inside, 1e-3, 1.0), blur_mm)
-    grey = np.clip(np.round(128 + 15 * np.log(intensity * rng.exponential(1.0, shape))), 1, 255)
+    grey = multiplicative_speckle(np.where(inside, 1e-3, 1.0), blur_mm=blur_mm, spacing=1.0, seed=seed)
     truth_ml = 2 / 3 * np.pi * axes[0] * axes[1] * axes[2] / 1000
     return Volume(grey), centre - [0, 0, axes[2]], centre, truth_ml
 

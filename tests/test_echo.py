@@ -3,8 +3,8 @@ import pytest
 
 from spheroseg.beamspace import BeamGeometry, BeamVolume, scan_convert
 from spheroseg.synthetic.echo import (
-    RAYLEIGH_DB_STD, TOP_DB, ImageFormation, PostProcessing, form_image, log_compress, postprocess, sector_geometry,
-    speckle_envelope,
+    RAYLEIGH_DB_STD, TOP_DB, ImageFormation, PostProcessing, form_image, log_compress, multiplicative_speckle,
+    postprocess, sector_geometry, speckle_envelope,
 )
 from spheroseg.volume import ImageGrid
 
@@ -192,3 +192,28 @@ def test_postprocessing_validation(bad):
         PostProcessing(**bad)
     with pytest.raises(ValueError, match="3D"):
         postprocess(np.ones((3, 3), np.uint8), 1.0, PostProcessing())
+
+
+def test_multiplicative_speckle_is_blurred_intensity_times_independent_speckle():
+    """Uniform echogenicity 1 and e^-2: log-compressed exponential intensity
+    has mean ``ln e - gamma`` and standard deviation ``pi / sqrt 6`` (times
+    15 grey levels per neper about 128); neighbouring voxels do not
+    correlate; across a step the mean intensity is the blurred step's (a
+    Gaussian of 2 mm on 1 mm voxels: at 2 mm into the dark side
+    ``e^-2 + (1 - e^-2) Phi(-1)``)."""
+    echogenicity = np.ones((60, 60, 80))
+    echogenicity[..., :40] = np.exp(-2.0)
+    grey = multiplicative_speckle(echogenicity, blur_mm=2.0, spacing=1.0, seed=3).astype(float)
+    k, gamma = 15.0, np.euler_gamma
+    bright, dark = grey[..., 60:], grey[..., :20]
+    assert bright.mean() == pytest.approx(128 - k * gamma, abs=0.3)
+    assert bright.std() == pytest.approx(k * np.pi / np.sqrt(6), rel=0.02)
+    assert dark.mean() == pytest.approx(128 + k * (-2.0 - gamma), abs=0.3)
+    assert abs(np.corrcoef(bright[..., :-1].ravel(), bright[..., 1:].ravel())[0, 1]) < 0.02
+    from scipy import stats
+
+    intensity = np.exp((grey[..., 38] - 128) / k)  # 2 mm into the dark side of the step at 40 (voxel edges 39.5)
+    expected = np.exp(-2.0) + (1 - np.exp(-2.0)) * stats.norm.cdf(-1.5 / 2.0)
+    assert intensity.mean() == pytest.approx(expected, rel=0.05)  # 3600 exponentials: 1.7 % standard error
+    assert intensity.mean() > np.exp(-2.0) * 2  # the step blurred: more than twice the dark side's
+    assert multiplicative_speckle(echogenicity, blur_mm=2.0, spacing=1.0, seed=3).dtype == np.uint8

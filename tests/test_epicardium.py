@@ -12,6 +12,7 @@ from spheroseg.myocardium import SEGMENT_NAMES, cell_centres, myocardial_volume_
 from spheroseg.quality import wall_report
 from spheroseg.results import SegmentationResult, TrackingResult
 from spheroseg.surface import Surface
+from spheroseg.synthetic.echo import multiplicative_speckle
 
 D, L_ENDO, L_EPI = 30.0, 0.8, 1.0
 BASE = np.array([60.0, 60.0, 70.0])
@@ -94,13 +95,9 @@ def speckle_shells_image(*, nepers=15.0, contrast_db=12.0, blur_mm=2.0, seed=0):
     myocardium 0 dB, tissue ``-contrast_db``) blurred by a Gaussian PSF,
     times fully developed speckle (exponential, independent per voxel),
     log-compressed at ``nepers`` grey levels per neper."""
-    from scipy import ndimage
-
     labels, pose, spacing = shell_labels()
     levels = np.array([1e-3, 1.0, 10 ** (-contrast_db / 10)])
-    intensity = ndimage.gaussian_filter(levels[labels], blur_mm / spacing)
-    speckle = np.random.default_rng(seed).exponential(1.0, labels.shape)
-    grey = np.clip(np.round(128 + nepers * np.log(intensity * speckle)), 1, 255).astype(np.uint8)
+    grey = multiplicative_speckle(levels[labels], blur_mm=blur_mm, spacing=spacing, nepers=nepers, seed=seed)
     return Volume(grey, spacing=(spacing,) * 3), pose
 
 

@@ -518,12 +518,17 @@ class IntensityInterface(LocalMeans):
         c_out = c_in + contrast
         k = self.nepers
         self._measured = (c_in, c_out)  # what a result reports (their medians)
-        outer = backend.samples_along(volume, obs, self.band_offsets, backend.discretisation.band_rows)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # an offset off the data everywhere: NaN, no excess
-            profile = np.nanmedian(outer, axis=0)
-        c_in, c_out, deficits = self.unblurred_levels(obs, c_in, c_out, profile)
-        self.beyond_wall, self.beyond_wall_fraction = beyond_wall_excess(profile - deficits)
+
+        def medians(offsets):  # the outer band's median grey level at each offset
+            outer = backend.samples_along(volume, obs, offsets, backend.discretisation.band_rows)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # an offset off the data everywhere: NaN
+                return np.nanmedian(outer, axis=0)
+
+        band = medians(self.band_offsets)
+        past = self.band_offsets + self.band_offsets[-1]  # as far again past the band: what lies beyond the wall
+        c_in, c_out, deficits = self.unblurred_levels(obs, c_in, c_out, band, lambda: (past, medians(past)))
+        self.beyond_wall, self.beyond_wall_fraction = beyond_wall_excess(band - deficits)
         c_out = c_out - self.beyond_wall
         contrast = c_out - c_in
         threshold = interface_level(c_in, c_out, k)
@@ -533,8 +538,8 @@ class IntensityInterface(LocalMeans):
         self._frozen = (threshold - contrast / 2, threshold + contrast / 2,
                         max(float(nanmedian(contrast)) ** 2, self.min_scale))
 
-    def unblurred_levels(self, obs, c_in: np.ndarray, c_out: np.ndarray,
-                         profile=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def unblurred_levels(self, obs, c_in: np.ndarray, c_out: np.ndarray, profile=None,
+                         beyond=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The band means ``c_in``, ``c_out`` less what the wall's blurred
         edge left in them (:func:`band_contamination`), where the speckle is
         as the scanner formed it: smoothed by less than
@@ -549,8 +554,10 @@ class IntensityInterface(LocalMeans):
         quadratic form of :attr:`edge_blur_covariance` on them, or more
         where the outer band's ``profile`` (its grey level at each offset,
         the medians over the surface) still rises as a blurred edge does
-        (:func:`profile_blur_mm`): an image whose speckle does not show
-        the blur of its walls.  It is kept as :attr:`wall_blur_mm`.
+        (:func:`profile_blur_mm`; ``beyond`` returns the offsets and the
+        readings past the band): an image whose speckle does not show the
+        blur of its walls.
+        It is kept as :attr:`wall_blur_mm`.
         """
         k = self.nepers
         contrast = float(nanmedian(c_out - c_in))
@@ -570,9 +577,11 @@ class IntensityInterface(LocalMeans):
         sigma = float(np.sqrt(nanmedian(np.einsum("is,ij,js->s", n, self.edge_blur_covariance, n))))
         deficit_in, deficits_out = deficits(sigma)
         if profile is not None:
-            read = profile_blur_mm(profile, sigma_mm=sigma, nepers=k, offsets=self.band_offsets,
-                                   contrast_nepers=contrast / k - (deficits_out.mean() - deficit_in),
-                                   deficits=k * deficits_out)
+            options = dict(sigma_mm=sigma, nepers=k, offsets=self.band_offsets, deficits=k * deficits_out,
+                           contrast_nepers=contrast / k - (deficits_out.mean() - deficit_in))
+            read = profile_blur_mm(profile, **options)
+            if read > sigma and beyond is not None:  # what lies past the band, read only when it matters
+                read = profile_blur_mm(profile, beyond=beyond(), **options)
             if read > sigma:
                 sigma = read
                 deficit_in, deficits_out = deficits(sigma)
@@ -754,7 +763,8 @@ def _log_edge(t, eps: float):
     return np.log(eps + (1 - eps) * special.ndtr(t))
 
 
-def band_contamination(sigma_mm: float, contrast_nepers: float, offsets) -> tuple[float, np.ndarray]:
+def band_contamination(sigma_mm: float, contrast_nepers: float, offsets, *,
+                       reads=None) -> tuple[float, np.ndarray]:
     """How far (nepers of intensity) the band means about the local means'
     wall lie above the dark region's level and below the bright region's,
     across a wall whose mean intensity is blurred by a Gaussian of standard
@@ -770,12 +780,14 @@ def band_contamination(sigma_mm: float, contrast_nepers: float, offsets) -> tupl
     are still in the blurred edge.  Returns ``(inside, outside)``: the inner
     band's mean less the dark level (``>= 0``), and at each of ``offsets``
     the outer band's reading less the bright level (``<= 0``, an array:
-    its mean is the outer band mean's).  ``0`` for an unblurred wall.
+    its mean is the outer band mean's), or at each of ``reads`` (mm
+    outside that wall) where given.  ``0`` for an unblurred wall.
     """
     d = np.ravel(np.asarray(offsets, dtype=float))
     n = len(d)
+    outer = d if reads is None else np.ravel(np.asarray(reads, dtype=float))
     if not sigma_mm > 0 or not contrast_nepers > 0:
-        return 0.0, np.zeros(n)
+        return 0.0, np.zeros(len(outer))
     contrast_nepers = min(float(contrast_nepers), 100.0)  # 434 dB: beyond it the dark side reads as no echo
     sigma, eps = float(sigma_mm), math.exp(-contrast_nepers)
     reads = np.concatenate([[0.0], -d, d]) / sigma  # the wall, the inner band, the outer band
@@ -793,15 +805,17 @@ def band_contamination(sigma_mm: float, contrast_nepers: float, offsets) -> tupl
     balance = wall - (inside + outside.mean(axis=-1)) / 2
     below = np.flatnonzero(balance <= 0)
     if balance[0] <= 0 or not below.size:  # no local means' wall: nothing to remove
-        return 0.0, np.zeros(n)
+        return 0.0, np.zeros(len(outer))
     i = below[0]
     root = x0[i - 1] + (x0[i] - x0[i - 1]) * balance[i - 1] / (balance[i - 1] - balance[i])
     _, inside, outside = means(root)
+    if reads is not None:
+        outside = _log_edge((root + outer) / sigma, eps)
     return float(inside) + contrast_nepers, outside
 
 
 def profile_blur_mm(profile, *, sigma_mm: float, contrast_nepers: float, nepers: float, offsets,
-                    deficits=None) -> float:
+                    deficits=None, beyond=None) -> float:
     """The blur (mm, standard deviation) of a wall's edge read from the
     outer band's profile: at least ``sigma_mm``, more where the profile
     still rises across the band as a blurred edge does.
@@ -818,6 +832,14 @@ def profile_blur_mm(profile, *, sigma_mm: float, contrast_nepers: float, nepers:
     below 1), the blur read is the one whose deficits leave no such rise,
     at most :data:`MAX_EDGE_BLUR_MM`; weighted by that fraction's
     complement, so that a profile near the bound does not make it jump.
+
+    ``beyond`` (optional), ``(offsets, readings)`` past the band's, tells
+    a rise that goes on past the band: where, less that blur's deficits,
+    what lies beyond reads above the wall's plateau the blur implies, the
+    band's rise is that brighter tissue's too (a blurred dark wall), and
+    the blur read falls back towards ``sigma_mm`` in proportion: none of it
+    kept where the tissue reads above that plateau by as much as the
+    read raised the plateau.
     Speckle shows its point-spread function (:func:`edge_blur_mm`) unless
     it was made otherwise: an image whose speckle is independent from
     voxel to voxel under a blurred intensity reads none, and its walls
@@ -842,14 +864,25 @@ def profile_blur_mm(profile, *, sigma_mm: float, contrast_nepers: float, nepers:
     else:  # those of sigma_mm, known to the caller
         corrected = profile - np.ravel(deficits)
         rise = corrected[-half:].mean() - corrected[:half].mean()
-    beyond = beyond_wall_excess(corrected)[1] if rise > 0 else 1.0
-    if beyond >= 1 or sigma_mm >= MAX_EDGE_BLUR_MM or not unexplained(sigma_mm)[0] > 0:
+    fraction = beyond_wall_excess(corrected)[1] if rise > 0 else 1.0
+    if fraction >= 1 or sigma_mm >= MAX_EDGE_BLUR_MM or not unexplained(sigma_mm)[0] > 0:
         return float(sigma_mm)
     if unexplained(MAX_EDGE_BLUR_MM)[0] > 0:
         read = MAX_EDGE_BLUR_MM
     else:
         read = optimize.brentq(lambda sigma: unexplained(sigma)[0], sigma_mm, MAX_EDGE_BLUR_MM, xtol=0.01)
-    return float(sigma_mm + (1.0 - beyond) * (read - sigma_mm))
+    kept = 1.0 - fraction
+    if beyond is not None:
+        far_offsets, far = (np.ravel(np.asarray(a, dtype=float)) for a in beyond)
+        if len(far) and len(far_offsets) == len(far) and np.all(np.isfinite(far)):
+            at_read = band_contamination(read, contrast_nepers, offsets)[1]
+            plateau = profile - nepers * at_read
+            tissue = far - nepers * band_contamination(read, contrast_nepers, offsets, reads=far_offsets)[1]
+            # how far the read blur raised the plateau over the given one's
+            raised = nepers * (band_contamination(sigma_mm, contrast_nepers, offsets)[1].mean() - at_read.mean())
+            if raised > 0:
+                kept *= float(np.clip(1.0 - (tissue.mean() - plateau.mean()) / raised, 0.0, 1.0))
+    return float(sigma_mm + kept * (read - sigma_mm))
 
 
 def beyond_wall_excess(profile) -> tuple[float, float]:

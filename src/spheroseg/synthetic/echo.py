@@ -28,8 +28,9 @@ given PSF, :func:`form_image` returns a
 :class:`~spheroseg.beamspace.BeamVolume`, and
 :func:`spheroseg.beamspace.scan_convert` takes it to a Cartesian grid.
 :class:`PostProcessing` and :func:`postprocess` smooth the scan-converted
-grey levels as a scanner does before export.  Nothing here knows what is
-being imaged.
+grey levels as a scanner does before export.  :func:`multiplicative_speckle`
+is the simpler model many simulators use, for images of another making.
+Nothing here knows what is being imaged.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from scipy import ndimage
 from ..beamspace import BeamGeometry, BeamVolume
 
 __all__ = ["ImageFormation", "sector_geometry", "speckle_envelope", "log_compress", "form_image", "RAYLEIGH_DB_STD",
-           "PostProcessing", "postprocess"]
+           "PostProcessing", "postprocess", "multiplicative_speckle"]
 
 #: standard deviation of ``20 log10`` of a Rayleigh amplitude (fully
 #: developed speckle), dB: ``(20 / ln 10) * pi / (2 sqrt 6)``
@@ -408,3 +409,18 @@ def _perona_malik(image: np.ndarray, data: np.ndarray, iterations: int, spacing:
             change += outflow - inflow
         u += step * change
     return u
+
+
+def multiplicative_speckle(echogenicity: np.ndarray, *, blur_mm: float, spacing: float, nepers: float = 15.0,
+                           seed: int = 0) -> np.ndarray:
+    """Grey levels of echo as a simpler simulator makes it (not a scanner):
+    the echogenicity (mean intensity, on a Cartesian grid of ``spacing``
+    mm) blurred by an isotropic Gaussian of standard deviation ``blur_mm``,
+    times fully developed speckle independent from voxel to voxel (an
+    exponential intensity), log-compressed at ``nepers`` grey levels per
+    neper: ``128 + nepers ln(I)`` rounded and clipped to ``[1, 255]``
+    (uint8).  Unlike :func:`form_image`'s, its speckle does not show the
+    blur of its walls."""
+    intensity = ndimage.gaussian_filter(np.asarray(echogenicity, dtype=float), blur_mm / spacing)
+    speckle = np.random.default_rng(seed).exponential(1.0, intensity.shape)
+    return np.clip(np.round(128 + nepers * np.log(intensity * speckle)), 1, 255).astype(np.uint8)
