@@ -4,7 +4,7 @@ import pytest
 from spheroseg import Volume, segment
 from spheroseg.coords import Pose, ProlateSpheroidal
 from spheroseg.epicardium import (
-    DARK_EPICARDIUM, DARK_WALL, MAX_ITERATIONS, add_epicardium, conserving_start, enforce_thickness,
+    DARK_EPICARDIUM, DARK_WALL, DARK_WALL_MARGIN, MAX_ITERATIONS, add_epicardium, conserving_start, enforce_thickness,
     initial_epicardium, segment_epicardium, wall_nepers,
 )
 from spheroseg.hermite import HermiteGrid
@@ -166,6 +166,15 @@ def test_a_wall_darker_than_what_lies_beyond_it_is_flagged(contrast_db, polarity
     assert both.parameters["epicardium"]["polarity"] == polarity
     assert (DARK_EPICARDIUM in both.quality["epicardium"]["warnings"]) is (polarity == "dark")
     assert "wall_contrast" not in segment(volume, APEX, BASE, check=False).quality
+
+def test_a_wall_as_bright_as_the_tissue_beyond_it_is_not_flagged():
+    """Its contrast with the tissue beyond reads within the margin, of
+    either sign (here the blurred edge leaves the wall a little darker)."""
+    volume, _ = speckle_shells_image(contrast_db=0.0)
+    level = segment(volume, APEX, BASE)
+    assert abs(level.quality["wall_contrast"]) < DARK_WALL_MARGIN * (level.c_out - level.c_in)
+    assert DARK_WALL not in level.quality["warnings"]
+
 
 def test_segment_with_myocardium_gives_the_wall():
     volume, pose = speckle_shells_image()

@@ -46,12 +46,17 @@ PRIOR_THICKNESS_MM = 8.0
 #: the endocardium's warning when its wall is darker than what lies beyond it
 DARK_WALL = ("the myocardium is darker than what lies beyond it: past a thin wall its grey level may be read "
              "too high and the wall placed outside (the volume too large)")
+#: how much darker than what lies beyond it (a fraction of the blood-wall
+#: contrast) a wall must read for :data:`DARK_WALL`: tissue 1 dB brighter
+#: at 30 dB, read as the wall's level, moves the volume by about 2 %
+DARK_WALL_MARGIN = 0.03
 #: the epicardium's warning on such a wall: the local means of its weak outer
 #: edge lean on the cavity's darker blood and pull it in
 DARK_EPICARDIUM = ("the myocardium is darker than what lies beyond it: its outer edge is weak and the epicardium "
                    "may lie inside it (the mass too low)")
 
-__all__ = ["MAX_ITERATIONS", "PRIOR_THICKNESS_MM", "DARK_WALL", "DARK_EPICARDIUM", "initial_epicardium",
+__all__ = ["MAX_ITERATIONS", "PRIOR_THICKNESS_MM", "DARK_WALL", "DARK_WALL_MARGIN", "DARK_EPICARDIUM",
+           "initial_epicardium",
            "conserving_start", "enforce_thickness", "wall_polarity", "check_wall_polarity", "wall_nepers", "wall_term",
            "segment_epicardium", "add_epicardium"]
 
@@ -181,9 +186,11 @@ def check_wall_polarity(result: SegmentationResult, volume: Volume, *,
     ("bright") or not ("dark"): :func:`wall_polarity` of a wall
     ``thickness_mm`` thick outside its endocardium.  The report keeps the
     contrast (``wall_contrast``, grey levels; NaN without data, taken as
-    bright), and a dark wall adds :data:`DARK_WALL` to it unless the
-    intensity interface took all of what its outer band read beyond it off
-    the wall's level (``quality["beyond_wall_fraction"]`` 1).
+    bright), and a wall darker by more than :data:`DARK_WALL_MARGIN` of the
+    blood-wall contrast (``c_out - c_in``) adds :data:`DARK_WALL` to it
+    unless the intensity interface took all of what its outer band read
+    beyond it off the wall's level (``quality["beyond_wall_fraction"]``
+    1): a wall as bright as the tissue beyond it is not flagged.
 
     The intensity interface reads the myocardium's grey level from band
     means 2-8 mm outside the local means' wall
@@ -200,7 +207,9 @@ def check_wall_polarity(result: SegmentationResult, volume: Volume, *,
     polarity = "dark" if contrast < 0 else "bright"
     if result.quality is not None:
         result.quality["wall_contrast"] = float(contrast)
-        if polarity == "dark" and result.quality.get("beyond_wall_fraction", 0.0) < 1:
+        margin = DARK_WALL_MARGIN * (result.c_out - result.c_in)
+        darker = contrast < -margin if margin > 0 else polarity == "dark"
+        if darker and result.quality.get("beyond_wall_fraction", 0.0) < 1:
             result.quality["warnings"] = list(result.quality["warnings"]) + [DARK_WALL]
             result.quality["poor"] = True
     return polarity
