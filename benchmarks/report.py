@@ -1052,7 +1052,16 @@ def _simulators(data) -> list[str]:
          "intensity stage's force is weak and it stops short; the phantom's formations move by 0.1-0.4 points",
          "no: noted"),
         ("the intensity stage's step scaled by the blur read over 1.27 mm", "that cavity -5.0 to -4.0 %",
-         "no")])
+         "no"),
+        ("the trilinear sampler's drop at the interface (a hat of variance `h^2 / 6` along the normal, with the "
+         "export's smoothing, across the blur read, the band's before its fall-back), and the near half's level "
+         "where the far half reads below it (the formation sweep's tried rows, with this blur)",
+         "every formation within 3 % (contrast_low +1.0 / +0.9, psf_narrow +1.8 / +1.8, psf_wide +2.7 / -2.5, "
+         "tgc_over -2.2 / -2.4, contrast_high -1.8 / -2.4 %), the post-processings within 2.2 %, this section's "
+         "0.5 mm blur -0.3 to -0.7 % (now +2.8 to +3.7); but the rim -7.4 / -6.7 % (now -5.9 / -5.3), a dark "
+         "wall here at 1 mm -7.6 % (now -1.3; its blur unread: the band's rise went to the tissue beyond, the "
+         "speckle shows 0.3 mm), walls as bright as the tissue at 2.5 mm +5.9 % (now +3.1)",
+         "no: the drop needs the edge's blur, which speckle of this making hides")])
     return out
 
 
