@@ -4,8 +4,8 @@ import pytest
 from spheroseg import Volume, segment
 from spheroseg.coords import Pose, ProlateSpheroidal
 from spheroseg.epicardium import (
-    DARK_EPICARDIUM, DARK_WALL, DARK_WALL_MARGIN, MAX_ITERATIONS, add_epicardium, conserving_start, enforce_thickness,
-    initial_epicardium, segment_epicardium, wall_nepers,
+    DARK_EPICARDIUM, DARK_MAX_ITERATIONS, DARK_WALL, DARK_WALL_MARGIN, MAX_ITERATIONS, add_epicardium,
+    conserving_start, enforce_thickness, initial_epicardium, segment_epicardium, wall_nepers,
 )
 from spheroseg.hermite import HermiteGrid
 from spheroseg.myocardium import SEGMENT_NAMES, cell_centres, myocardial_volume_ml, wall_thickness
@@ -165,6 +165,8 @@ def test_a_wall_darker_than_what_lies_beyond_it_is_flagged(contrast_db, polarity
     both = segment(volume, APEX, BASE, myocardium=True)
     assert both.parameters["epicardium"]["polarity"] == polarity
     assert (DARK_EPICARDIUM in both.quality["epicardium"]["warnings"]) is (polarity == "dark")
+    cap = {"bright": MAX_ITERATIONS, "dark": DARK_MAX_ITERATIONS}[polarity]  # a dark wall drifts: stopped sooner
+    assert both.parameters["epicardium"]["max_iterations"] == cap
     assert "wall_contrast" not in segment(volume, APEX, BASE, check=False).quality
 
 def test_a_wall_as_bright_as_the_tissue_beyond_it_is_not_flagged():
