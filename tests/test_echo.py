@@ -217,3 +217,12 @@ def test_multiplicative_speckle_is_blurred_intensity_times_independent_speckle()
     assert intensity.mean() == pytest.approx(expected, rel=0.05)  # 3600 exponentials: 1.7 % standard error
     assert intensity.mean() > np.exp(-2.0) * 2  # the step blurred: more than twice the dark side's
     assert multiplicative_speckle(echogenicity, blur_mm=2.0, spacing=1.0, seed=3).dtype == np.uint8
+
+
+@pytest.mark.parametrize("bad", [dict(blur_mm=-1.0), dict(spacing=0.0), dict(nepers=0.0),
+                                 dict(echogenicity=-np.ones((4, 4, 4))), dict(echogenicity=np.ones((4, 4)))])
+def test_multiplicative_speckle_validation(bad):
+    options = {"echogenicity": np.ones((4, 4, 4)), "blur_mm": 1.0, "spacing": 1.0, **bad}
+    with pytest.raises(ValueError, match="must be"):
+        multiplicative_speckle(options.pop("echogenicity"), **options)
+    assert multiplicative_speckle(np.zeros((4, 4, 4)), blur_mm=0.0, spacing=1.0).max() == 1  # no echo: darkest

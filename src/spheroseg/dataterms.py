@@ -556,8 +556,7 @@ class IntensityInterface(LocalMeans):
         the medians over the surface) still rises as a blurred edge does
         (:func:`profile_blur_mm`; ``beyond`` returns the offsets and the
         readings past the band): an image whose speckle does not show the
-        blur of its walls.
-        It is kept as :attr:`wall_blur_mm`.
+        blur of its walls.  It is kept as :attr:`wall_blur_mm`.
         """
         k = self.nepers
         contrast = float(nanmedian(c_out - c_in))
@@ -836,18 +835,16 @@ def profile_blur_mm(profile, *, sigma_mm: float, contrast_nepers: float, nepers:
     ``beyond`` (optional), ``(offsets, readings)`` past the band's, tells
     a rise that goes on past the band: where, less that blur's deficits,
     what lies beyond reads above the wall's plateau the blur implies, the
-    band's rise is that brighter tissue's too (a blurred dark wall), and
-    the blur read falls back towards ``sigma_mm`` in proportion: none of it
-    kept where the tissue reads above that plateau by as much as the
-    read raised the plateau.
+    band's rise is that brighter tissue's too (a dark wall blurred as
+    widely as the band is long), and the blur read falls back towards
+    ``sigma_mm`` in proportion: none of it kept where the tissue reads
+    above that plateau by as much as the read raised the plateau.
+
     Speckle shows its point-spread function (:func:`edge_blur_mm`) unless
     it was made otherwise: an image whose speckle is independent from
     voxel to voxel under a blurred intensity reads none, and its walls
     would go in by the blur's deficit (the volume 7 % low at 1.5 mm, 15 %
     at 2 mm: ``tests/test_dataterms.py``).
-    Beyond a dark wall blurred as widely as the band is long, the tissue's
-    rise reads as more blur (a dark wall is flagged: see
-    :func:`spheroseg.epicardium.check_wall_polarity`).
     """
     profile = np.ravel(np.asarray(profile, dtype=float))
     offsets = np.ravel(np.asarray(offsets, dtype=float))

@@ -421,6 +421,12 @@ def multiplicative_speckle(echogenicity: np.ndarray, *, blur_mm: float, spacing:
     neper: ``128 + nepers ln(I)`` rounded and clipped to ``[1, 255]``
     (uint8).  Unlike :func:`form_image`'s, its speckle does not show the
     blur of its walls."""
-    intensity = ndimage.gaussian_filter(np.asarray(echogenicity, dtype=float), blur_mm / spacing)
+    echogenicity = np.asarray(echogenicity, dtype=float)
+    if echogenicity.ndim != 3 or not np.all(echogenicity >= 0):
+        raise ValueError("echogenicity must be a 3D array of mean intensities >= 0")
+    if not (blur_mm >= 0 and spacing > 0 and nepers > 0):
+        raise ValueError(f"blur_mm must be >= 0, spacing and nepers > 0; got {blur_mm!r}, {spacing!r}, {nepers!r}")
+    intensity = ndimage.gaussian_filter(echogenicity, blur_mm / spacing)
     speckle = np.random.default_rng(seed).exponential(1.0, intensity.shape)
-    return np.clip(np.round(128 + nepers * np.log(intensity * speckle)), 1, 255).astype(np.uint8)
+    with np.errstate(divide="ignore"):  # no echo: the darkest grey level
+        return np.clip(np.round(128 + nepers * np.log(intensity * speckle)), 1, 255).astype(np.uint8)
