@@ -58,6 +58,18 @@ def test_initial_epicardium_has_the_prior_thickness():
         initial_epicardium(endo, thickness_mm=-1.0)
 
 
+def test_initial_epicardium_of_a_surface_collapsed_onto_the_focal_segment():
+    """A descent that failed can leave ``v0 = 0`` (the focal segment), where
+    the scale factor vanishes at the pole: the wall is still 8 mm thick at
+    every node (it had infinite coefficients, and the quality checks raised)."""
+    collapsed = shell(0.0, Surface.from_apex_base(APEX, BASE).pose)
+    start = initial_epicardium(collapsed, thickness_mm=8.0)
+    assert np.all(np.isfinite(start.coefficients))
+    grid = collapsed.grid
+    v2, v1 = np.meshgrid(grid.node_v2, grid.node_v1, indexing="ij")
+    np.testing.assert_allclose(wall_thickness(collapsed, start, v1, v2), 8.0, rtol=1e-4)  # 0.5 um by the pole
+
+
 def test_enforce_thickness_keeps_the_epicardium_outside():
     endo = Surface.from_apex_base(APEX, BASE)
     epi = initial_epicardium(endo, thickness_mm=8.0)

@@ -75,7 +75,10 @@ def _node_offsets(surface: Surface, thickness_mm: float) -> np.ndarray:
     v2, v1 = np.meshgrid(grid.node_v2, grid.node_v1, indexing="ij")
     f = np.maximum(surface.coefficients[..., 0], 0.0)  # f at a node is its value there, as radius()
     x, w = gauss_legendre(4)  # h0 is smooth across a wall (as wall_thickness_grid's order 4)
-    t = thickness_mm / surface.system.scale_factors(f, v1, v2)[0]
+    # the start: h0 a typical offset out, not at f, where a surface collapsed onto the focal segment has h0 = 0
+    h0 = surface.system.scale_factors(f, v1, v2)[0]
+    typical = thickness_mm / float(np.median(h0[h0 > 0])) if np.any(h0 > 0) else 1.0
+    t = thickness_mm / surface.system.scale_factors(f + typical, v1, v2)[0]
     for _ in range(6):  # quadratic convergence from within a few per cent: 3 reach rounding
         v0 = f[..., None] + t[..., None] * x
         length = (surface.system.scale_factors(v0, v1[..., None], v2[..., None])[0] @ w) * t
