@@ -271,6 +271,23 @@ def test_never_overwrites_the_input(capfd, case, tmp_path):
     assert path.read_bytes() == before
 
 
+def test_an_image_without_padding_is_segmented(case, tmp_path):
+    """No voxel is 0 (no sector padding to mark as no data, as in a cropped
+    or simulated image): the padding search finds none, and the command
+    segments it (it raised an AttributeError)."""
+    folder, image, ph = case
+    img = tmp_path / "unpadded.mha"
+    unpadded = sitk.GetImageFromArray(np.maximum(ph.volume.array, 1).astype(np.uint8))
+    unpadded.CopyInformation(image)
+    sitk.WriteImage(unpadded, str(img))
+    apex, base = ph.apex + image.GetOrigin(), ph.base + image.GetOrigin()
+    proc = run("segment", img, "--apex", *apex, "--base", *base, "--out", tmp_path / "out", "--no-report",
+               "--allow-poor")
+    assert proc.returncode == 0, proc.stderr
+    results = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert results["volume_ml"] == pytest.approx(ph.truth_volume_ml, rel=0.1)
+
+
 @pytest.mark.parametrize(
     "make_args, pattern",
     [

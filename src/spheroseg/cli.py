@@ -356,8 +356,8 @@ def _load_timed(source, args, seconds: dict):
         seconds["read"] += time.perf_counter() - t0
     elif auto:
         t0 = time.perf_counter()
-        no_data = outside_sector(volume.array)
-        if no_data.all():  # refused here, before the points' check reads a whole image of nothing
+        no_data = outside_sector(volume.array)  # None: no padding (an image with no zeros)
+        if no_data is not None and no_data.all():  # refused here, before the points' check reads nothing
             raise ValueError(f"{source}: every voxel is 0: the image holds no echo data")
         volume = Volume(volume.array, spacing=volume.spacing, origin=volume.origin, direction=volume.direction,
                         no_data_mask=no_data)
