@@ -6,7 +6,7 @@ Chan-Vese dense level set), plus real CETUS Patient 7 (no truth).
     python benchmarks/accuracy.py --peer-sweep    # the peers' parameter sweep
     python benchmarks/accuracy.py --quick         # 2 seeds, no peers: a smoke run
     python benchmarks/accuracy.py --sweep --label before   # image formations (a few minutes)
-    python benchmarks/accuracy.py --sweep --label coarse-reference --smoothness-reference coarse
+    python benchmarks/accuracy.py --sweep --label fitted-reference --smoothness-reference fitted
 
 Writes docs/accuracy.json and regenerates docs/benchmarks.md.  ``--sweep``
 segments the phantom scenes imaged by every named image formation
@@ -241,7 +241,7 @@ def main(argv=None):
     ap.add_argument("--sweep", action="store_true",
                     help="spheroseg (default options) across image formations and tracked sequences with base descent")
     ap.add_argument("--label", default="latest", help="name of the --sweep run in docs/accuracy_sweep.json")
-    ap.add_argument("--smoothness-reference", choices=["start", "coarse"],
+    ap.add_argument("--smoothness-reference", choices=["start", "fitted"],
                     help="--sweep with this SegmentOptions.smoothness_reference (default: the default options)")
     ap.add_argument("--quick", action="store_true", help="2 seeds and no peers")
     ap.add_argument("--only", choices=["cases", "sequences", "cetus"],

@@ -5,7 +5,7 @@ import pytest
 
 from spheroseg.coords import Pose
 from spheroseg.dataterms import GlobalMeans
-from spheroseg.initial import check_landmarks, initial_model, start_surface
+from spheroseg.initial import check_landmarks, fitted_start, initial_model, start_surface
 from spheroseg.options import SegmentOptions
 from spheroseg.stepper import schedule
 from spheroseg.surface import Surface
@@ -35,6 +35,26 @@ def test_the_annulus_poses_its_plane():
     np.testing.assert_array_equal(
         model.surface.coefficients,
         start_surface(APEX, None, annulus=annulus, options=OPTIONS, patches=LEVELS[0].patches).coefficients)
+
+
+@pytest.mark.parametrize("annulus", [None, BASE + np.array([[15.0, 0, 2], [0, 15, -1], [-15, 0, 2], [0, -15, -1]])])
+def test_the_fitted_start_holds_the_volume_asked_in_the_starts_frame(annulus):
+    """The start's half-ellipsoid widened or narrowed to a volume: same
+    system, pose and grid; its volume the one asked (the half-ellipsoid's
+    ``2 pi h b^2 / 3``, to the Hermite interpolation's error); none where
+    its base radius would reach its height."""
+    start = start_surface(APEX, BASE, annulus=annulus, options=OPTIONS, patches=(8, 8))
+    height = start.pose.to_local(APEX)[0]
+    for ratio in (0.2, 0.4):
+        volume_ml = 2 * np.pi * height * (ratio * height) ** 2 / 3 / 1000
+        fitted = fitted_start(APEX, BASE, volume_ml, annulus=annulus, options=OPTIONS, patches=(8, 8))
+        assert fitted.system == start.system and fitted.grid == start.grid
+        np.testing.assert_allclose(fitted.pose.rotation, start.pose.rotation, atol=1e-12)
+        np.testing.assert_allclose(fitted.pose.origin, start.pose.origin, atol=1e-12)
+        assert abs(fitted.volume_ml() / volume_ml - 1) < 0.01, (ratio, fitted.volume_ml(), volume_ml)
+        np.testing.assert_allclose(fitted.tip(), APEX, atol=0.05)
+    assert fitted_start(APEX, BASE, 2 * np.pi * height ** 3 / 3 / 1000, annulus=annulus, options=OPTIONS,
+                        patches=(8, 8)) is None
 
 
 @pytest.mark.parametrize("args, kwargs, error, match", [

@@ -143,23 +143,21 @@ def test_thread_count_changes_no_bit(phantoms):
     assert numba.get_num_threads() == before
 
 
-def test_an_end_systolic_cavity_is_smoothed_from_the_coarse_shape_not_the_clicked_one():
-    """With ``smoothness_reference="coarse"`` the finest level's smoothing
-    prior measures the surface's departure from the shape the coarse
-    levels found: an end-systolic cavity (small, its wall thick) segmented
-    from its own clicks keeps its volume within 4.5 %; smoothed from the
-    clicked half-ellipsoid (the default) it comes out larger.  (The volume
-    was +2.6 % before the interface's band means lost the blurred edge's
-    deficit, which at 1.5 mm voxels moves an end-systolic wall out by a
-    further 1 %.)"""
+def test_an_end_systolic_cavity_is_smoothed_from_its_fitted_shape_not_the_clicked_one():
+    """With ``smoothness_reference="fitted"`` the finest level's smoothing
+    prior measures the surface's departure from the clicked half-ellipsoid
+    widened or narrowed to the volume the coarse levels found: an
+    end-systolic cavity (small, its wall thick) segmented from its own
+    clicks keeps its volume within 4.5 %; smoothed from the clicked
+    half-ellipsoid (the default) it comes out larger."""
     from spheroseg.synthetic.phantom import FORMATIONS
 
     es = make_sequence(seed=0, n_frames=2, spacing=1.5, base_descent=10.0, formation=FORMATIONS["default"]).frames[1]
     errors = {reference: segment(es.volume, es.apex, es.base, check=False,
                                  smoothness_reference=reference).volume_ml / es.truth_volume_ml - 1
-              for reference in ("coarse", "start")}
-    assert abs(errors["coarse"]) < 0.045, errors  # +3.7 %
-    assert errors["start"] > errors["coarse"] + 0.025, errors  # +7.6 %
+              for reference in ("fitted", "start")}
+    assert abs(errors["fitted"]) < 0.045, errors  # +2.3 %
+    assert errors["start"] > errors["fitted"] + 0.025, errors  # +7.6 %
 
 
 def test_tracking_recovers_ejection_fraction():

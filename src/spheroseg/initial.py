@@ -10,7 +10,7 @@ check fails with one line naming the point.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -19,8 +19,8 @@ from .options import SegmentOptions, format_point
 from .stepper import Level
 from .surface import Surface
 
-__all__ = ["InitialModel", "initial_model", "start_surface", "check_volume", "check_point", "check_landmarks",
-           "MIN_LONG_AXIS_MM"]
+__all__ = ["InitialModel", "initial_model", "start_surface", "fitted_start", "check_volume", "check_point",
+           "check_landmarks", "MIN_LONG_AXIS_MM"]
 
 #: the least apex-to-base distance taken (mm): a mouse's left ventricle is
 #: some 6 mm long, and a descent from a start of a few micrometres ends in
@@ -80,6 +80,29 @@ def start_surface(apex: np.ndarray, base: np.ndarray | None, *, annulus: np.ndar
                                     radius_ratio=options.radius_ratio)
     return Surface.from_apex_base(apex, base, system=options.system, patches=patches,
                                   radius_ratio=options.radius_ratio)
+
+
+def fitted_start(apex: np.ndarray, base: np.ndarray | None, volume_ml: float, *, annulus: np.ndarray | None,
+                 options: SegmentOptions, patches: tuple[int, int]) -> Surface | None:
+    r"""The start surface's half-ellipsoid widened or narrowed to enclose
+    ``volume_ml``: the same pose and apex height ``h``, the base radius
+    ``b = sqrt(3 V / (2 pi h))`` (a half-ellipsoid, sheared or not, holds
+    ``2 pi h b^2 / 3``), or None where no such shape is posed (``b`` not
+    under ``h``, or the apex further off the axis than ``b``).  Every
+    coordinate system's fit depends on ``h`` alone, so the shape shares the
+    start's system and grid."""
+    if annulus is not None:
+        height = float(Pose.from_annulus(apex, annulus, base=base).to_local(np.asarray(apex, float))[0])
+    else:
+        height = float(np.linalg.norm(np.asarray(apex, float) - np.asarray(base, float)))
+    radius_ratio = np.sqrt(3.0 * 1000.0 * volume_ml / (2.0 * np.pi * height)) / height
+    if not 0 < radius_ratio < 1:
+        return None
+    try:
+        return start_surface(apex, base, annulus=annulus, options=replace(options, radius_ratio=float(radius_ratio)),
+                             patches=patches)
+    except ValueError:  # the apex off the sheared axis by more than the new radius
+        return None
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ SYSTEMS = ("prolate", "spherical", "cylindrical")
 #: array backends (see :mod:`spheroseg.backends`)
 BACKENDS = ("auto", "compiled", "numpy")
 #: what the finest level's smoothing measures the departure from
-SMOOTHNESS_REFERENCES = ("start", "coarse")
+SMOOTHNESS_REFERENCES = ("start", "fitted")
 #: upper bounds of the options that size memory or time: patches per
 #: direction and sample points per patch and direction (32 x 32 patches of
 #: 8 x 8 points hold 1.2 GB during a descent, and memory grows with the
@@ -93,17 +93,19 @@ class SegmentOptions:
         from a reference shape (``smoothness_reference``), applied as an
         implicit step each iteration (0 for the paper's method); 1 halves a
         wave of the patch size at 8 x 8 patches per step.
-    smoothness_reference : {"start", "coarse"}
+    smoothness_reference : {"start", "fitted"}
         The shape that departure is measured from on the finest patches:
         ``"start"``, the initial half-ellipsoid, as on the coarse levels;
-        ``"coarse"``, the surface the coarse levels ended on (the wall found
-        from afar).  The start pulls a small cavity out towards the clicked
-        shape (end-systolic phantoms segmented from their own clicks 3-8 %
-        large, against 1-3.5 % from the coarse shape); the coarse shape
-        fits every phantom of the image-formation sweep closer (Dice and
-        mean surface distance) but leaves the volumes about 1 % lower
-        (docs/benchmarks.md).  A frame of a sequence is smoothed from the
-        previous frame's surface, a given ``init`` from itself.
+        ``"fitted"``, that half-ellipsoid widened or narrowed to hold the
+        volume the coarse levels ended on (the same apex and base plane;
+        :func:`spheroseg.initial.fitted_start`).  The start pulls a small
+        cavity out towards the clicked shape (end-systolic phantoms
+        segmented from their own clicks 7-13 % large, against 1-7 % from
+        the fitted shape); the fitted shape fits every phantom of the
+        image-formation sweep closer (Dice and mean surface distance) but
+        leaves the volumes about 1.3 % lower (docs/benchmarks.md).  A frame
+        of a sequence is smoothed from the previous frame's surface, a
+        given ``init`` from itself.
     landmark_weight : float
         How strongly the landmarks hold the surface (1: a landmark
         outweighs the data over 5 % of the surface, about a patch at 4 x 4).

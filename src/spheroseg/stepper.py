@@ -15,6 +15,7 @@ puts those parts together.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -100,6 +101,11 @@ class Stepper:
         The clicked apex (world mm), held with ``options.apex_weight``.
     landmarks : array (k, 3)
         The user's landmarks (world mm), held with ``options.landmark_weight``.
+    fitted_start : callable, optional
+        ``fitted_start(volume_ml, patches=...)``: the start's shape holding
+        that volume, or None (:func:`spheroseg.initial.fitted_start`); the
+        finest patches' reference under ``smoothness_reference="fitted"``.
+        Not given (a start that is not the clicked shape): the start.
 
     Attributes
     ----------
@@ -121,9 +127,10 @@ class Stepper:
     """
 
     def __init__(self, volume, surface: Surface, *, levels, options: SegmentOptions, apex: np.ndarray,
-                 landmarks: np.ndarray):
+                 landmarks: np.ndarray, fitted_start: Callable[..., Surface | None] | None = None):
         started = time.perf_counter()
         self.volume, self.options, self.levels = volume, options, tuple(levels)
+        self.fitted_start = fitted_start
         self.apex, self.landmarks = apex, landmarks
         self.level, self.frame_cap = 0, None
         self.descent = self.new_descent(surface, surface)
@@ -307,14 +314,24 @@ class Stepper:
                 self.descent.restart(self.stage_step(settled=converged))
             else:
                 surface = self.descent.surface
-                # the finest patches smooth the wall's departure from the
-                # shape the coarse levels found (SegmentOptions.smoothness_reference)
-                coarse = (self.options.smoothness_reference == "coarse"
-                          and self.levels[self.level].patches == self.levels[-1].patches)
-                self.descent = self.new_descent(surface, surface if coarse else self.reference)
+                if self.levels[self.level].patches == self.levels[-1].patches:
+                    self.reference = self._finest_reference(surface)
+                self.descent = self.new_descent(surface, self.reference)
             self._skip_empty_levels()
         else:
             self.status = 0 if converged else 1
+
+    def _finest_reference(self, surface: Surface) -> Surface:
+        """The shape the finest patches smooth the wall's departure from
+        (:attr:`SegmentOptions.smoothness_reference`): the clicked one, or
+        its half-ellipsoid holding what ``surface``, the coarse levels'
+        end, holds (where the stepper was given the clicked shape's family,
+        ``fitted_start``)."""
+        if self.options.smoothness_reference == "fitted" and self.fitted_start is not None:
+            fitted = self.fitted_start(surface.volume_ml(), patches=(surface.grid.n1, surface.grid.n2))
+            if fitted is not None:
+                return fitted
+        return self.reference
 
     def _start_term(self) -> None:
         """The current level's data term forgets what it measured before

@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import time
 import warnings
+from functools import partial
 
 import numpy as np
 
 from .frames import BASE_RING_MM, base_ring_floor, base_ring_points, followed_base, followed_the_wall, keep_better_start
-from .initial import check_landmarks, check_volume, initial_model
+from .initial import check_landmarks, check_volume, fitted_start, initial_model
 from .dataterms import nanmedian
 from .options import SegmentOptions
 from .quality import FrameQuality
@@ -106,8 +107,11 @@ class Tracker:
         model = initial_model(volume, apex, base, annulus=annulus, landmarks=landmarks, init=init, levels=levels,
                               options=opts)
         self.apex, self.base, self.annulus = model.apex, model.base, model.annulus
+        # the clicked shape's family, for a smoothing reference fitted to the coarse levels' end
+        family = None if init is not None else partial(fitted_start, model.apex, model.base, annulus=model.annulus,
+                                                       options=opts)
         self.stepper = Stepper(volume, model.surface, levels=model.levels, options=opts, apex=model.apex,
-                               landmarks=model.landmarks)
+                               landmarks=model.landmarks, fitted_start=family)
         self._quality = FrameQuality(model.surface, model.apex)
         self.stepper.seconds = time.perf_counter() - started
 
