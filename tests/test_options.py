@@ -21,7 +21,7 @@ def test_defaults_round_trip_through_json():
     (dict(step=-1.0), "step must be a positive number, got -1.0"),
     (dict(tol=float("nan")), "tol must be a positive number"),
     (dict(coarse_tol=0.0), "coarse_tol must be a positive number"),
-    (dict(smoothness_reference="initial"), "smoothness_reference must be one of .*'start', 'coarse'.*, got 'initial'"),
+    (dict(smoothness_reference="initial"), "smoothness_reference must be one of .*'start', 'fitted'.*, got 'initial'"),
     (dict(max_iterations=True), "max_iterations must be an integer"),
     (dict(order=0), "order must be from 1 to 16"),
     (dict(patches=(200, 200)), "patches must be at most 32 in each direction"),
