@@ -103,7 +103,9 @@ class SegmentOptions:
         segmented from their own clicks 7-13 % large, against 1-7 % from
         the fitted shape); the fitted shape fits every phantom of the
         image-formation sweep closer (Dice and mean surface distance) but
-        leaves the volumes 1-2 % lower (docs/benchmarks.md).  A frame
+        leaves the volumes 1-2 % lower, and follows the coarse levels' own
+        error where a wide blur misleads them (an image whose speckle hides
+        its walls' blur: down to -15 %; docs/benchmarks.md).  A frame
         of a sequence is smoothed from the previous frame's surface, a
         given ``init`` from itself.
     landmark_weight : float
