@@ -1237,9 +1237,17 @@ def _anatomy(data) -> list[str]:
         ("... against a model of the edge along each normal: the median of the blurred log edges of standard "
          "deviation `sqrt(n C n)` (`C` the speckle's covariance, `edge_blur_covariance`), the same 20-80 % width",
          "measured less modelled: plain walls 0.57-1.24 mm over 7 formations and the muscles (speckle and tilted "
-         "scenes), the rim 1.40 / 1.43 mm", "no: the rim's 0.2-0.4 mm lies within the plain walls' spread. The "
-         "lead left: the rim's ridges modulate the grey level around the wall (18 ridges, a 7.7 mm period at the "
-         "mid wall, resolved laterally), which a plain wall's speckle does not"),
+         "scenes), the rim 1.40 / 1.43 mm", "no: the rim's 0.2-0.4 mm lies within the plain walls' spread"),
+        ("... by the grey level's variation around the wall: on rings of the surface 0.2-0.5 of the way from base "
+         "to apex (360 points each), the variance around the ring, a 60-degree moving average removed, of the mean "
+         "grey level 0.5-2.5 mm inside the surface, over that of the tissue 3-5 mm outside (log speckle's variance "
+         "does not depend on its mean), median over the rings",
+         "the rim 3.8 / 4.1 (without the muscles 3.1 / 3.7); every plain wall 0.71-2.08: the muscles 1.5, the nine "
+         "formations measured 0.95-2.08 (contrast_high the most), gaussian_2mm, median_2mm and diffusion 0.71-1.86 "
+         "(speckle / tilted scenes)", "the lead left: the ridges (a 7.7 mm period at the mid wall, resolved "
+         "laterally) show; where they do, the compact wall is the outer end of the modulated zone, to be read "
+         "along each normal. The margin (2.1 against 3.1) is this phantom's: real trabeculae are irregular, so "
+         "the test wants real echo with expert contours first"),
     ])
     return out
 
