@@ -1242,7 +1242,7 @@ def _anatomy(data) -> list[str]:
          "to apex (360 points each), the variance around the ring, a 60-degree moving average removed, of the mean "
          "grey level 0.5-2.5 mm inside the surface, over that of the tissue 3-5 mm outside (log speckle's variance "
          "does not depend on its mean), median over the rings",
-         "the rim 3.8 / 4.1 (without the muscles 3.1 / 3.7); every plain wall 0.71-2.08: the muscles 1.5, the nine "
+         "the rim 3.8 / 4.1 (without the muscles 3.1 / 3.7); every plain wall 0.71-2.08: the muscles 1.5, the eight "
          "formations measured 0.95-2.08 (contrast_high the most), gaussian_2mm, median_2mm and diffusion 0.71-1.86 "
          "(speckle / tilted scenes)", "the lead left: the ridges (a 7.7 mm period at the mid wall, resolved "
          "laterally) show; where they do, the compact wall is the outer end of the modulated zone, to be read "
