@@ -104,6 +104,23 @@ def test_segment_each_format(capfd, case, suffix, tmp_path):
     assert (out / "report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_the_smoothing_reference_from_the_command_line(capfd, case, tmp_path):
+    """``--smoothness-reference fitted`` reaches the segmentation: the API's
+    volume with that option, not the default's."""
+    folder, image, ph = case
+    path = folder / "case.mha"
+    sitk.WriteImage(image, str(path))
+    shift = np.array(image.GetOrigin())
+    proc = cli(capfd, "segment", path, *points_args(ph, shift), "--out", tmp_path / "o", "--quiet", "--no-report",
+               "--smoothness-reference", "fitted")
+    assert proc.returncode == 0, proc.stderr
+    volume_ml = json.loads((tmp_path / "o" / "results.json").read_text())["volume_ml"]
+    vol = load(path)
+    fitted = segment(vol, ph.apex + shift, ph.base + shift, smoothness_reference="fitted").volume_ml
+    start = segment(vol, ph.apex + shift, ph.base + shift).volume_ml
+    assert volume_ml == pytest.approx(fitted, rel=1e-9) and abs(fitted / start - 1) > 1e-3, (volume_ml, fitted, start)
+
+
 def test_points_from_markups_and_landmarks(capfd, case, tmp_path):
     folder, image, ph = case
     path = folder / "case.mha"

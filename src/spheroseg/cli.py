@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ._version import __version__
-from .options import MODES, SYSTEMS, SegmentOptions
+from .options import MODES, SMOOTHNESS_REFERENCES, SYSTEMS, SegmentOptions
 
 EXIT_ERROR = 2
 #: the run completed and wrote its outputs, but a result is poor (its quality
@@ -88,6 +88,11 @@ def _add_options(p: argparse.ArgumentParser) -> None:
                    help="per coarse-to-fine level")
     p.add_argument("--smoothness", type=float, default=SegmentOptions.smoothness,
                    help="thin-plate prior weight (0: the paper's method)")
+    p.add_argument("--smoothness-reference", default=SegmentOptions.smoothness_reference,
+                   choices=SMOOTHNESS_REFERENCES,
+                   help="the shape the finest patches are smoothed towards: the clicked half-ellipsoid ('start'), "
+                        "or it widened or narrowed to the volume the coarse levels found ('fitted': an "
+                        "end-systole segmented on its own comes out less large)")
     p.add_argument("--threads", type=int, metavar="N",
                    help="threads of the compiled kernels (default: the cores no other process is using; a batch of "
                         "several workers: 1 each); the results do not depend on it")
@@ -288,7 +293,8 @@ def _check_options(args) -> None:
 
 def _segment_kwargs(args) -> dict:
     return dict(system=args.system, patches=tuple(args.patches), mode=args.mode, step=args.step,
-                max_iterations=args.max_iterations, smoothness=args.smoothness, threads=args.threads)
+                max_iterations=args.max_iterations, smoothness=args.smoothness,
+                smoothness_reference=args.smoothness_reference, threads=args.threads)
 
 
 def _mask_suffix(args, source: Path) -> str:
