@@ -167,7 +167,9 @@ def followed_the_wall(tracker) -> bool:
 def keep_better_start(tracker, start: Surface) -> None:
     """Segment ``tracker``'s current frame again through the coarse data
     term, from ``start`` (the frame's start surface) and from the initial
-    shape posed at the current apex and base (coarse to fine), and keep the
+    shape posed at the current apex and base (coarse to fine, smoothed on
+    the finest patches towards that shape fitted to the coarse levels'
+    volume: ``smoothness_reference="fitted"``), and keep the
     segmentation of the lowest data energy (the stepped one unless another
     is lower by more than :data:`RESEGMENT_MARGIN` of it).
 
@@ -185,7 +187,10 @@ def keep_better_start(tracker, start: Surface) -> None:
     stepper = tracker.stepper
     options = {name: getattr(tracker.options, name) for name in SegmentOptions.names()}
     place = dict(annulus=tracker.annulus, landmarks=tracker.landmarks if len(tracker.landmarks) else None)
-    fresh = type(tracker)(tracker.volume, tracker.apex, tracker.base, **place, **options)
+    # the clicked shape's proportions are the first frame's; a frame far from it (an end-systole reached from
+    # end-diastole) is smoothed towards the shape holding what the coarse levels found in it
+    fresh = type(tracker)(tracker.volume, tracker.apex, tracker.base, **place,
+                          **{**options, "smoothness_reference": "fitted"})
     coarse, finest = schedule(tracker.options)[0], schedule(tracker.options, coarse_to_fine=False)
     again_levels = (Level(finest[0].patches, coarse.data_term, coarse.max_iterations, coarse.tol), *finest)
     again = type(tracker)(tracker.volume, tracker.apex, tracker.base, init=start, levels=again_levels, **place,
