@@ -12,7 +12,9 @@ requires today's code to reproduce them to 1e-10.  The reference in the
 repository was made on commit 92d46fa (round 1's last), before the descent
 was split into a tracker, data terms and backends; its tracked sequence
 was made again (``--track-only``) when frames that moved further than the
-finest level follows came to be segmented again from the coarse data term.
+finest level follows came to be segmented again from the coarse data term,
+and when the initial shape's candidate among them came to be smoothed
+towards that shape fitted to its coarse levels' volume.
 """
 
 from pathlib import Path
