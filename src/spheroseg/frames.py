@@ -164,14 +164,19 @@ def followed_the_wall(tracker) -> bool:
     return not (np.any(inner > LEFT_BEHIND) or np.any(outer < LEFT_BEHIND))
 
 
-def keep_better_start(tracker, start: Surface) -> None:
+def keep_better_start(tracker, start: Surface, *, left_behind: bool = False) -> None:
     """Segment ``tracker``'s current frame again through the coarse data
     term, from ``start`` (the frame's start surface) and from the initial
     shape posed at the current apex and base (coarse to fine, smoothed on
     the finest patches towards that shape fitted to the coarse levels'
     volume: ``smoothness_reference="fitted"``), and keep the
-    segmentation of the lowest data energy (the stepped one unless another
-    is lower by more than :data:`RESEGMENT_MARGIN` of it).
+    segmentation of the lowest data energy: the stepped one unless another
+    is lower by more than :data:`RESEGMENT_MARGIN` of it.  Where the
+    stepped surface ``left_behind`` the wall (:func:`followed_the_wall`)
+    the same check judges the others, and the one of lowest energy among
+    those on the wall replaces it (by energy as above where none is): the
+    energy's scalar levels can prefer a wall left inside the surface where
+    the time-gain compensation left it dark.
 
     A wall that moved between frames by more than the finest levels' bands
     can follow leaves the stepped surface where the local means balance on
@@ -206,9 +211,12 @@ def keep_better_start(tracker, start: Surface) -> None:
     def sample(world):  # no data weighs nothing
         return tracker.volume.sample(world, fill_value=float(levels.mean()))
 
-    energies = [data_energy(model, model.parameters(candidate.surface.coefficients), sample, *levels)
-                for candidate in candidates]
-    best = candidates[int(np.argmin(energies))]
-    if energies[0] - min(energies) > RESEGMENT_MARGIN * abs(energies[0]):
-        stepper.adopt(best.stepper)
+    energies = np.array([data_energy(model, model.parameters(candidate.surface.coefficients), sample, *levels)
+                         for candidate in candidates])
+    # where the stepped wall was left behind, the check that found it judges the others: one on the wall wins
+    on_wall = [k for k, candidate in enumerate(candidates) if k and followed_the_wall(candidate)] if left_behind else []
+    if on_wall:
+        stepper.adopt(candidates[min(on_wall, key=lambda k: energies[k])].stepper)
+    elif energies[0] - energies.min() > RESEGMENT_MARGIN * abs(energies[0]):
+        stepper.adopt(candidates[int(np.argmin(energies))].stepper)
     stepper.seconds += time.perf_counter() - started

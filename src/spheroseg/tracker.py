@@ -294,7 +294,8 @@ class Tracker:
         stepper.seconds = time.perf_counter() - started
         self.run(iter_callback, callback_every=callback_every)
         if self.options.coarse_to_fine and self.status != 2 and not followed_the_wall(self):
-            keep_better_start(self, start)  # (not when stopped from outside)
+            # (not when stopped from outside); settled, yet not followed: the wall was left behind
+            keep_better_start(self, start, left_behind=self.status == 0)
         return self.result()
 
     def step(self, volume, *, max_iterations: int | None = None, iter_callback=None,
