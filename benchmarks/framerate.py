@@ -4,6 +4,7 @@ end-diastole to end-systole directly.
     python benchmarks/framerate.py               # about 15 min on 2 shared cores
     python benchmarks/framerate.py --seeds 0 1
     python benchmarks/framerate.py --speed       # the tracking speed only (a minute)
+    python benchmarks/framerate.py --pairs       # ED-ES pairs of every formation (5 min)
 
 Each seed's cycle (default formation, the annulus descending 10 mm at
 end-systole) is made at 20 frames and tracked with every frame, every 2nd
@@ -12,7 +13,9 @@ cycle of the same heart is made and tracked too.  ``spheroseg.track`` with
 default options from the first frame's apex and base.  ``--speed``: the
 throughput of tracking the legacy 10-frame cycle (as benchmarks/speed.py
 measures it) with every frame segmented again (the default) and with none,
-interleaved.
+interleaved.  ``--pairs``: the pair ED, ES alone (1.5 mm voxels, seeds 0,
+1 and 3) of every named formation and of the default one post-processed
+as a scanner exports it (the export grids aside), tracked.
 Writes docs/framerate.json and regenerates docs/benchmarks.md.
 """
 
@@ -31,7 +34,7 @@ from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
 import spheroseg.tracker  # noqa: E402
-from spheroseg.synthetic.phantom import FORMATIONS, make_sequence  # noqa: E402
+from spheroseg.synthetic.phantom import FORMATIONS, POSTPROCESSINGS, make_sequence  # noqa: E402
 from spheroseg.segment import track  # noqa: E402
 from spheroseg.tracker import Tracker  # noqa: E402
 
@@ -39,9 +42,9 @@ SEGMENTED_AGAIN = []  # the frames the tracker segmented again, counted through 
 
 
 def _counting(keep_better_start):
-    def counted(tracker, start):
+    def counted(tracker, start, **options):
         SEGMENTED_AGAIN.append(1)
-        return keep_better_start(tracker, start)
+        return keep_better_start(tracker, start, **options)
     return counted
 
 
@@ -79,6 +82,24 @@ def run(seeds) -> list:
         six = make_sequence(seed=seed, n_frames=6, base_descent=DESCENT_MM, formation=FORMATIONS["default"])
         rows.append({"seed": seed, "sampling": "6 a cycle", **tracked(six.frames)})
         print(rows[-1], flush=True)
+    return rows
+
+
+PAIR_SEEDS = (0, 1, 3)
+
+
+def pairs() -> list:
+    """End-diastole to end-systole directly, tracked, for every formation
+    and post-processing (:data:`PAIR_SEEDS`, 1.5 mm voxels)."""
+    settings = [(name, {"formation": formation}) for name, formation in FORMATIONS.items()]
+    settings += [(f"default, {name}", {"formation": FORMATIONS["default"], **extra})
+                 for name, extra in POSTPROCESSINGS.items() if name != "raw" and "spacing" not in extra]
+    rows = []
+    for name, kwargs in settings:
+        for seed in PAIR_SEEDS:
+            seq = make_sequence(seed=seed, n_frames=2, spacing=1.5, base_descent=DESCENT_MM, **kwargs)
+            rows.append({"setting": name, "seed": seed, **tracked(seq.frames)})
+            print(rows[-1], flush=True)
     return rows
 
 
@@ -122,14 +143,20 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--speed", action="store_true", help="measure the tracking speed only")
+    ap.add_argument("--pairs", action="store_true", help="the ED-ES pairs of every formation only")
     args = ap.parse_args(argv)
-    if args.speed:
+    if args.speed or args.pairs:
         import json
 
         path = Path(__file__).resolve().parents[1] / "docs" / "framerate.json"
         data = json.loads(path.read_text()) if path.is_file() else {}
-        data["speed"] = speed()
-        print(data["speed"], flush=True)
+        if args.speed:
+            data["speed"] = speed()
+            print(data["speed"], flush=True)
+        else:
+            t0 = time.perf_counter()
+            data["pairs"] = {"command": "python benchmarks/framerate.py --pairs", "machine": machine(),
+                             "rows": pairs(), "wall_seconds": time.perf_counter() - t0}
         print("wrote", write_json("framerate.json", data))
         print("wrote", write_markdown())
         return
@@ -143,7 +170,7 @@ def main(argv=None):
     if previous.is_file():  # the speed of --speed, measured on its own
         import json
 
-        data.update({k: v for k, v in json.loads(previous.read_text()).items() if k == "speed"})
+        data.update({k: v for k, v in json.loads(previous.read_text()).items() if k in ("speed", "pairs")})
     print("wrote", write_json("framerate.json", data))
     print("wrote", write_markdown())
 
