@@ -23,6 +23,17 @@ def test_constant_lambda_volume_is_analytic():
     np.testing.assert_allclose(half.volume_ml(), 2 / 3 * np.pi * a * b * b / 1000, rtol=1e-6)
 
 
+def test_wall_area_of_a_half_spheroid_is_analytic():
+    """Half a prolate spheroid's area, ``pi b^2 (1 + a / (b e) asin e)``
+    with ``e = sqrt(1 - b^2 / a^2)``; the base plane is not wall."""
+    d, l0 = 40.0, 0.7
+    a, b = d * np.cosh(l0), d * np.sinh(l0)
+    e = np.sqrt(1 - (b / a) ** 2)
+    half = np.pi * b**2 * (1 + a / (b * e) * np.arcsin(e))
+    np.testing.assert_allclose(constant_prolate(l0, d).wall_area_mm2(), half, rtol=1e-6)
+    np.testing.assert_allclose(constant_prolate(l0, d, (0.0, np.pi)).wall_area_mm2(), 2 * half, rtol=1e-6)
+
+
 @pytest.mark.parametrize("system", ["prolate", "spherical", "cylindrical"])
 def test_initial_surface_is_half_ellipsoid_through_apex(system):
     s = Surface.from_apex_base(APEX, BASE, system=system, radius_ratio=0.35)

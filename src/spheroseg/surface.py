@@ -17,6 +17,7 @@ from typing import Callable
 import numpy as np
 
 from .coords import CoordinateSystem, Pose, coordinate_system
+from .energy import SampledSurface, area_energy
 from .hermite import HermiteGrid
 from .volume import ImageGrid
 
@@ -298,6 +299,14 @@ class Surface:
         # the points lie on rows of one v2 each: its trigonometry once a row
         rows = v2.reshape(self.grid.n2 * order, -1)[:, :1]
         return float(w @ self.system.radial_volume(f.reshape(len(rows), -1), rows).ravel()) / 1000.0
+
+    def wall_area_mm2(self, order: int = 4) -> float:
+        """Area (mm^2) of the cavity's wall, the base plane left open:
+        ``int int A_K dv1 dv2`` (paper eq. 16-17,
+        :func:`spheroseg.energy.area_energy`) by Gauss-Legendre quadrature,
+        ``order`` points a patch along each direction."""
+        model = SampledSurface(self.system, self.pose, self.grid, order)
+        return area_energy(model, model.parameters(self.coefficients))
 
     def bounding_box(self, n: int = 48) -> tuple[np.ndarray, np.ndarray]:
         """World bounding box (min, max corners) of the closed cavity."""
