@@ -3,7 +3,10 @@
 import numpy as np
 
 from spheroseg import Tracker
-from spheroseg.frames import BASE_RING_MM, LEFT_BEHIND, WALL_SECTORS, base_ring_floor, base_ring_points, wall_sides
+from spheroseg.coords import Pose, ProlateSpheroidal
+from spheroseg.frames import (BASE_RING_MM, LEFT_BEHIND, WALL_SECTORS, base_ring_floor, base_ring_points, wall_motion_mm,
+                              wall_sides)
+from spheroseg.hermite import HermiteGrid
 from spheroseg.surface import Surface
 from spheroseg.volume import ImageGrid, Volume
 
@@ -52,3 +55,29 @@ def test_the_wall_sides_read_blood_inside_and_wall_outside():
     smaller = step_image(Surface.from_apex_base(APEX, BASE, radius_ratio=0.2), c_in=20.0, c_out=120.0)
     behind = wall_sides(Tracker(smaller, APEX, BASE).stepper.descent, smaller, (20.0, 120.0), width=4.0)
     assert np.all(behind[:, 0] > LEFT_BEHIND) and np.all(behind[:, 1] > 0.9)
+
+
+def test_the_wall_motion_of_two_confocal_half_spheroids():
+    """Confocal half-spheroids ``lambda = l0`` and ``l1``: the volume
+    between them over their walls' mean area (the analytic volumes and
+    areas); for a thin step, between the distances of the two walls at
+    the apex, ``d (cosh l1 - cosh l0)``, and at the equator, ``d (sinh l1
+    - sinh l0)``."""
+    d = 40.0
+    system = ProlateSpheroidal(d)
+    grid = HermiteGrid(8, 8, (0.0, np.pi / 2), poles=system.poles)
+
+    def half_spheroid(l0):
+        a, b = d * np.cosh(l0), d * np.sinh(l0)
+        e = np.sqrt(1 - (b / a) ** 2)
+        surface = Surface.from_function(system, Pose.from_apex_base(APEX, BASE), grid, l0)
+        return surface, 2 / 3 * np.pi * a * b * b, np.pi * b**2 * (1 + a / (b * e) * np.arcsin(e))
+
+    (inner, v0, a0), (outer, v1, a1) = half_spheroid(0.6), half_spheroid(0.7)
+    expected = (v1 - v0) / ((a0 + a1) / 2)
+    np.testing.assert_allclose(wall_motion_mm(inner, outer), expected, rtol=1e-6)
+    assert wall_motion_mm(outer, inner) == wall_motion_mm(inner, outer)
+    assert wall_motion_mm(inner, inner) == 0.0
+    thin = half_spheroid(0.61)[0]
+    at_apex, at_equator = d * (np.cosh(0.61) - np.cosh(0.6)), d * (np.sinh(0.61) - np.sinh(0.6))
+    assert at_apex < wall_motion_mm(inner, thin) < at_equator

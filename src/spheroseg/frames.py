@@ -22,7 +22,7 @@ from .stepper import Level, schedule
 from .surface import Surface
 
 __all__ = ["BASE_RING_MM", "RESEGMENT_MARGIN", "LEFT_BEHIND", "base_ring_floor", "base_ring_points", "followed_base",
-           "keep_better_start", "wall_sides", "followed_the_wall"]
+           "keep_better_start", "wall_sides", "followed_the_wall", "wall_motion_mm"]
 
 #: plausible radii of the mitral annulus in adults, mm (the base ring's range)
 BASE_RING_MM = (10.0, 20.0)
@@ -162,6 +162,23 @@ def followed_the_wall(tracker) -> bool:
                            width=tracker.options.band / 2)
     inner, outer = sides[:, 0], sides[:, 1]
     return not (np.any(inner > LEFT_BEHIND) or np.any(outer < LEFT_BEHIND))
+
+
+def wall_motion_mm(start: Surface, surface: Surface) -> float:
+    """How far the wall moved between ``start`` and ``surface`` on the
+    whole (mm): the change of the cavity's volume over the mean area of
+    the two walls, ``|V_1 - V_0| / ((A_0 + A_1) / 2)`` (a wall moved
+    everywhere by ``w`` along its normals changes the volume by ``w A`` to
+    first order; the base plane left open).
+
+    Where :func:`followed_the_wall` cannot look, it bounds what the finest
+    levels were asked to follow: their local means find a wall within half
+    their band (``options.band / 2``).  The stepped surface moves less
+    than a wall it left behind, so this is a lower bound of the wall's
+    motion.
+    """
+    mean_area = (start.wall_area_mm2() + surface.wall_area_mm2()) / 2
+    return 1000.0 * abs(surface.volume_ml() - start.volume_ml()) / mean_area
 
 
 def keep_better_start(tracker, start: Surface, *, left_behind: bool = False) -> None:

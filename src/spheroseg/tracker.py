@@ -24,7 +24,8 @@ from functools import partial
 
 import numpy as np
 
-from .frames import BASE_RING_MM, base_ring_floor, base_ring_points, followed_base, followed_the_wall, keep_better_start
+from .frames import (BASE_RING_MM, base_ring_floor, base_ring_points, followed_base, followed_the_wall, keep_better_start,
+                     wall_motion_mm)
 from .initial import check_landmarks, check_volume, fitted_start, initial_model
 from .dataterms import nanmedian
 from .options import SegmentOptions
@@ -270,7 +271,9 @@ class Tracker:
         long axis with the annulus (:func:`spheroseg.frames.followed_base`)
         and the model is posed there.  With ``coarse_to_fine``, a frame
         whose stepped surface did not settle on the wall
-        (:func:`spheroseg.frames.followed_the_wall`) is then segmented again
+        (:func:`spheroseg.frames.followed_the_wall`), or whose wall moved on
+        the whole by more than half the local means' band
+        (:func:`spheroseg.frames.wall_motion_mm`), is then segmented again
         from afar and the better segmentation kept
         (:func:`spheroseg.frames.keep_better_start`).  ``iter_callback``
         and ``callback_every`` as in :meth:`run`.
@@ -293,9 +296,12 @@ class Tracker:
         stepper.start_frame(volume, self.options.max_iterations if max_iterations is None else int(max_iterations))
         stepper.seconds = time.perf_counter() - started
         self.run(iter_callback, callback_every=callback_every)
-        if self.options.coarse_to_fine and self.status != 2 and not followed_the_wall(self):
-            # (not when stopped from outside); settled, yet not followed: the wall was left behind
-            keep_better_start(self, start, left_behind=self.status == 0)
+        if self.options.coarse_to_fine and self.status != 2:  # (not when stopped from outside)
+            # settled, yet not followed: the wall was left behind; followed where the check looks (the basal
+            # wall), yet moved by more than the local means can follow: maybe left behind where it does not
+            followed = followed_the_wall(self)
+            if not followed or wall_motion_mm(start, self.surface) > self.options.band / 2:
+                keep_better_start(self, start, left_behind=not followed and self.status == 0)
         return self.result()
 
     def step(self, volume, *, max_iterations: int | None = None, iter_callback=None,
