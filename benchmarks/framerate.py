@@ -105,8 +105,8 @@ def pairs() -> list:
 
 def speed(repeats: int = 3) -> dict:
     """Volumes per second stepping the legacy 10-frame cycle at 5 iterations
-    a frame, with the frames whose wall was left behind segmented again
-    (the default), with every frame and with none (the tracker's options
+    a frame, with the frames whose wall was left behind or moved far
+    segmented again (the default), with every frame and with none (the tracker's options
     without ``coarse_to_fine`` after the first frame, which the
     re-segmentation needs); and whole ``track`` runs."""
     import os
@@ -114,7 +114,7 @@ def speed(repeats: int = 3) -> dict:
 
     seq = make_sequence(seed=0, n_frames=10)
     first = seq.frames[0]
-    times = {"where the wall was left behind (the default)": [], "every frame": [], "none": []}
+    times = {"where the wall was left behind or moved far (the default)": [], "every frame": [], "none": []}
     load = os.getloadavg()[0]
     followed_the_wall = spheroseg.tracker.followed_the_wall
     for _ in range(repeats):
