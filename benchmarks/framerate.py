@@ -5,6 +5,7 @@ end-diastole to end-systole directly.
     python benchmarks/framerate.py --seeds 0 1
     python benchmarks/framerate.py --speed       # the tracking speed only (a minute)
     python benchmarks/framerate.py --pairs       # ED-ES pairs of every formation (5 min)
+    python benchmarks/framerate.py --formations  # 4, 5 and 6 frames a cycle of every formation (12 min)
 
 Each seed's cycle (default formation, the annulus descending 10 mm at
 end-systole) is made at 20 frames and tracked with every frame, every 2nd
@@ -16,6 +17,8 @@ measures it) with every frame segmented again (the default) and with none,
 interleaved.  ``--pairs``: the pair ED, ES alone (1.5 mm voxels, seeds 0,
 1 and 3) of every named formation and of the default one post-processed
 as a scanner exports it (the export grids aside), tracked.
+``--formations``: the seed-3 cycle of every named formation at 4 and 5
+frames a cycle (every 5th and 4th of 20) and made at 6, tracked.
 Writes docs/framerate.json and regenerates docs/benchmarks.md.
 """
 
@@ -103,6 +106,23 @@ def pairs() -> list:
     return rows
 
 
+FORMATION_SEED = 3
+
+
+def formations() -> list:
+    """The cycle of every formation at 4, 5 and 6 frames a cycle
+    (:data:`FORMATION_SEED`, the default voxels)."""
+    rows = []
+    for name, formation in FORMATIONS.items():
+        seq = make_sequence(seed=FORMATION_SEED, n_frames=20, base_descent=DESCENT_MM, formation=formation)
+        six = make_sequence(seed=FORMATION_SEED, n_frames=6, base_descent=DESCENT_MM, formation=formation)
+        for sampling, frames in (("4 a cycle", seq.frames[::5]), ("5 a cycle", seq.frames[::4]),
+                                 ("6 a cycle", six.frames)):
+            rows.append({"setting": name, "sampling": sampling, **tracked(frames)})
+            print(rows[-1], flush=True)
+    return rows
+
+
 def speed(repeats: int = 3) -> dict:
     """Volumes per second stepping the legacy 10-frame cycle at 5 iterations
     a frame, with the frames whose wall was left behind or moved far
@@ -144,8 +164,9 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--speed", action="store_true", help="measure the tracking speed only")
     ap.add_argument("--pairs", action="store_true", help="the ED-ES pairs of every formation only")
+    ap.add_argument("--formations", action="store_true", help="4, 5 and 6 frames a cycle of every formation only")
     args = ap.parse_args(argv)
-    if args.speed or args.pairs:
+    if args.speed or args.pairs or args.formations:
         import json
 
         path = Path(__file__).resolve().parents[1] / "docs" / "framerate.json"
@@ -155,8 +176,9 @@ def main(argv=None):
             print(data["speed"], flush=True)
         else:
             t0 = time.perf_counter()
-            data["pairs"] = {"command": "python benchmarks/framerate.py --pairs", "machine": machine(),
-                             "rows": pairs(), "wall_seconds": time.perf_counter() - t0}
+            name = "pairs" if args.pairs else "formations"
+            data[name] = {"command": f"python benchmarks/framerate.py --{name}", "machine": machine(),
+                          "rows": (pairs if args.pairs else formations)(), "wall_seconds": time.perf_counter() - t0}
         print("wrote", write_json("framerate.json", data))
         print("wrote", write_markdown())
         return
@@ -170,7 +192,7 @@ def main(argv=None):
     if previous.is_file():  # the speed of --speed, measured on its own
         import json
 
-        data.update({k: v for k, v in json.loads(previous.read_text()).items() if k in ("speed", "pairs")})
+        data.update({k: v for k, v in json.loads(previous.read_text()).items() if k in ("speed", "pairs", "formations")})
     print("wrote", write_json("framerate.json", data))
     print("wrote", write_markdown())
 

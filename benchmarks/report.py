@@ -1204,6 +1204,22 @@ def _framerate(data) -> list[str]:
                     f"{r['setting']} seed {r['seed']} (ESV {r['esv_error_pct']:+.0f} %, segmented again "
                     f"{r['segmented_again']})" for r in beyond)
                    + ".")]
+    every = data.get("formations")
+    if every:
+        samplings = list(dict.fromkeys(r["sampling"] for r in every["rows"]))
+        out += ["", f"Low frame rates, every formation (`{every['command']}`, {every['wall_seconds'] / 60:.0f} min; "
+                f"{every['machine']['date']}): the seed-3 cycle of each named formation at 4 and 5 frames a cycle "
+                "(every 5th and 4th of 20) and made at 6, tracked with default options. Cells: EF error in points "
+                "(poor frames; frames segmented again).", "",
+                "| formation | " + " | ".join(samplings) + " |", "| --- |" + " --- |" * len(samplings)]
+        for name in dict.fromkeys(r["setting"] for r in every["rows"]):
+            cells = {r["sampling"]: f"{r['ef_error']:+.1f}" + (f" ({r['poor_frames']}; {r['segmented_again']})"
+                                                              if r["poor_frames"] or r["segmented_again"] else "")
+                     for r in every["rows"] if r["setting"] == name}
+            out.append(f"| {name} | " + " | ".join(cells.get(s, "") for s in samplings) + " |")
+        errors = np.array([r["ef_error"] for r in every["rows"]])
+        out += ["", f"Within 3 points: {int(np.sum(np.abs(errors) <= 3))} of {len(errors)} cycles; median "
+                f"{np.median(errors):+.1f}, worst {errors[np.argmax(np.abs(errors))]:+.1f} points."]
     sp = data.get("speed")
     if sp:
         out += ["", "Tracking speed (`python benchmarks/framerate.py --speed`, " + sp["date"] + ", load average "
