@@ -1314,13 +1314,14 @@ def _anatomy(data) -> list[str]:
          "the test wants real echo with expert contours first"),
         ("... the same variance read at each offset along the normals (rings of 240 points, a 60-degree moving "
          "average removed, the grey levels averaged over +-0.5 mm along the normal), over the tissue's at 4-6 mm, "
-         "speckle seed 0, the surfaces the default segmented (2026-11-28)",
-         "the rim alone (-5.0 %): 3.6-5.3 at 1.5-2 mm inside the surface, falling to 1.5-2.2 at +0.5 mm and to 1.0 "
-         "at +2.5 mm, the truth at +0.75 to +1.25 mm; the papillary muscles alone (-0.3 %), on the rings they "
+         "speckle seed 0, the surfaces the default segmented (2026-11-27)",
+         "the rim alone (-5.0 %), on five rings of the wall: 3.6-5.3 at 1.5-2.5 mm inside the surface, 0.9-2.2 "
+         "at +0.5 mm, 1.0 at +2.5 mm; it falls to twice the tissue's 0.5-2.4 mm inside the truth (which lies "
+         "+0.25 to +1.25 mm out); the papillary muscles alone (-0.3 %), on the rings they "
          "stand on: 6.8-7.9 at 3 mm inside, 2.6 / 1.5 at the surface, 1.7 / 1.3 at +0.5 mm, the truth at +0.25 to "
          "+0.75 mm; the plain wall 0.6-1.6 everywhere", "no: the muscles, cavity too and already segmented right, "
-         "modulate the grey level as the rim does, and their modulation ends 0.5 mm nearer the surface: where it "
-         "ends cannot place the compact wall without a threshold made on this phantom"),
+         "modulate the grey level as the rim does, and their modulation ends 0.5 mm nearer the surface; where the rim's"
+         " ends does not place its compact wall either"),
         ("a tangential low quantile: at every offset along the normals the grey level replaced by a low quantile "
          "of its neighbours on the same offset surface (0.25 in 4 mm; 0.1 of means over 1.5 mm discs in 5 mm; 0.1 "
          "of 2.5 mm means in 6 mm), less the quantile's own deficit in the cavity (log speckle is a location "
