@@ -35,12 +35,12 @@ from common import (  # noqa: E402
 )
 from report import write_markdown  # noqa: E402
 
-from spheroseg.metrics import mask_volume_ml  # noqa: E402
+from spheroseg.surfaces.metrics import mask_volume_ml  # noqa: E402
 from spheroseg.synthetic.phantom import FAMILIES, FORMATIONS, make_phantom, make_sequence, sweep_cases  # noqa: E402
-from spheroseg.options import MODES as spheroseg_modes  # noqa: E402
-from spheroseg.options import SegmentOptions  # noqa: E402
-from spheroseg.segment import segment, track  # noqa: E402
-from spheroseg.volume import Volume  # noqa: E402
+from spheroseg.descent.options import MODES as spheroseg_modes  # noqa: E402
+from spheroseg.descent.options import SegmentOptions  # noqa: E402
+from spheroseg.tracking.segment import segment, track  # noqa: E402
+from spheroseg.volumes.volume import Volume  # noqa: E402
 
 MODES = spheroseg_modes  # every data term, the default first
 DEFAULT = SegmentOptions().mode

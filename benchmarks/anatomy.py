@@ -20,9 +20,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
-from spheroseg.metrics import dice  # noqa: E402
+from spheroseg.surfaces.metrics import dice  # noqa: E402
 from spheroseg.synthetic.phantom import FAMILIES, FORMATIONS, make_phantom  # noqa: E402
-from spheroseg.segment import segment  # noqa: E402
+from spheroseg.tracking.segment import segment  # noqa: E402
 
 ANATOMY = {"plain": {}, "papillary muscles": dict(papillary=True),
            "muscles and 3 mm trabeculae": dict(papillary=True, trabecular_mm=3.0)}

@@ -28,10 +28,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
-from spheroseg import _kernels  # noqa: E402
-from spheroseg.beamspace import scan_convert, to_beam_space  # noqa: E402
+from spheroseg._compiled import _kernels  # noqa: E402
+from spheroseg.volumes.beamspace import scan_convert, to_beam_space  # noqa: E402
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom, make_sequence, probe_sector  # noqa: E402
-from spheroseg.segment import segment, track  # noqa: E402
+from spheroseg.tracking.segment import segment, track  # noqa: E402
 
 ITERATIONS_PER_FRAME = 5
 

@@ -20,8 +20,8 @@ import numpy as np
 from scipy import ndimage
 
 import spheroseg
-from spheroseg.metrics import dice, surface_distances
-from spheroseg.surface import Surface
+from spheroseg.surfaces.metrics import dice, surface_distances
+from spheroseg.surfaces.surface import Surface
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 

@@ -22,10 +22,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import DOCS, PEER_PARAMS, run_sitk, run_skimage  # noqa: E402
 
-from spheroseg.metrics import dice  # noqa: E402
+from spheroseg.surfaces.metrics import dice  # noqa: E402
 from spheroseg.synthetic.phantom import FAMILIES, make_phantom  # noqa: E402
-from spheroseg.segment import segment  # noqa: E402
-from spheroseg.volume import Volume  # noqa: E402
+from spheroseg.tracking.segment import segment  # noqa: E402
+from spheroseg.volumes.volume import Volume  # noqa: E402
 
 CETUS = Path(__file__).resolve().parents[2] / "shared" / "data" / "cetus"
 

@@ -18,11 +18,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
-from spheroseg.coords import annulus_plane  # noqa: E402
-from spheroseg.fit import (annulus_of_open_mesh, apex_base_of_open_mesh, fit_surface,  # noqa: E402
+from spheroseg.geometry.coords import annulus_plane  # noqa: E402
+from spheroseg.surfaces.fit import (annulus_of_open_mesh, apex_base_of_open_mesh, fit_surface,  # noqa: E402
                           point_to_surface_distance)
-from spheroseg.surface import Surface  # noqa: E402
-from spheroseg.surface_io import read_mesh  # noqa: E402
+from spheroseg.surfaces.surface import Surface  # noqa: E402
+from spheroseg.io.surface_io import read_mesh  # noqa: E402
 
 CETUS = Path(__file__).resolve().parents[2] / "shared" / "data" / "cetus"
 HELD_OUT = 0.2  # fraction of the vertices left out of the fit and measured

@@ -36,10 +36,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
-import spheroseg.tracker  # noqa: E402
+import spheroseg.tracking.tracker  # noqa: E402
 from spheroseg.synthetic.phantom import FORMATIONS, POSTPROCESSINGS, make_sequence  # noqa: E402
-from spheroseg.segment import track  # noqa: E402
-from spheroseg.tracker import Tracker  # noqa: E402
+from spheroseg.tracking.segment import track  # noqa: E402
+from spheroseg.tracking.tracker import Tracker  # noqa: E402
 
 SEGMENTED_AGAIN = []  # the frames the tracker segmented again, counted through its call
 

@@ -26,7 +26,7 @@ from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
 from spheroseg import segment  # noqa: E402
-from spheroseg.metrics import dice  # noqa: E402
+from spheroseg.surfaces.metrics import dice  # noqa: E402
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom  # noqa: E402
 
 FORMATION_NAMES = ("default", "clutter_strong", "contrast_low", "dropout", "psf_wide")

@@ -35,8 +35,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
-from spheroseg import NoVentricleError, Volume, locate, segment  # noqa: E402
-from spheroseg.metrics import dice  # noqa: E402
+from spheroseg import NoVentricleError, Volume  # noqa: E402
+from spheroseg import locate, segment
+from spheroseg.surfaces.metrics import dice  # noqa: E402
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom, tilted_mitral_scene  # noqa: E402
 
 CETUS = Path(__file__).resolve().parents[2] / "shared" / "data" / "cetus"

@@ -24,8 +24,8 @@ from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
 from spheroseg import segment  # noqa: E402
-from spheroseg.fit import annulus_of_open_mesh  # noqa: E402
-from spheroseg.metrics import dice  # noqa: E402
+from spheroseg.surfaces.fit import annulus_of_open_mesh  # noqa: E402
+from spheroseg.surfaces.metrics import dice  # noqa: E402
 from spheroseg.synthetic.phantom import FAMILIES, make_phantom, tilted_mitral_scene  # noqa: E402
 
 SEEDS = (0, 1, 2, 3, 4)

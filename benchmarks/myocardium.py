@@ -33,9 +33,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import DOCS, machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
-from spheroseg import Pose, segment, track  # noqa: E402
-from spheroseg.metrics import dice  # noqa: E402
-from spheroseg.myocardium import segment_labels, systolic_dyssynchrony_index, times_to_minimum  # noqa: E402
+from spheroseg import Pose, track  # noqa: E402
+from spheroseg import segment
+from spheroseg.surfaces.metrics import dice  # noqa: E402
+from spheroseg.surfaces.myocardium import segment_labels, systolic_dyssynchrony_index, times_to_minimum  # noqa: E402
 from spheroseg.synthetic.phantom import FORMATIONS, LateRegion, make_phantom, make_sequence, sweep_cases  # noqa: E402
 
 SWEEP = ("default", "psf_wide", "dr_40", "gain_+6", "tgc_over", "contrast_high", "contrast_low", "clutter_strong")
@@ -107,7 +108,7 @@ def convention_figure(path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from spheroseg.report import draw_bullseye
+    from spheroseg.io.report import draw_bullseye
 
     theta0 = np.radians(40.0)
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4.8))

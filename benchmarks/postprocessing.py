@@ -29,11 +29,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
-from spheroseg import dataterms  # noqa: E402
-from spheroseg.dataterms import IntensityInterface  # noqa: E402
-from spheroseg.metrics import dice  # noqa: E402
+from spheroseg.descent import dataterms  # noqa: E402
+from spheroseg.descent.dataterms import IntensityInterface  # noqa: E402
+from spheroseg.surfaces.metrics import dice  # noqa: E402
 from spheroseg.synthetic.phantom import FAMILIES, FORMATIONS, POSTPROCESSINGS, make_phantom  # noqa: E402
-from spheroseg.segment import segment  # noqa: E402
+from spheroseg.tracking.segment import segment  # noqa: E402
 
 #: raw formations with the most contrast (43 and 42 dB), where the contrast bound binds,
 #: and the point-spread functions narrower and wider than the edge model's

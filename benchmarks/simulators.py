@@ -30,9 +30,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
-from spheroseg import Volume, dataterms, segment  # noqa: E402
-from spheroseg.dataterms import IntensityInterface  # noqa: E402
-from spheroseg.epicardium import DARK_WALL  # noqa: E402
+from spheroseg import Volume  # noqa: E402
+from spheroseg.descent import dataterms
+from spheroseg import segment
+from spheroseg.descent.dataterms import IntensityInterface  # noqa: E402
+from spheroseg.tracking.epicardium import DARK_WALL  # noqa: E402
 from spheroseg.synthetic.echo import multiplicative_speckle  # noqa: E402
 
 BLURS_MM = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)

@@ -36,13 +36,13 @@ from common import PEER_PARAMS, machine, median_time, run_sitk, run_skimage, wri
 from report import write_markdown  # noqa: E402
 
 import spheroseg  # noqa: E402
-from spheroseg.backends import compiled_available, kernel_thread_count  # noqa: E402
-from spheroseg.dataterms import IntensityInterface, LocalMeans  # noqa: E402
-from spheroseg.descent import Descent  # noqa: E402
+from spheroseg.descent.backends import compiled_available, kernel_thread_count  # noqa: E402
+from spheroseg.descent.dataterms import IntensityInterface, LocalMeans  # noqa: E402
+from spheroseg.descent.descent import Descent  # noqa: E402
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom, make_sequence  # noqa: E402
-from spheroseg.segment import segment as _segment, track  # noqa: E402
-from spheroseg.surface import Surface  # noqa: E402
-from spheroseg.tracker import Tracker  # noqa: E402
+from spheroseg.tracking.segment import segment as _segment, track  # noqa: E402
+from spheroseg.surfaces.surface import Surface  # noqa: E402
+from spheroseg.tracking.tracker import Tracker  # noqa: E402
 
 
 def segment(*args, **kwargs):

@@ -50,13 +50,13 @@ t = time.perf_counter(); import spheroseg, spheroseg.cli; s = {"import": time.pe
 from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
-from spheroseg.volume import Volume, outside_sector
-from spheroseg.surface_io import write_mesh, write_surface_json, write_cmiss
+from spheroseg.volumes.volume import Volume, outside_sector
+from spheroseg.io.surface_io import write_mesh, write_surface_json, write_cmiss
 from spheroseg.io import save_mask
 path, out, apex, base = sys.argv[1], Path(sys.argv[2]), json.loads(sys.argv[3]), json.loads(sys.argv[4])
 t = time.perf_counter()
 try:  # after: the kernels and level matrices loaded up front, as the CLI does
-    from spheroseg.warmup import load_kernels
+    from spheroseg.apps.warmup import load_kernels
     load_kernels()
 except ImportError:  # before: paid by the first call of each stage
     pass
@@ -77,7 +77,7 @@ write_cmiss(out / "surface", r.surface)
 s["meshes"] = time.perf_counter() - t
 t = time.perf_counter(); save_mask(out / "mask.mha", m, vol); (out / "r.json").write_text(json.dumps({"v": r.volume_ml})); s["writes"] = time.perf_counter() - t
 t = time.perf_counter()
-from spheroseg.report import save_report
+from spheroseg.io.report import save_report
 save_report(out / "report.png", vol, r.surface, mask=m, title="x"); s["report"] = time.perf_counter() - t
 s["volume_ml"], s["iterations"], s["poor"] = r.volume_ml, r.iterations, r.quality["poor"]
 print(json.dumps(s))

@@ -45,8 +45,8 @@ import numpy as np
 
 from spheroseg.io import save_volume
 from spheroseg.synthetic.phantom import make_sequence
-from spheroseg.viewer import open_viewer
-from spheroseg.viewer.browser import launch, screen_xy, wait_done
+from spheroseg.apps.viewer import open_viewer
+from spheroseg.apps.viewer.browser import launch, screen_xy, wait_done
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -128,7 +128,7 @@ def cetus(browser, folder, repeats, rows) -> dict | None:
     """CETUS Patient 7 ED at 0.9 mm, the 3D view on."""
     if not (CETUS / "Patient7_points.json").is_file():
         return None
-    from spheroseg.volume import Volume
+    from spheroseg.volumes.volume import Volume
 
     marks = json.loads((CETUS / "Patient7_points.json").read_text())
     spacing = marks["assumed_spacing_mm"]

@@ -4,7 +4,7 @@
 # page fetches nothing). Needs npm and the npm registry; run by a developer,
 # never at install or run time:
 #     scripts/refresh-niivue.sh [VERSION]      (default: the pinned one)
-# Writes src/spheroseg/viewer/static/vendor/: niivue.umd.js, VERSION (version,
+# Writes src/spheroseg/apps/viewer/static/vendor/: niivue.umd.js, VERSION (version,
 # sha256, source), and LICENSES.txt (NiiVue's BSD-2-Clause and the licences of
 # the packages its bundle includes). Pin a new version only after the
 # browser tests (tests/test_viewer_page.py) pass with it: the page's contour
@@ -12,7 +12,7 @@
 set -euo pipefail
 VERSION="${1:-0.69.0}"
 here="$(cd "$(dirname "$0")/.." && pwd)"
-vendor="$here/src/spheroseg/viewer/static/vendor"
+vendor="$here/src/spheroseg/apps/viewer/static/vendor"
 work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 cd "$work"

@@ -27,7 +27,7 @@ def pytest_xdist_auto_num_workers(config):
     count, which a container's may be far below), at most 4: each worker
     compiles the kernels it calls, and past 4 the longest test file sets
     the time."""
-    from spheroseg._runtime import usable_cores
+    from spheroseg._compiled._runtime import usable_cores
 
     return max(1, min(usable_cores(), 4))
 
@@ -76,8 +76,8 @@ def cli(capfd, *args):
     """``spheroseg ARGS`` in this process: what a subprocess would return
     (exit status, stdout, stderr as ``subprocess.run``; ``capfd``: the lines C++
     readers write on the file descriptors too)."""
-    from spheroseg import warmup
-    from spheroseg.cli import main as cli_main
+    from spheroseg.apps import warmup
+    from spheroseg.apps.cli import main as cli_main
 
     # the kernels loaded before the command, as a later process finds them
     # in numba's cache: load_kernels reports whether this process compiled
@@ -101,11 +101,11 @@ def cli(capfd, *args):
 RUN = """
 import json
 import threading
-from spheroseg._raster import compilations
+from spheroseg._compiled._raster import compilations
 from spheroseg.synthetic.phantom import make_phantom
-from spheroseg.surface import Surface
-from spheroseg.volume import outside_sector
-from spheroseg.warmup import load_kernels
+from spheroseg.surfaces.surface import Surface
+from spheroseg.volumes.volume import outside_sector
+from spheroseg.apps.warmup import load_kernels
 # two threads at once, as the viewer's worker and its command: one loads
 said, results = [], []
 threads = [threading.Thread(target=lambda: results.append(load_kernels(on_compile=lambda: said.append(1))))

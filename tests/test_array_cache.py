@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from spheroseg.array_cache import cache_directory, cached_arrays
-from spheroseg.discretisation import discretise
-from spheroseg.hermite import HermiteGrid
+from spheroseg.geometry.array_cache import cache_directory, cached_arrays
+from spheroseg.geometry.discretisation import discretise
+from spheroseg.geometry.hermite import HermiteGrid
 
 GRID = HermiteGrid(4, 3, (0.0, np.pi / 2))
 

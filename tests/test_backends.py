@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from spheroseg.backends import CompiledBackend, NumpyBackend, compiled_available, sample_points, select_backend
-from spheroseg.energy import SampledSurface
+from spheroseg.descent.backends import CompiledBackend, NumpyBackend, compiled_available, sample_points, select_backend
+from spheroseg.geometry.energy import SampledSurface
 from spheroseg.synthetic.phantom import make_phantom
-from spheroseg.surface import Surface
+from spheroseg.surfaces.surface import Surface
 
 pytestmark = pytest.mark.skipif(not compiled_available(), reason="numba not installed")
 

@@ -16,11 +16,11 @@ import SimpleITK as sitk
 from conftest import interruptible
 
 from spheroseg import segment_many
-from spheroseg.batch import (SUMMARY_FIELDS, ManifestError, Study, read_manifest, select_shard,
+from spheroseg.apps.batch import (SUMMARY_FIELDS, ManifestError, Study, read_manifest, select_shard,
                              study_checksum)
 from spheroseg.io import load, load_sequence
 from spheroseg.synthetic.phantom import make_phantom, make_sequence
-from spheroseg.segment import segment, track
+from spheroseg.tracking.segment import segment, track
 
 # faults a worker meets (tests/faults/sitecustomize.py, imported by every process Python starts)
 FAULTS_PATH = str(Path(__file__).parent / "faults")

@@ -13,7 +13,7 @@ import SimpleITK as sitk
 
 from conftest import cli
 
-from spheroseg.beamspace import BeamGeometry, BeamVolume, scan_convert, to_beam_space
+from spheroseg.volumes.beamspace import BeamGeometry, BeamVolume, scan_convert, to_beam_space
 from spheroseg.io import BEAM_KEYS, load, load_sequence, save_volume
 from spheroseg.synthetic.phantom import make_phantom, make_sequence, probe_sector
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from spheroseg.beamspace import BeamGeometry, BeamVolume, scan_convert
+from spheroseg.volumes.beamspace import BeamGeometry, BeamVolume, scan_convert
 from spheroseg.io import (BEAM_KEYS, ImageFileError, beam_geometry_from_header, beam_header, load, load_sequence,
                           save_mask, save_volume)
 

@@ -5,8 +5,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from spheroseg import _kernels, segment, track
-from spheroseg.beamspace import beam_mask, beam_mask_volume_ml, scan_convert, to_beam_space
+from spheroseg import track
+from spheroseg._compiled import _kernels
+from spheroseg import segment
+from spheroseg.volumes.beamspace import beam_mask, beam_mask_volume_ml, scan_convert, to_beam_space
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom, make_sequence, probe_sector
 
 

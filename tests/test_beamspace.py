@@ -12,9 +12,9 @@ import math
 import numpy as np
 import pytest
 
-from spheroseg.beamspace import (BeamGeometry, BeamVolume, beam_mask, beam_mask_volume_ml, scan_convert,
+from spheroseg.volumes.beamspace import (BeamGeometry, BeamVolume, beam_mask, beam_mask_volume_ml, scan_convert,
                                  to_beam_space)
-from spheroseg.volume import ImageGrid, Volume
+from spheroseg.volumes.volume import ImageGrid, Volume
 
 SHAPE = (60, 21, 25)  # [r, e, a]
 DR, R0 = 1.5, 12.0

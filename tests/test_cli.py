@@ -15,10 +15,10 @@ import pytest
 import SimpleITK as sitk
 from conftest import cli
 
-from spheroseg.fit import annulus_of_open_mesh
+from spheroseg.surfaces.fit import annulus_of_open_mesh
 from spheroseg.io import load, write_markups
 from spheroseg.synthetic.phantom import make_phantom, make_sequence
-from spheroseg.segment import segment
+from spheroseg.tracking.segment import segment
 
 
 def run(*args, cwd=None):
@@ -203,7 +203,7 @@ def test_track_with_the_myocardium(capfd, tmp_path):
     curves, times to minimum and SDI in results.json, every frame's
     myocardium mask as the API's."""
     from spheroseg.io import load_sequence
-    from spheroseg.segment import track
+    from spheroseg.tracking.segment import track
 
     seq = make_sequence(seed=42, n_frames=3, spacing=2.0)
     image = sitk.GetImageFromArray(np.stack([v.array for v in seq.volumes]).astype(np.uint8), isVector=False)

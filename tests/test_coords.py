@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from spheroseg.coords import Cylindrical, Pose, ProlateSpheroidal, Spherical, annulus_plane, coordinate_system
+from spheroseg.geometry.coords import Cylindrical, Pose, ProlateSpheroidal, Spherical, annulus_plane, coordinate_system
 
 SYSTEMS = [ProlateSpheroidal(37.0), Spherical(), Cylindrical(90.0)]
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 import spheroseg
-from spheroseg.backends import compiled_available
-from spheroseg.dataterms import DataTerm, Force
-from spheroseg.metrics import dice
+from spheroseg.descent.backends import compiled_available
+from spheroseg.descent.dataterms import DataTerm, Force
+from spheroseg.surfaces.metrics import dice
 from spheroseg.synthetic.phantom import make_phantom
 
 

@@ -3,16 +3,16 @@
 import numpy as np
 import pytest
 
-from spheroseg.backends import NumpyBackend, select_backend
-from spheroseg.dataterms import (DATA_TERMS, FORMED_SPECKLE_SMOOTHING_MM, MAX_EDGE_BLUR_MM, FixedInterface,
+from spheroseg.descent.backends import NumpyBackend, select_backend
+from spheroseg.descent.dataterms import (DATA_TERMS, FORMED_SPECKLE_SMOOTHING_MM, MAX_EDGE_BLUR_MM, FixedInterface,
                                   GlobalMeans, IntensityInterface, LocalMeans, band_contamination, band_offsets,
                                   beyond_wall_excess, edge_blur_mm, interface_level, interface_nepers, nanmedian,
                                   otsu_threshold, profile_blur_mm, shell_offsets, smoothed_edge_drop,
                                   speckle_correlations, speckle_nepers, speckle_smoothing_mm)
-from spheroseg.energy import SampledSurface
-from spheroseg.segment import segment
-from spheroseg.surface import Surface
-from spheroseg.volume import Volume
+from spheroseg.geometry.energy import SampledSurface
+from spheroseg.tracking.segment import segment
+from spheroseg.surfaces.surface import Surface
+from spheroseg.volumes.volume import Volume
 
 C_IN, C_OUT = 20.0, 120.0
 
@@ -425,8 +425,8 @@ def test_the_interface_reads_the_wall_not_the_tissue_beyond_a_thin_dark_wall(mon
     within 5 %.  Taken as the wall's level, that tissue moves the wall out
     (over 8 %) and the checks flag it, as they do where only part of the
     band's rise was taken off."""
-    from spheroseg import dataterms
-    from spheroseg.epicardium import DARK_WALL
+    from spheroseg.descent import dataterms
+    from spheroseg.tracking.epicardium import DARK_WALL
     from spheroseg.synthetic.phantom import FORMATIONS, make_phantom
 
     ph = make_phantom(seed=0, spacing=1.5, formation=FORMATIONS["contrast_low"])
@@ -534,7 +534,7 @@ def test_a_blur_the_speckle_does_not_show_is_read_from_the_band(monkeypatch):
     removed from the band means (volume within 4 %).  Read from the
     speckle alone, the outer band's near offsets lie in the blurred edge
     and the wall goes in (over 6 % low)."""
-    from spheroseg import dataterms
+    from spheroseg.descent import dataterms
 
     volume, apex, base, truth_ml = white_speckle_cavity(1.5)
     error = segment(volume, apex, base, check=False).volume_ml / truth_ml - 1

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from spheroseg import Tracker, Volume
-from spheroseg.dataterms import FixedInterface, GlobalMeans, IntensityInterface, LocalMeans
-from spheroseg.descent import Descent
-from spheroseg.discretisation import ROUGHNESS_SCALE
-from spheroseg.epicardium import wall_term
+from spheroseg.descent.dataterms import FixedInterface, GlobalMeans, IntensityInterface, LocalMeans
+from spheroseg.descent.descent import Descent
+from spheroseg.geometry.discretisation import ROUGHNESS_SCALE
+from spheroseg.tracking.epicardium import wall_term
 from spheroseg.synthetic.phantom import make_phantom
-from spheroseg.surface import Surface
+from spheroseg.surfaces.surface import Surface
 
 
 @pytest.fixture(scope="module")

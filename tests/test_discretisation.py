@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from spheroseg.discretisation import BAND_STRIDE, ROUGHNESS_SCALE, discretise
-from spheroseg.hermite import HermiteGrid
+from spheroseg.geometry.discretisation import BAND_STRIDE, ROUGHNESS_SCALE, discretise
+from spheroseg.geometry.hermite import HermiteGrid
 
 
 @pytest.fixture(scope="module")

@@ -1,12 +1,12 @@
 import numpy as np
 import pytest
 
-from spheroseg.beamspace import BeamGeometry, BeamVolume, scan_convert
+from spheroseg.volumes.beamspace import BeamGeometry, BeamVolume, scan_convert
 from spheroseg.synthetic.echo import (
     RAYLEIGH_DB_STD, TOP_DB, ImageFormation, PostProcessing, form_image, log_compress, multiplicative_speckle,
     postprocess, sector_geometry, speckle_envelope,
 )
-from spheroseg.volume import ImageGrid
+from spheroseg.volumes.volume import ImageGrid
 
 # no depth dependence and no noise: the speckle alone
 FLAT = dict(attenuation_db_per_cm=0.0, tgc_db_per_cm=0.0, noise_db=-200.0, clutter_db=None)

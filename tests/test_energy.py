@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from spheroseg.energy import (
+from spheroseg.geometry.energy import (
     Landmarks,
     SampledSurface,
     area_energy,
@@ -14,7 +14,7 @@ from spheroseg.energy import (
     landmark_gradient,
     region_force,
 )
-from spheroseg.surface import Surface
+from spheroseg.surfaces.surface import Surface
 
 APEX, BASE = np.array([5.0, -3.0, 82.0]), np.array([0.0, 0.0, 2.0])
 

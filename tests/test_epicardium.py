@@ -1,17 +1,18 @@
 import numpy as np
 import pytest
 
-from spheroseg import Volume, segment
-from spheroseg.coords import Pose, ProlateSpheroidal
-from spheroseg.epicardium import (
+from spheroseg import Volume
+from spheroseg import segment
+from spheroseg.geometry.coords import Pose, ProlateSpheroidal
+from spheroseg.tracking.epicardium import (
     DARK_EPICARDIUM, DARK_MAX_ITERATIONS, DARK_WALL, DARK_WALL_MARGIN, MAX_ITERATIONS, add_epicardium,
     conserving_start, enforce_thickness, initial_epicardium, segment_epicardium, wall_nepers,
 )
-from spheroseg.hermite import HermiteGrid
-from spheroseg.myocardium import SEGMENT_NAMES, cell_centres, myocardial_volume_ml, wall_thickness
-from spheroseg.quality import wall_report
-from spheroseg.results import SegmentationResult, TrackingResult
-from spheroseg.surface import Surface
+from spheroseg.geometry.hermite import HermiteGrid
+from spheroseg.surfaces.myocardium import SEGMENT_NAMES, cell_centres, myocardial_volume_ml, wall_thickness
+from spheroseg.descent.quality import wall_report
+from spheroseg.descent.results import SegmentationResult, TrackingResult
+from spheroseg.surfaces.surface import Surface
 from spheroseg.synthetic.echo import multiplicative_speckle
 
 D, L_ENDO, L_EPI = 30.0, 0.8, 1.0

@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 
 from conftest import cetus_file
-from spheroseg.coords import annulus_plane
-from spheroseg.fit import (annulus_of_open_mesh, apex_base_of_open_mesh, fit_surface, point_to_surface_distance)
-from spheroseg.surface import Surface
-from spheroseg.surface_io import read_mesh
+from spheroseg.geometry.coords import annulus_plane
+from spheroseg.surfaces.fit import (annulus_of_open_mesh, apex_base_of_open_mesh, fit_surface, point_to_surface_distance)
+from spheroseg.surfaces.surface import Surface
+from spheroseg.io.surface_io import read_mesh
 
 
 def test_recovers_known_surface(rng):

@@ -3,12 +3,12 @@
 import numpy as np
 
 from spheroseg import Tracker
-from spheroseg.coords import Pose, ProlateSpheroidal
-from spheroseg.frames import (BASE_RING_MM, LEFT_BEHIND, WALL_SECTORS, base_ring_floor, base_ring_points, wall_motion_mm,
+from spheroseg.geometry.coords import Pose, ProlateSpheroidal
+from spheroseg.tracking.frames import (BASE_RING_MM, LEFT_BEHIND, WALL_SECTORS, base_ring_floor, base_ring_points, wall_motion_mm,
                               wall_sides)
-from spheroseg.hermite import HermiteGrid
-from spheroseg.surface import Surface
-from spheroseg.volume import ImageGrid, Volume
+from spheroseg.geometry.hermite import HermiteGrid
+from spheroseg.surfaces.surface import Surface
+from spheroseg.volumes.volume import ImageGrid, Volume
 
 APEX, BASE = np.array([10.0, -5.0, 90.0]), np.array([12.0, 3.0, 15.0])
 

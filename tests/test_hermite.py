@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from spheroseg.hermite import HermiteGrid, basis_norms, global_basis, hermite_basis, patch_dofs
+from spheroseg.geometry.hermite import HermiteGrid, basis_norms, global_basis, hermite_basis, patch_dofs
 
 
 def test_basis_interpolates_nodes():

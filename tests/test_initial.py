@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from spheroseg.coords import Pose
-from spheroseg.dataterms import GlobalMeans
-from spheroseg.initial import check_landmarks, fitted_start, initial_model, start_surface
-from spheroseg.options import SegmentOptions
-from spheroseg.stepper import schedule
-from spheroseg.surface import Surface
-from spheroseg.volume import Volume
+from spheroseg.geometry.coords import Pose
+from spheroseg.descent.dataterms import GlobalMeans
+from spheroseg.tracking.initial import check_landmarks, fitted_start, initial_model, start_surface
+from spheroseg.descent.options import SegmentOptions
+from spheroseg.descent.stepper import schedule
+from spheroseg.surfaces.surface import Surface
+from spheroseg.volumes.volume import Volume
 
 VOLUME = Volume(np.zeros((50, 50, 50)), spacing=(2.0, 2.0, 2.0))  # x, y, z from 0 to 98 mm
 APEX, BASE = np.array([50.0, 50.0, 85.0]), np.array([50.0, 50.0, 20.0])

@@ -9,7 +9,7 @@ import spheroseg
 
 from spheroseg.io import (ImageFileError, image_format, load, load_sequence, read_markups, save_mask,
                          write_folder_atomically, write_markups)
-from spheroseg.volume import Volume
+from spheroseg.volumes.volume import Volume
 
 DIRECTION = (0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 

@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from spheroseg import _kernels
-from spheroseg.backends import MIN_COS, CompiledBackend, NumpyBackend, Observation
-from spheroseg.beamspace import to_beam_space
-from spheroseg.discretisation import discretise
-from spheroseg.energy import SampledSurface
+from spheroseg._compiled import _kernels
+from spheroseg.descent.backends import MIN_COS, CompiledBackend, NumpyBackend, Observation
+from spheroseg.volumes.beamspace import to_beam_space
+from spheroseg.geometry.discretisation import discretise
+from spheroseg.geometry.energy import SampledSurface
 from spheroseg.synthetic.phantom import make_phantom, probe_sector
-from spheroseg.surface import Surface
+from spheroseg.surfaces.surface import Surface
 
 pytestmark = pytest.mark.skipif(not _kernels.AVAILABLE, reason="numba not installed")
 

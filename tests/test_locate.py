@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from spheroseg import Located, NoVentricleError, Volume, locate, save_volume, segment
-from spheroseg.locate import check_points
+from spheroseg import Located, NoVentricleError, Volume, save_volume
+from spheroseg import locate, segment
+from spheroseg.tracking.locate import check_points
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom
 
 

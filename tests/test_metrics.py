@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from spheroseg.coords import Pose, Spherical
-from spheroseg.hermite import HermiteGrid
-from spheroseg.metrics import dice, ejection_fraction, mask_volume_ml, surface_distances
-from spheroseg.surface import Surface
+from spheroseg.geometry.coords import Pose, Spherical
+from spheroseg.geometry.hermite import HermiteGrid
+from spheroseg.surfaces.metrics import dice, ejection_fraction, mask_volume_ml, surface_distances
+from spheroseg.surfaces.surface import Surface
 
 
 def hemisphere(radius):

@@ -2,13 +2,13 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from spheroseg.coords import Pose, ProlateSpheroidal
-from spheroseg.hermite import HermiteGrid
-from spheroseg.myocardium import (
+from spheroseg.geometry.coords import Pose, ProlateSpheroidal
+from spheroseg.geometry.hermite import HermiteGrid
+from spheroseg.surfaces.myocardium import (
     SEGMENT_NAMES, SegmentConvention, cavity_length, lv_mass_g, myocardial_volume_ml, segment_labels,
     segment_table, segment_volumes_ml, systolic_dyssynchrony_index, times_to_minimum, wall_thickness,
 )
-from spheroseg.surface import ImageGrid, Surface
+from spheroseg.surfaces.surface import ImageGrid, Surface
 
 APEX, BASE = np.array([3.0, -4.0, 85.0]), np.array([0.0, 0.0, 5.0])
 D = 40.0

@@ -2,7 +2,7 @@ import json
 
 import pytest
 
-from spheroseg.options import SegmentOptions, format_point
+from spheroseg.descent.options import SegmentOptions, format_point
 
 
 def test_defaults_round_trip_through_json():

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from spheroseg.outputs import write_segmentation_outputs, write_tracking_outputs
+from spheroseg.io.outputs import write_segmentation_outputs, write_tracking_outputs
 from spheroseg.synthetic.phantom import make_phantom, make_sequence
-from spheroseg.segment import segment, track
-from spheroseg.surface_io import read_surface_json
+from spheroseg.tracking.segment import segment, track
+from spheroseg.io.surface_io import read_surface_json
 
 SEGMENT_KEYS = {"input", "volume_ml", "iterations", "converged", "status", "message", "quality", "c_in", "c_out",
                 "log_compression", "seconds", "apex", "base", "landmarks", "parameters", "units", "files", "versions"}
@@ -77,7 +77,7 @@ def test_tracking_outputs_round_trip(tmp_path):
 
 
 def test_myocardium_outputs_round_trip(tmp_path):
-    from spheroseg.surface_io import read_mesh
+    from spheroseg.io.surface_io import read_mesh
 
     ph = make_phantom(seed=5, spacing=2.5)
     result = segment(ph.volume, ph.apex, ph.base, myocardium=True)

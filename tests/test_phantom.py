@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from spheroseg.synthetic.phantom import FAMILIES, make_phantom, make_sequence
-from spheroseg.surface import signed_volume
+from spheroseg.surfaces.surface import signed_volume
 
 
 @pytest.fixture(scope="module")
@@ -131,7 +131,7 @@ def test_legacy_sequence_unchanged():
 
 from dataclasses import replace  # noqa: E402
 
-from spheroseg.beamspace import BeamVolume  # noqa: E402
+from spheroseg.volumes.beamspace import BeamVolume  # noqa: E402
 from spheroseg.synthetic.echo import ImageFormation  # noqa: E402
 from spheroseg.synthetic.phantom import FORMATIONS, sweep_cases  # noqa: E402
 
@@ -297,7 +297,7 @@ def test_sequence_with_formation_keeps_the_truth():
 
 
 def test_tilted_mitral_scene_truth():
-    from spheroseg.coords import annulus_plane
+    from spheroseg.geometry.coords import annulus_plane
     from spheroseg.synthetic.phantom import tilted_mitral_scene
 
     scene = tilted_mitral_scene(10.0)
@@ -347,8 +347,8 @@ def test_papillary_phantom_volume_within_3_percent():
     """Muscles standing in the cavity of the default formation's image:
     the wall still follows the compact myocardium (volume -0.5 %; +0.1 %
     without them)."""
-    from spheroseg.metrics import dice
-    from spheroseg.segment import segment
+    from spheroseg.surfaces.metrics import dice
+    from spheroseg.tracking.segment import segment
 
     ph = make_phantom(seed=0, formation=FORMATIONS["default"], papillary=True)
     r = segment(ph.volume, ph.apex, ph.base)

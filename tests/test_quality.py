@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from spheroseg import segment
-from spheroseg.metrics import dice
+from spheroseg.surfaces.metrics import dice
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom
-from spheroseg.quality import FrameQuality, landmark_residuals, quality_report
-from spheroseg.surface import Surface
+from spheroseg.descent.quality import FrameQuality, landmark_residuals, quality_report
+from spheroseg.surfaces.surface import Surface
 
 
 @cache
@@ -63,7 +63,7 @@ def test_a_collapse_is_reported():
 def test_one_warning_line_for_the_cli():
     from types import SimpleNamespace
 
-    from spheroseg.quality import quality_warning
+    from spheroseg.descent.quality import quality_warning
 
     fine = SimpleNamespace(quality={"poor": False, "warnings": []})
     poor = SimpleNamespace(quality={"poor": True, "warnings": ["the apex moved 31 mm from the clicked point"]})
@@ -154,8 +154,8 @@ def test_wall_bulge():
     """1 for the same wall; a wall pushed out in one region reads about the
     ratio of its push there to elsewhere."""
     from spheroseg import Surface
-    from spheroseg.fit import fit_surface
-    from spheroseg.quality import axis_distances, wall_bulge
+    from spheroseg.surfaces.fit import fit_surface
+    from spheroseg.descent.quality import axis_distances, wall_bulge
 
     initial = Surface.from_apex_base([0.0, 0.0, 80.0], [0.0, 0.0, 0.0])
     assert wall_bulge(initial, initial) == pytest.approx(1.0, abs=1e-12)
@@ -185,8 +185,8 @@ def test_axis_distances_in_the_model_frame_equal_the_world_frame(system):
     frames) is measured in that frame; the same pose as another object takes
     the world route (any pose); both are the distances from the axis."""
     from spheroseg import Surface
-    from spheroseg.coords import Pose
-    from spheroseg.quality import axis_distances
+    from spheroseg.geometry.coords import Pose
+    from spheroseg.descent.quality import axis_distances
 
     initial = Surface.from_apex_base([10.0, -20.0, 75.0], [3.0, 4.0, -2.0], system=system, patches=(4, 4))
     rng = np.random.default_rng(3)

@@ -6,13 +6,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import spheroseg
-from spheroseg._raster import (FRESH_ZEROS_BYTES, SLOPE_MARGIN, SLOPE_SAMPLES, fresh_zeros, gradient_bound,
+from spheroseg._compiled._raster import (FRESH_ZEROS_BYTES, SLOPE_MARGIN, SLOPE_SAMPLES, fresh_zeros, gradient_bound,
                                hermite_at, patch_slopes, status)
-from spheroseg.hermite import global_basis
-from spheroseg.raster import block_means
+from spheroseg.geometry.hermite import global_basis
+from spheroseg._compiled.raster import block_means
 from spheroseg.synthetic.phantom import make_phantom
-from spheroseg.surface import ImageGrid, Surface
-from spheroseg.volume import outside_sector
+from spheroseg.surfaces.surface import ImageGrid, Surface
+from spheroseg.volumes.volume import outside_sector
 
 APEX, BASE = np.array([3.0, -4.0, 85.0]), np.array([0.0, 0.0, 5.0])
 
@@ -163,7 +163,7 @@ def test_mask_of_segmentation_equals_reference():
 def test_mask_nonplanar_v2_range_equals_reference(rng):
     # a v2 range that ends before the base plane: no planar shortcut
     s = bumpy("prolate", rng, 0.05)
-    from spheroseg.hermite import HermiteGrid
+    from spheroseg.geometry.hermite import HermiteGrid
 
     grid = HermiteGrid(8, 8, (0.0, 1.3), poles=s.system.poles)
     s = Surface.from_function(s.system, s.pose, grid, 0.6)
@@ -244,7 +244,7 @@ def test_padding_equals_reference_on_random_zeros(seed):
     for array in (a, np.zeros_like(a), np.ones_like(a)):
         np.testing.assert_array_equal(outside_sector(array, min_fraction=0.0),
                                       reference_padding(array, min_fraction=0.0))
-    from spheroseg._raster import face_connected_zeros  # a stack grown from its first size
+    from spheroseg._compiled._raster import face_connected_zeros  # a stack grown from its first size
     noise = np.where(rng.random((40, 40, 40)) < 0.45, 0, 1)
     mask, count = face_connected_zeros(noise)
     assert count == mask.sum()
@@ -278,7 +278,7 @@ def test_padding_equals_reference_for_every_type_and_layout(dtype, rng, tmp_path
     before = a.copy()
     np.testing.assert_array_equal(outside_sector(a), expected)
     np.testing.assert_array_equal(a, before)
-    from spheroseg._raster import face_connected_zeros  # rows of zeros counted too
+    from spheroseg._compiled._raster import face_connected_zeros  # rows of zeros counted too
 
     assert face_connected_zeros(a)[1] == expected.sum()
     assert a.flags.writeable

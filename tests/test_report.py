@@ -1,6 +1,6 @@
 import numpy as np
 
-from spheroseg.myocardium import SegmentConvention, segment_labels
+from spheroseg.surfaces.myocardium import SegmentConvention, segment_labels
 
 
 def test_bullseye_places_and_colours_the_segments_as_defined():
@@ -10,7 +10,7 @@ def test_bullseye_places_and_colours_the_segments_as_defined():
     import matplotlib.pyplot as plt
     from matplotlib import colormaps
 
-    from spheroseg.report import draw_bullseye
+    from spheroseg.io.report import draw_bullseye
 
     fig, ax = plt.subplots()
     values = np.arange(17.0)
@@ -36,8 +36,8 @@ def test_the_report_draws_the_epicardium_beside_the_endocardium():
     """The slices carry the epicardium's region; the figure draws one
     contour more for it (blue), and none without it."""
     from spheroseg.synthetic.phantom import make_phantom
-    from spheroseg.report import parts_figure, report_parts
-    from spheroseg.surface import Surface
+    from spheroseg.io.report import parts_figure, report_parts
+    from spheroseg.surfaces.surface import Surface
 
     ph = make_phantom(seed=3, spacing=3.0)
     endo = Surface.from_apex_base(ph.apex, ph.base)

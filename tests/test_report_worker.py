@@ -15,8 +15,8 @@ import pytest
 
 import spheroseg
 from spheroseg.synthetic.phantom import make_phantom
-from spheroseg.report import report_parts, save_parts
-from spheroseg.report_worker import ReportWorker
+from spheroseg.io.report import report_parts, save_parts
+from spheroseg.apps.report_worker import ReportWorker
 
 
 @pytest.fixture(scope="module")

@@ -4,8 +4,8 @@ parallel regions."""
 import numpy as np
 import pytest
 
-import spheroseg._runtime as runtime
-from spheroseg._runtime import idle_cores, kernel_thread_count, kernel_threads
+import spheroseg._compiled._runtime as runtime
+from spheroseg._compiled._runtime import idle_cores, kernel_thread_count, kernel_threads
 
 
 def test_kernel_threads_sets_and_restores_the_count():

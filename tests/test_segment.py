@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from conftest import cetus_file
-from spheroseg.backends import compiled_available
-from spheroseg.coords import annulus_plane
-from spheroseg.fit import annulus_of_open_mesh
-from spheroseg.metrics import dice, surface_distances
+from spheroseg.descent.backends import compiled_available
+from spheroseg.geometry.coords import annulus_plane
+from spheroseg.surfaces.fit import annulus_of_open_mesh
+from spheroseg.surfaces.metrics import dice, surface_distances
 from spheroseg.synthetic.phantom import make_phantom, make_sequence, tilted_mitral_scene
-from spheroseg.segment import segment, track
-from spheroseg.volume import Volume
+from spheroseg.tracking.segment import segment, track
+from spheroseg.volumes.volume import Volume
 
 
 @pytest.fixture(scope="module")
@@ -260,10 +260,10 @@ def test_cetus_patient7_on_another_grid():
 def test_compiled_path_matches_numpy_reference(phantoms):
     """The compiled backend and the numpy reference give the same surface,
     iteration by iteration (local means, the apex landmark)."""
-    from spheroseg.backends import compiled_available
-    from spheroseg.dataterms import LocalMeans
-    from spheroseg.descent import Descent
-    from spheroseg.surface import Surface
+    from spheroseg.descent.backends import compiled_available
+    from spheroseg.descent.dataterms import LocalMeans
+    from spheroseg.descent.descent import Descent
+    from spheroseg.surfaces.surface import Surface
 
     if not compiled_available():
         pytest.skip("numba not installed")
@@ -287,7 +287,7 @@ def test_compiled_path_matches_numpy_reference(phantoms):
 def test_compiled_segmentation_matches_numpy_reference(phantoms, monkeypatch, mode):
     """A whole segmentation (all levels: global means, local means, the
     landmark rows) gives the same surface on both paths."""
-    from spheroseg import _kernels
+    from spheroseg._compiled import _kernels
 
     if not _kernels.AVAILABLE:
         pytest.skip("numba not installed")
@@ -310,7 +310,7 @@ def test_compiled_segmentation_matches_numpy_reference(phantoms, monkeypatch, mo
 
 
 def test_area_term_shrinks_the_surface_area(phantoms):
-    from spheroseg.energy import SampledSurface, area_energy
+    from spheroseg.geometry.energy import SampledSurface, area_energy
 
     ph = phantoms[1]
 
@@ -435,6 +435,6 @@ def test_the_functions_shadow_their_modules_as_documented():
         module = importlib.import_module(f"spheroseg.{name}")
         assert module is sys.modules[f"spheroseg.{name}"] and callable(getattr(spheroseg, name))
         assert getattr(spheroseg, name) is getattr(module, name) and getattr(spheroseg, name) is not module
-    from spheroseg.segment import track as from_module
+    from spheroseg.tracking.segment import track as from_module
 
     assert from_module is spheroseg.track

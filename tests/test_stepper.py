@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 
 from spheroseg import Tracker
-from spheroseg.dataterms import GlobalMeans, LocalMeans, shell_offsets
-from spheroseg.options import SegmentOptions
+from spheroseg.descent.dataterms import GlobalMeans, LocalMeans, shell_offsets
+from spheroseg.descent.options import SegmentOptions
 from spheroseg.synthetic.phantom import make_phantom
-from spheroseg.stepper import Level, held_points, schedule
-from spheroseg.backends import NumpyBackend
-from spheroseg.coords import Pose
+from spheroseg.descent.stepper import Level, held_points, schedule
+from spheroseg.descent.backends import NumpyBackend
+from spheroseg.geometry.coords import Pose
 
 
 @pytest.fixture(scope="module")

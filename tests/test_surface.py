@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from spheroseg.coords import Pose, ProlateSpheroidal
-from spheroseg.hermite import HermiteGrid
-from spheroseg.surface import ImageGrid, Surface, signed_volume
+from spheroseg.geometry.coords import Pose, ProlateSpheroidal
+from spheroseg.geometry.hermite import HermiteGrid
+from spheroseg.surfaces.surface import ImageGrid, Surface, signed_volume
 
 APEX, BASE = np.array([3.0, -4.0, 85.0]), np.array([0.0, 0.0, 5.0])
 

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from spheroseg.surface import Surface
-from spheroseg.surface_io import read_mesh, read_surface_json, write_cmiss, write_mesh, write_surface_json
+from spheroseg.surfaces.surface import Surface
+from spheroseg.io.surface_io import read_mesh, read_surface_json, write_cmiss, write_mesh, write_surface_json
 
 
 @pytest.fixture
@@ -83,7 +83,7 @@ def test_cmiss_needs_prolate(tmp_path):
 def test_cmiss_heart_volume_elements_match_zinc(tmp_path, surface, rng):
     """Zinc reads the two-layer volume mesh and gives lambda linear between
     the endocardium (xi3 = 0) and the epicardium (xi3 = 1)."""
-    from spheroseg.surface_io import write_cmiss_heart
+    from spheroseg.io.surface_io import write_cmiss_heart
 
     zinc = pytest.importorskip("cmlibs.zinc.context")
     c = surface.coefficients.copy()

@@ -10,13 +10,14 @@ import numpy as np
 import pytest
 
 import spheroseg
-from spheroseg import Tracker, segment, track
-from spheroseg.backends import NumpyBackend
-from spheroseg.dataterms import FixedInterface, GlobalMeans, IntensityInterface, LocalMeans
-from spheroseg.options import SegmentOptions
+from spheroseg import Tracker, track
+from spheroseg import segment
+from spheroseg.descent.backends import NumpyBackend
+from spheroseg.descent.dataterms import FixedInterface, GlobalMeans, IntensityInterface, LocalMeans
+from spheroseg.descent.options import SegmentOptions
 from spheroseg.synthetic.phantom import make_phantom, make_sequence
-from spheroseg.surface import Surface
-from spheroseg.tracker import BASE_RING_MM, schedule
+from spheroseg.surfaces.surface import Surface
+from spheroseg.tracking.tracker import BASE_RING_MM, schedule
 
 DATA = Path(__file__).parent / "data"
 SRC = Path(spheroseg.__file__).parent
@@ -234,7 +235,7 @@ def test_examples_in_docstrings_run():
     import importlib
 
     # (spheroseg.segment is the function; the modules by name)
-    for module in map(importlib.import_module, ("spheroseg.segment", "spheroseg.tracker")):
+    for module in map(importlib.import_module, ("spheroseg.tracking.segment", "spheroseg.tracking.tracker")):
         failures, tried = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
         assert tried > 0 and failures == 0, module.__name__
 
@@ -243,8 +244,8 @@ def test_no_speckle_falls_back_to_the_local_means_and_says_so():
     """A noise-free image (piecewise constant: no speckle to measure the log
     compression from) in the default mode: the local means' wall, a warning
     naming the fallback, instead of an error."""
-    from spheroseg.metrics import dice
-    from spheroseg.volume import Volume
+    from spheroseg.surfaces.metrics import dice
+    from spheroseg.volumes.volume import Volume
 
     ph = make_phantom(seed=1, spacing=2.0)
     flat = Volume(np.where(ph.truth_mask, 20.0, 120.0), spacing=ph.volume.spacing, origin=ph.volume.origin)
@@ -268,7 +269,7 @@ def low_contrast_base(ph, depth_mm=20.0):
     """The phantom's image with every voxel within ``depth_mm`` of the base
     plane (cavity and wall) at the grey level half way between blood and
     myocardium: no contrast at the base."""
-    from spheroseg.volume import Volume
+    from spheroseg.volumes.volume import Volume
 
     s = ph.volume.spacing[0]
     img = ph.volume.array.astype(float)
@@ -349,7 +350,7 @@ def test_a_wall_left_behind_where_the_check_does_not_look_is_segmented_again(mon
     kept the apical one at end-diastole (ESV +21 %, EF 7 points low).  Its
     wall moved by 6.8 mm on the whole, more than half the local means'
     band: segmented again, kept by energy, EF within 3 points."""
-    import spheroseg.tracker as tracker_module
+    import spheroseg.tracking.tracker as tracker_module
     from spheroseg.synthetic.phantom import FORMATIONS
 
     again = []
@@ -367,7 +368,7 @@ def test_only_a_frame_whose_wall_was_left_behind_is_segmented_again(six_frames, 
     plane followed, as :func:`spheroseg.track` does) leaves the
     basal wall behind and is segmented again (and then within 3 EF points,
     the test above)."""
-    import spheroseg.tracker as tracker_module
+    import spheroseg.tracking.tracker as tracker_module
 
     again = []
     keep_better_start = tracker_module.keep_better_start

@@ -18,12 +18,12 @@ import pytest
 import SimpleITK as sitk
 
 import spheroseg
-from spheroseg.fit import point_to_surface_distance
+from spheroseg.surfaces.fit import point_to_surface_distance
 from spheroseg.io import save_volume
-from spheroseg.metrics import dice
+from spheroseg.surfaces.metrics import dice
 from spheroseg.synthetic.phantom import make_phantom, make_sequence, tilted_mitral_scene
-from spheroseg.viewer import open_viewer
-from spheroseg.viewer.browser import launch, screen_xy, wait_done
+from spheroseg.apps.viewer import open_viewer
+from spheroseg.apps.viewer.browser import launch, screen_xy, wait_done
 
 TIMEOUT_MS = 120_000
 
@@ -454,8 +454,8 @@ def test_find_places_points_the_user_can_drag(browser, phantom_file, tmp_path, m
     """Find: apex and base where ``spheroseg.locate.locate`` says (stubbed:
     the locator has its own tests), its confidence shown; dragging the apex
     re-segments during the drag, the slices follow it; a failure is said."""
-    import spheroseg.viewer.session as session_module
-    from spheroseg.locate import Located
+    import spheroseg.apps.viewer.session as session_module
+    from spheroseg.tracking.locate import Located
 
     ph, path = phantom_file
     apex = ph.apex + [0.0, 0.0, 4.0]
@@ -505,7 +505,7 @@ def test_the_myocardium_box_draws_the_epicardium_outside(browser, phantom_file, 
     endocardium's contour); ticked, the page draws the API's epicardium in
     its own colour, outside the endocardium's contour on every row of the
     coronal slice where both cross it."""
-    from spheroseg.epicardium import segment_epicardium
+    from spheroseg.tracking.epicardium import segment_epicardium
 
     ph, path = phantom_file
     server = open_viewer(path, save_root=tmp_path)

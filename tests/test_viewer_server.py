@@ -20,11 +20,11 @@ from conftest import interruptible
 
 import spheroseg
 from spheroseg.io import save_volume, write_markups
-from spheroseg.epicardium import DARK_WALL
+from spheroseg.tracking.epicardium import DARK_WALL
 from spheroseg.synthetic.phantom import FORMATIONS, POSTPROCESSINGS, make_phantom, make_sequence
-from spheroseg.viewer import open_viewer
-from spheroseg.viewer.server import MAX_BODY
-from spheroseg.viewer.session import Points
+from spheroseg.apps.viewer import open_viewer
+from spheroseg.apps.viewer.server import MAX_BODY
+from spheroseg.apps.viewer.session import Points
 
 
 @pytest.fixture(scope="module")
@@ -309,7 +309,7 @@ def test_vendored_niivue_is_the_recorded_one():
     import hashlib
     from importlib import resources
 
-    vendor = resources.files("spheroseg.viewer").joinpath("static", "vendor")
+    vendor = resources.files("spheroseg.apps.viewer").joinpath("static", "vendor")
     record = vendor.joinpath("VERSION").read_text().split("\n")
     assert record[0] == "@niivue/niivue 0.69.0"
     digest = hashlib.sha256(vendor.joinpath("niivue.umd.js").read_bytes()).hexdigest()
@@ -319,7 +319,7 @@ def test_vendored_niivue_is_the_recorded_one():
 
 
 def test_a_beam_space_study_is_shown_scan_converted_and_segmented_in_its_beams(tmp_path):
-    from spheroseg.beamspace import scan_convert
+    from spheroseg.volumes.beamspace import scan_convert
     from spheroseg.synthetic.phantom import FORMATIONS
 
     ph = make_phantom(seed=1, spacing=2.0, formation=FORMATIONS["default"], beam_space=True)
@@ -370,7 +370,7 @@ def test_command_refuses_a_port_in_use(phantom, tmp_path):
 
 
 def test_a_slow_page_loses_intermediate_surfaces_only():
-    from spheroseg.viewer.session import EventStream
+    from spheroseg.apps.viewer.session import EventStream
 
     stream = EventStream(capacity=4)
     stream.put("surface", {"final": True, "n": 0})
@@ -438,8 +438,8 @@ class _NoVentricle(ValueError):
 def test_find_places_apex_and_base_from_the_locator(server, phantom, monkeypatch):
     """``/api/find`` calls ``spheroseg.locate.locate`` (stubbed here: the
     locator has its own tests) and segments from what it returns."""
-    import spheroseg.viewer.session as session_module
-    from spheroseg.locate import Located
+    import spheroseg.apps.viewer.session as session_module
+    from spheroseg.tracking.locate import Located
 
     calls = []
 
@@ -474,7 +474,7 @@ def test_given_points_are_checked_against_the_located_ventricle(server, phantom)
     result poor, with a warning naming the point, and the page's banner
     gets it; the right points are not flagged.  The ventricle is located
     once a frame, while the user places the base after the apex."""
-    import spheroseg.viewer.session as session_module
+    import spheroseg.apps.viewer.session as session_module
 
     calls = []
     real = session_module.locate
@@ -536,7 +536,7 @@ def test_command_prints_the_address_once_it_answers(phantom, tmp_path):
     save_volume(path, phantom.volume)
     code = ("import sys, time, spheroseg.warmup as w; load = w.load_kernels\n"
             "w.load_kernels = lambda **k: (time.sleep(3), load(**k))[1]\n"
-            "from spheroseg.cli import main; sys.exit(main(sys.argv[1:]))")
+            "from spheroseg.apps.cli import main; sys.exit(main(sys.argv[1:]))")
     process = subprocess.Popen([sys.executable, "-c", code, "view", str(path), "--no-browser"],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
                                preexec_fn=interruptible)

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from spheroseg.volume import Volume
+from spheroseg.volumes.volume import Volume
 
 
 def affine_volume():
@@ -73,7 +73,7 @@ def test_bad_volumes(array, kwargs, message):
 
 
 def test_outside_sector_is_the_padding_not_the_blood():
-    from spheroseg.volume import outside_sector
+    from spheroseg.volumes.volume import outside_sector
 
     a = np.full((30, 30, 30), 80.0)
     a[:, :, :6] = 0  # padding touching the faces

@@ -33,10 +33,10 @@ STEP_KERNELS = ("gather", "scatter", "normal_displacement", "samples_at")
 STEP = """
 import json
 import sys
-from spheroseg import _kernels
+from spheroseg._compiled import _kernels
 from spheroseg.synthetic.phantom import make_phantom
-from spheroseg.segment import segment
-from spheroseg.warmup import load_step_kernels
+from spheroseg.tracking.segment import segment
+from spheroseg.apps.warmup import load_step_kernels
 if sys.argv[1] == "step":
     load_step_kernels()
 else:
@@ -68,8 +68,8 @@ def test_the_helpers_step_kernels_are_those_a_segmentation_calls(first_run, tmp_
 
 TRACK = """
 import json
-from spheroseg import _kernels
-from spheroseg.segment import track
+from spheroseg._compiled import _kernels
+from spheroseg.tracking.segment import track
 from spheroseg.synthetic.phantom import make_sequence
 seq = make_sequence(seed=0, n_frames=4, spacing=3.0)
 first = seq.frames[0]

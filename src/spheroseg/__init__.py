@@ -5,22 +5,42 @@ with an explicit bicubic Hermite surface in prolate spheroidal coordinates.
 >>> vol = spheroseg.load("case.mhd")                      # doctest: +SKIP
 >>> res = spheroseg.segment(vol, apex=(x, y, z), base=(x, y, z))  # doctest: +SKIP
 >>> res.volume_ml, res.mask(vol), res.mesh()             # doctest: +SKIP
+
+The package is in layers, each a folder that imports only the folders
+listed above it:
+
+- :mod:`spheroseg.geometry`: prolate spheroidal coordinates, Hermite
+  interpolation, the discretisation and the energy terms.
+- :mod:`spheroseg._compiled`: the compiled kernels and their runtime.
+- :mod:`spheroseg.volumes`: images with their geometry, beam space.
+- :mod:`spheroseg.surfaces`: the ventricle's surface on an image, the
+  myocardium, fits and metrics.
+- :mod:`spheroseg.synthetic`: synthetic echo with its truth.
+- :mod:`spheroseg.descent`: the data terms and the descent of a surface.
+- :mod:`spheroseg.tracking`: locating, segmenting and tracking the ventricle.
+- :mod:`spheroseg.io`: the field's files, outputs and reports.
+- :mod:`spheroseg.apps`: the command line, batches and the viewer.
 """
 
+import importlib as _importlib
+import sys as _sys
+
+from ._moved import MOVED as _MOVED
+from ._moved import install as _install_aliases
 from ._version import __version__
 
-from .beamspace import BeamGeometry, BeamVolume, scan_convert, to_beam_space
-from .coords import Cylindrical, Pose, ProlateSpheroidal, Spherical
-from .hermite import HermiteGrid
-from .batch import segment_many
+from .volumes.beamspace import BeamGeometry, BeamVolume, scan_convert, to_beam_space
+from .geometry.coords import Cylindrical, Pose, ProlateSpheroidal, Spherical
+from .geometry.hermite import HermiteGrid
+from .apps.batch import segment_many
 from .io import ImageFileError, load, load_sequence, save_mask, save_volume
-from .locate import Located, NoVentricleError, locate
-from .options import SegmentOptions
-from .results import Intermediate, SegmentationResult, TrackingResult
-from .segment import segment, track
-from .surface import Surface
-from .tracker import Tracker
-from .volume import ImageGrid, Volume
+from .tracking.locate import Located, NoVentricleError, locate
+from .descent.options import SegmentOptions
+from .descent.results import Intermediate, SegmentationResult, TrackingResult
+from .tracking.segment import segment, track
+from .surfaces.surface import Surface
+from .tracking.tracker import Tracker
+from .volumes.volume import ImageGrid, Volume
 
 __all__ = [
     "load", "load_sequence", "save_mask", "segment", "track", "Tracker", "SegmentOptions", "Intermediate",
@@ -28,3 +48,13 @@ __all__ = [
     "SegmentationResult", "TrackingResult", "ImageFileError", "BeamGeometry", "BeamVolume", "scan_convert",
     "to_beam_space", "save_volume", "segment_many", "locate", "Located", "NoVentricleError",
 ]
+
+
+_install_aliases(_sys.modules[__name__])
+
+
+def __getattr__(name: str):
+    # ``from spheroseg import volume``: an old module path, as the finder serves it
+    if name in _MOVED:
+        return _importlib.import_module(f"{__name__}.{name}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

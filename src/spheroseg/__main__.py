@@ -1,4 +1,4 @@
-from .cli import console
+from .apps.cli import console
 
 if __name__ == "__main__":  # not when a spawned worker process imports the main module
     console()

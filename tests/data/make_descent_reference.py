@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from spheroseg.synthetic.phantom import FAMILIES, make_phantom, make_sequence
-from spheroseg.segment import segment, track
+from spheroseg.tracking.segment import segment, track
 
 MODES = ("local", "chan-vese", "fast")
 SPACING = 1.5

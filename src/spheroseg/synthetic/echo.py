@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..beamspace import BeamGeometry, BeamVolume
+from ..volumes.beamspace import BeamGeometry, BeamVolume
 
 __all__ = ["ImageFormation", "sector_geometry", "speckle_envelope", "log_compress", "form_image", "RAYLEIGH_DB_STD",
            "PostProcessing", "postprocess", "multiplicative_speckle"]

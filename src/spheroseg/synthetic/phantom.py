@@ -35,10 +35,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import ndimage
 
-from .._runtime import usable_cores
-from ..beamspace import BeamGeometry, BeamVolume, scan_convert
+from .._compiled._runtime import usable_cores
+from ..volumes.beamspace import BeamGeometry, BeamVolume, scan_convert
 from .echo import ImageFormation, PostProcessing, form_image, postprocess, sector_geometry
-from ..volume import ImageGrid, Volume
+from ..volumes.volume import ImageGrid, Volume
 
 __all__ = ["Phantom", "PhantomSequence", "make_phantom", "make_sequence", "FAMILIES", "FORMATIONS", "POSTPROCESSINGS",
            "sweep_cases", "probe_sector", "MitralScene", "tilted_mitral_scene", "LateRegion", "myocardium_truth"]
