@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
-from spheroseg.descent import dataterms  # noqa: E402
+from spheroseg.descent import speckle  # noqa: E402
 from spheroseg.descent.dataterms import IntensityInterface  # noqa: E402
 from spheroseg.surfaces.metrics import dice  # noqa: E402
 from spheroseg.synthetic.phantom import FAMILIES, FORMATIONS, POSTPROCESSINGS, make_phantom  # noqa: E402
@@ -91,7 +91,7 @@ def main(argv=None):
     command = "python benchmarks/postprocessing.py" + ("" if args.seeds == [0, 1] else
                                                        " --seeds " + " ".join(map(str, args.seeds)))
     data = {"command": command, "machine": machine(), "variants": list(VARIANTS),
-            "max_contrast_db": dataterms.MAX_CONTRAST_DB, "edge_psf_mm": dataterms.EDGE_PSF_MM, "cases": rows,
+            "max_contrast_db": speckle.MAX_CONTRAST_DB, "edge_psf_mm": speckle.EDGE_PSF_MM, "cases": rows,
             "wall_seconds": time.perf_counter() - t0}
     print("wrote", write_json("postprocessing.json", data))
     print("wrote", write_markdown())

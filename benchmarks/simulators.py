@@ -13,7 +13,7 @@ darker than the wall, as bright, or 6 dB brighter; 1 mm voxels, blurred by
 an isotropic Gaussian of 0.5-3 mm (standard deviation).  Each is segmented
 with default options from the true apex and base ('profile', now), and
 again with the wall's blur read from the speckle alone ('speckle', as
-before: `spheroseg.dataterms.profile_blur_mm` giving the speckle's back).
+before: `spheroseg.descent.speckle.profile_blur_mm` giving the speckle's back).
 Writes docs/simulators.json and regenerates docs/benchmarks.md.
 """
 
@@ -31,7 +31,7 @@ from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
 from spheroseg import Volume  # noqa: E402
-from spheroseg.descent import dataterms
+from spheroseg.descent import dataterms, speckle
 from spheroseg import segment
 from spheroseg.descent.dataterms import IntensityInterface  # noqa: E402
 from spheroseg.tracking.epicardium import DARK_WALL  # noqa: E402
@@ -99,7 +99,7 @@ def main() -> None:
     t0 = time.perf_counter()
     rows = run()
     data = {"command": "python benchmarks/simulators.py", "machine": machine(), "variants": list(VARIANTS),
-            "max_edge_blur_mm": dataterms.MAX_EDGE_BLUR_MM, "rows": rows, "wall_seconds": time.perf_counter() - t0}
+            "max_edge_blur_mm": speckle.MAX_EDGE_BLUR_MM, "rows": rows, "wall_seconds": time.perf_counter() - t0}
     print("wrote", write_json("simulators.json", data))
     print("wrote", write_markdown())
 

@@ -1,5 +1,6 @@
 """The descent of one surface on one image: :mod:`.dataterms` (the
-protocol of a data term and the built-in ones), :mod:`.backends` (where the
+protocol of a data term and the built-in ones) with :mod:`.speckle` (the
+physics of log-compressed speckle they read), :mod:`.backends` (where the
 image is sampled: compiled or numpy), :mod:`.descent` (one level's
 iteration), :mod:`.stepper` (the coarse-to-fine schedule, stepped),
 :mod:`.options` (the options, validated), :mod:`.results` (what a run

@@ -32,7 +32,7 @@ report says what the descent saw and did:
 ``beyond_wall``, ``beyond_wall_fraction``
     Grey levels the intensity interface took off the myocardium's level
     because its outer band read brighter tissue beyond a thin wall
-    (:func:`spheroseg.dataterms.beyond_wall_excess`), and the fraction of
+    (:func:`spheroseg.descent.speckle.beyond_wall_excess`), and the fraction of
     the band's rise they are (1: all of it; less where the rise may be a
     blurred edge's); 0 when it read none.
 ``wall_contrast``

@@ -206,7 +206,7 @@ def check_wall_polarity(result: SegmentationResult, volume: Volume, *,
     (:class:`spheroseg.dataterms.IntensityInterface`); past a thin wall
     that is darker than what lies beyond it, the far offsets read that
     tissue.  Where the band's profile shows it clearly
-    (:func:`spheroseg.dataterms.beyond_wall_excess`) the interface takes it
+    (:func:`spheroseg.descent.speckle.beyond_wall_excess`) the interface takes it
     off; where it does not (a dark wall as thick as the band, or a profile
     a smoothing blurred into one rise, whose steps may be an edge's), the
     level may be read too high and the wall moved out.  Of the image-formation sweep only
@@ -284,7 +284,7 @@ def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: fl
         (:attr:`SegmentationResult.log_compression`, which
         :func:`add_epicardium` hands over), read from the same wall's
         speckle and bounded by its contrast
-        (:func:`spheroseg.dataterms.interface_nepers`), so that smoothed
+        (:func:`spheroseg.descent.speckle.interface_nepers`), so that smoothed
         speckle does not lower it; by default :func:`wall_nepers`.
     start : Surface, optional
         The start (and the thin-plate prior's reference) instead of the
