@@ -54,13 +54,13 @@ def run(seeds) -> list:
     estimate = IntensityInterface.estimate_blur
     smoothing = {}
 
-    def recorded(self, backend, volume, obs):
-        smoothing["mm"], blur = estimate(self, backend, volume, obs)
+    def recorded(samples):
+        smoothing["mm"], blur = estimate(samples)
         # the point-spread function's blur of the wall read from the speckle: the widest, along the image's axes
         smoothing["blur_mm"] = float(np.sqrt(np.max(np.diag(blur)))) if blur is not None else 0.0
         return (smoothing["mm"], blur) if smoothing["variant"] == "edge" else (0.0, None)
 
-    IntensityInterface.estimate_blur = recorded
+    IntensityInterface.estimate_blur = staticmethod(recorded)
     try:
         for name, options in settings():
             for k, family in enumerate(("speckle", "tilted")):
@@ -78,7 +78,7 @@ def run(seeds) -> list:
                     print(name, family, seed + 10 * k, round(row["smoothing_mm"], 2),
                           {v: round(row[v]["volume_error_pct"], 2) for v in VARIANTS}, flush=True)
     finally:
-        IntensityInterface.estimate_blur = estimate
+        IntensityInterface.estimate_blur = staticmethod(estimate)
     return rows
 
 

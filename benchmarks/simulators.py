@@ -66,13 +66,13 @@ def run() -> list:
     rows, read = [], {}
     unblurred = IntensityInterface.unblurred_levels
 
-    def recorded(self, *args, **kwargs):
-        levels = unblurred(self, *args, **kwargs)
-        read["mm"] = self.wall_blur_mm
+    def recorded(*args, **kwargs):
+        levels = unblurred(*args, **kwargs)
+        read["mm"] = levels[3]  # the wall's blur removed
         return levels
 
     profile_blur = dataterms.profile_blur_mm
-    IntensityInterface.unblurred_levels = recorded
+    IntensityInterface.unblurred_levels = staticmethod(recorded)
     try:
         for blur in BLURS_MM:
             for tissue_db in TISSUE_DB:
@@ -91,7 +91,7 @@ def run() -> list:
                           round(row["profile"]["blur_read_mm"], 2), flush=True)
     finally:
         dataterms.profile_blur_mm = profile_blur
-        IntensityInterface.unblurred_levels = unblurred
+        IntensityInterface.unblurred_levels = staticmethod(unblurred)
     return rows
 
 

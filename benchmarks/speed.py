@@ -38,6 +38,7 @@ from report import write_markdown  # noqa: E402
 import spheroseg  # noqa: E402
 from spheroseg.descent.backends import compiled_available, kernel_thread_count  # noqa: E402
 from spheroseg.descent.dataterms import IntensityInterface, LocalMeans  # noqa: E402
+from spheroseg.descent.stepper import freeze_samples  # noqa: E402
 from spheroseg.descent.descent import Descent  # noqa: E402
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom, make_sequence  # noqa: E402
 from spheroseg.tracking.segment import segment as _segment, track  # noqa: E402
@@ -61,30 +62,31 @@ def descent(apex, base, patches=(8, 8), backend="auto"):
 def iteration_parts(d, volume, repeats=300) -> dict:
     """Median times (us) of the parts of one local-mode iteration."""
     p0 = d.p.copy()
-    term = LocalMeans(np.array([0.0, 100.0]))
-    obs = d.observe(volume, term)
+    term = LocalMeans()
+    state = term.start(np.array([0.0, 100.0]))
+    obs = d.observe(volume, term.reads(state))
 
     def project():
         d.p = p0.copy()
-        d.iterate(obs, term.force(obs))
+        d.iterate(obs, term.force(obs, state))
 
     def whole():
         d.p = p0.copy()
-        o = d.observe(volume, term)
-        d.iterate(o, term.force(o))
+        o = d.observe(volume, term.reads(state))
+        d.iterate(o, term.force(o, state))
 
     backend, rows = d.backend, d.discretisation.band_rows
-    out = {"sampling_us": 1e6 * median_time(lambda: d.observe(volume, term), repeats),
+    out = {"sampling_us": 1e6 * median_time(lambda: d.observe(volume, term.reads(state)), repeats),
            "projection_us": 1e6 * median_time(project, repeats),
            "iteration_us": 1e6 * median_time(whole, repeats)}
     out["geometry_us"] = 1e6 * median_time(lambda: d.model.geometry(d.p), repeats) if backend.name == "numpy" else np.nan
     if backend.name == "compiled":  # the parts of the observation
         out["surface_and_samples_us"] = 1e6 * median_time(lambda: backend.observe(d.p, volume), repeats)
-        out["band_samples_us"] = 2e6 * median_time(lambda: backend.mean_along(volume, obs, term.band_offsets, rows),
+        out["band_samples_us"] = 2e6 * median_time(lambda: backend.mean_along(volume, obs, state.band_offsets, rows),
                                                    repeats)
-        out["local_means_us"] = 1e6 * median_time(lambda: term.force(replace(obs, band_means=backend.band_means(obs))),
-                                                  repeats)
-        out["image_samples"] = d.model.n_samples + 2 * len(rows) * len(term.band_offsets)
+        out["local_means_us"] = 1e6 * median_time(
+            lambda: term.force(replace(obs, band_means=backend.band_means(obs)), state), repeats)
+        out["image_samples"] = d.model.n_samples + 2 * len(rows) * len(state.band_offsets)
     d.p = p0
     return out
 
@@ -96,10 +98,12 @@ def last_stage(volume, apex, base):
     s = segment(volume, apex, base).surface
     d = Descent(s, s, order=8, step=1.0, landmarks=apex[None], landmark_weights=[10.0], nu=0.0, smoothness=1.0)
     probe = d.backend.observe(d.p, volume)
-    term = IntensityInterface(probe.u[np.isfinite(probe.u)])
-    obs = d.observe(volume, term)
-    term.freeze(d.backend, volume, obs, *obs.band_means)  # measures and freezes the region means
-    return d, term, d.p.copy()
+    term = IntensityInterface()
+    state = term.start(probe.u[np.isfinite(probe.u)])
+    obs = d.observe(volume, term.reads(state))
+    # measures and freezes the region means
+    state = term.freeze(state, obs, *obs.band_means, freeze_samples(d.backend, volume, obs, term.freeze_reads(state)))
+    return d, term, state, d.p.copy()
 
 
 def intensity_iteration_us(volume, apex, base, repeats=300) -> float:
@@ -107,12 +111,12 @@ def intensity_iteration_us(volume, apex, base, repeats=300) -> float:
     (:func:`last_stage`), as the tracker runs it: in the compiled level
     loop (``Descent.run``), the difference between 11 iterations and 1
     over 10 (the loop's call left out)."""
-    d, term, p0 = last_stage(volume, apex, base)
+    d, term, state, p0 = last_stage(volume, apex, base)
 
     def run(iterations):
         d.p = p0.copy()
         d.reset_step(1.0)
-        d.run(volume, term, tol=0.0, max_iterations=iterations)
+        d.run(volume, term, state, tol=0.0, max_iterations=iterations)
 
     return 1e6 * (median_time(lambda: run(11), repeats) - median_time(lambda: run(1), repeats)) / 10
 
@@ -153,7 +157,7 @@ def stage_ms(volume, apex, base, repeats=10) -> dict:
         tracker = Tracker(volume, apex, base)
         row = {"setup": time.perf_counter() - t0}
         while tracker.status is None:
-            level = f"level {tracker.level}: {tracker.levels[tracker.level].data_term.__name__}"
+            level = f"level {tracker.level}: {type(tracker.levels[tracker.level].data_term).__name__}"
             t0, done = time.perf_counter(), tracker.iteration
             if not tracker.run_level():
                 tracker.iterate()

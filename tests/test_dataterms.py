@@ -1,9 +1,12 @@
 """Data terms against a two-region image whose means are known exactly."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from spheroseg.descent.backends import NumpyBackend, select_backend
+from spheroseg.descent.stepper import freeze_samples
 from spheroseg.descent.dataterms import (DATA_TERMS, FixedInterface, GlobalMeans, IntensityInterface, LocalMeans,
                                          band_offsets, otsu_threshold, shell_offsets)
 from spheroseg.descent.speckle import FORMED_SPECKLE_SMOOTHING_MM, band_contamination, nanmedian, speckle_nepers
@@ -34,33 +37,37 @@ def two_regions():
 def test_global_means_are_the_region_values(two_regions, backend):
     volume, model, p, _, _ = two_regions
     b = NumpyBackend(model) if backend == "numpy" else select_backend(model)
-    term = GlobalMeans(np.array([C_IN, C_OUT]), band_out=15.0)
-    c_in, c_out, scale = term.force(b.observe_term(p, volume, term))[1:4]
+    term = GlobalMeans()
+    state = term.start(np.array([C_IN, C_OUT]), band_out=15.0)
+    c_in, c_out, scale = term.force(b.observe_term(p, volume, term.reads(state)), state)[1:4]
     # the cavity along the rays (to 0.95 f) and the shell 3 to 15 mm outside
     assert c_in == pytest.approx(C_IN, abs=0.5)
     assert c_out == pytest.approx(C_OUT, abs=0.5)
     assert scale == pytest.approx((c_out - c_in) ** 2)
     # inside brighter than outside: no force, the least scale; the means as measured
     flipped = Volume(C_IN + C_OUT - volume.array)
-    force = term.force(b.observe_term(p, flipped, term))
-    assert force.c_out == force.c_in == pytest.approx(C_OUT, abs=0.5) and force.scale == term.min_scale
+    force = term.force(b.observe_term(p, flipped, term.reads(state)), state)
+    assert force.c_out == force.c_in == pytest.approx(C_OUT, abs=0.5) and force.scale == state.min_scale
     assert force.grey_means[1] == pytest.approx(C_IN, abs=0.5)
 
 
 @pytest.mark.parametrize("backend", ["numpy", "auto"])
 @pytest.mark.parametrize("term_class", [FixedInterface, GlobalMeans, LocalMeans])
 def test_a_data_term_keeps_nothing_of_what_it_measures(two_regions, term_class, backend):
-    """The force is a function of the observation: the term's attributes
-    are the same objects after it, and the measured means travel in the
-    :class:`Force` (``grey_means``), the region means as measured."""
+    """The force is a function of the observation and the state: the term's
+    and the state's attributes are the same objects after it, and the
+    measured means travel in the :class:`Force` (``grey_means``), the
+    region means as measured."""
     volume, model, p, _, _ = two_regions
     b = NumpyBackend(model) if backend == "numpy" else select_backend(model)
-    term = term_class(np.array([C_IN, C_OUT]))
-    before = dict(vars(term))
-    obs = b.observe_term(p, volume, term)
-    force = term.force(obs)
-    assert vars(term).keys() == before.keys()
+    term = term_class()
+    state = term.start(np.array([C_IN, C_OUT]))
+    before, state_before = dict(vars(term)), dict(vars(state))
+    obs = b.observe_term(p, volume, term.reads(state))
+    force = term.force(obs, state)
+    assert vars(term).keys() == before.keys() and vars(state).keys() == state_before.keys()
     assert all(vars(term)[name] is value for name, value in before.items())
+    assert all(vars(state)[name] is value for name, value in state_before.items())
     c_in, c_out = force.grey_means
     assert nanmedian(c_in) == pytest.approx(C_IN, abs=1.0) and nanmedian(c_out) == pytest.approx(C_OUT, abs=1.0)
 
@@ -79,21 +86,22 @@ def test_global_means_of_the_wrong_polarity_leave_the_surface(two_regions):
 def test_local_means_are_the_band_values_and_respect_polarity(two_regions):
     volume, model, p, inner, p_inner = two_regions
     b = NumpyBackend(model)
-    term = LocalMeans(np.array([C_IN, C_OUT]), band=8.0)
-    c_in, c_out, scale = term.force(b.observe_term(p, volume, term))[1:4]
+    term = LocalMeans()
+    state = term.start(np.array([C_IN, C_OUT]), band=8.0)
+    c_in, c_out, scale = term.force(b.observe_term(p, volume, term.reads(state)), state)[1:4]
     # on the interface: blood in the inner band, tissue in the outer one
     assert np.median(c_in) == pytest.approx(C_IN, abs=1.0) and np.median(c_out) == pytest.approx(C_OUT, abs=1.0)
     assert scale == pytest.approx(np.median(c_out - c_in) ** 2)
     # 4 mm inside: the outer band (2 to 8 mm) is part blood, so its mean lies between
     b = NumpyBackend(inner)
-    c_in, c_out = b.observe_term(p_inner, volume, term).band_means
+    c_in, c_out = b.observe_term(p_inner, volume, term.reads(state)).band_means
     assert np.median(c_in) == pytest.approx(C_IN, abs=1.0) and C_IN + 20 < np.median(c_out) < C_OUT - 20
     # inside brighter than outside: no contrast, no force, the least scale
     b = NumpyBackend(model)
     flipped = Volume(C_IN + C_OUT - volume.array)
-    c_in, c_out, scale = term.force(b.observe_term(p, flipped, term))[1:4]
+    c_in, c_out, scale = term.force(b.observe_term(p, flipped, term.reads(state)), state)[1:4]
     np.testing.assert_allclose(c_out, c_in)
-    assert scale == term.min_scale
+    assert scale == state.min_scale
 
 
 @pytest.mark.parametrize("backend", ["numpy", "auto"])
@@ -107,16 +115,16 @@ def test_a_bright_inside_is_the_dark_inside_reflected(two_regions, backend):
     volume, model, p, _, _ = two_regions
     b = NumpyBackend(model) if backend == "numpy" else select_backend(model)
     flipped = Volume(-volume.array)
-    bright = type("Bright", (LocalMeans,), {"polarity": -1.0})(np.array([C_IN, C_OUT]), band=8.0)
-    dark = LocalMeans(np.array([C_IN, C_OUT]), band=8.0)
-    wall = bright.force(b.observe_term(p, flipped, bright))
-    cavity = dark.force(b.observe_term(p, volume, dark))
+    bright, dark = LocalMeans(polarity=-1.0), LocalMeans()
+    state = dark.start(np.array([C_IN, C_OUT]), band=8.0)
+    wall = bright.force(b.observe_term(p, flipped, bright.reads(state)), state)
+    cavity = dark.force(b.observe_term(p, volume, dark.reads(state)), state)
     for a, c in [(wall.c_in, cavity.c_in), (wall.c_out, cavity.c_out), *zip(wall.grey_means, cavity.grey_means)]:
         np.testing.assert_allclose(a, -c, rtol=1e-12)
     assert wall.scale == pytest.approx(cavity.scale, rel=1e-12) and np.median(wall.c_in) > np.median(wall.c_out)
     k = 15.0
-    bright = type("Bright", (LocalMeans,), {"polarity": -1.0, "boundary_nepers": k})(np.array([C_IN, C_OUT]), band=8.0)
-    force = bright.force(b.observe_term(p, flipped, bright))
+    bright = LocalMeans(polarity=-1.0, boundary_nepers=k)
+    force = bright.force(b.observe_term(p, flipped, bright.reads(state)), state)
     c_in, c_out = force.grey_means
     middle = (force.c_in + force.c_out) / 2
     np.testing.assert_allclose(np.exp(middle / k), (np.exp(c_in / k) + np.exp(c_out / k)) / 2, rtol=1e-9)
@@ -125,20 +133,34 @@ def test_a_bright_inside_is_the_dark_inside_reflected(two_regions, backend):
 
 def test_fixed_interface_levels():
     samples = np.concatenate([np.full(50, C_IN), np.full(50, C_OUT)])
-    term = FixedInterface(samples)
-    assert (term.c_in, term.c_out) == (C_IN, C_OUT)
+    assert FixedInterface().start(samples).levels[:2] == (C_IN, C_OUT)
     assert otsu_threshold(samples) == pytest.approx(70.0)
-    given = FixedInterface(samples, interface=60.0)
-    assert (given.c_in, given.c_out) == (10.0, 110.0)  # the class means' half gap about the given level
+    given = FixedInterface(interface=60.0)
+    state = given.start(samples)
+    assert state.levels[:2] == (10.0, 110.0)  # the class means' half gap about the given level
     obs = type("Obs", (), {"u": np.zeros(3)})()
-    assert given.force(obs)[1:5] == (10.0, 110.0, 100.0**2, 1.0)
+    assert given.force(obs, state)[1:5] == (10.0, 110.0, 100.0**2, 1.0)
 
 
 def test_modes_map_to_one_class_each():
     assert DATA_TERMS == {"intensity": IntensityInterface, "local": LocalMeans, "chan-vese": GlobalMeans,
                           "fast": FixedInterface}
-    assert LocalMeans.needs_bands and not GlobalMeans.needs_bands
-    assert LocalMeans(np.arange(10.0), band=8.0).band_offsets.tolist() == [2.0, 4.0, 6.0, 8.0]
+    state = LocalMeans().start(np.arange(10.0), band=8.0)
+    assert LocalMeans().reads(state).band_offsets.tolist() == [2.0, 4.0, 6.0, 8.0]
+    assert GlobalMeans().reads(state).band_offsets is None and GlobalMeans().reads(state).shell_offsets is not None
+
+
+def test_a_term_is_its_parameters():
+    """Rule 1 of the protocol: equal parameters, equal terms (the stepper
+    keys their states by them); a parameter out of its range is refused."""
+    assert LocalMeans(polarity=-1.0, boundary_nepers=12.0) == LocalMeans(polarity=-1, boundary_nepers=12.0)
+    assert LocalMeans(polarity=-1.0) != LocalMeans() and IntensityInterface() != LocalMeans()
+    assert len({LocalMeans(), LocalMeans(), GlobalMeans(), FixedInterface(interface=3.0)}) == 3
+    assert repr(LocalMeans(polarity=-1.0)) == "LocalMeans(polarity=-1.0, boundary_nepers=inf)"
+    with pytest.raises(ValueError, match="polarity must be 1"):
+        LocalMeans(polarity=0.5)
+    with pytest.raises(ValueError, match="boundary_nepers must be positive"):
+        LocalMeans(boundary_nepers=0.0)
 
 
 @pytest.mark.parametrize("dynamic_range_db", [40.0, 70.0])
@@ -162,22 +184,22 @@ def test_the_wall_blur_is_removed_only_from_speckle_as_formed(two_regions):
     point-spread function's), nor without a blur read (beam space)."""
     volume, model, p_on, _, _ = two_regions
     obs = NumpyBackend(model).observe(p_on, volume)
-    term = IntensityInterface(np.array([C_IN, C_OUT]))
-    term.nepers = 10.0
-    term.edge_blur_covariance = 1.5**2 * np.eye(3)
+    term = IntensityInterface()
+    state = replace(term.start(np.array([C_IN, C_OUT])), nepers=10.0, edge_blur_covariance=1.5**2 * np.eye(3))
     c_in, c_out = np.full(model.n_samples, C_IN), np.full(model.n_samples, C_OUT)
-    deficit_in, deficit_out = band_contamination(1.5, (C_OUT - C_IN) / 10.0, term.band_offsets)
+    deficit_in, deficit_out = band_contamination(1.5, (C_OUT - C_IN) / 10.0, state.band_offsets)
     deficit_in, deficit_out = band_contamination(1.5, (C_OUT - C_IN) / 10.0 - (deficit_out.mean() - deficit_in),
-                                                 term.band_offsets)
-    levels = term.unblurred_levels(obs, c_in, c_out)
+                                                 state.band_offsets)
+    levels = term.unblurred_levels(state, obs, c_in, c_out)
     np.testing.assert_allclose(levels[0], C_IN - 10.0 * deficit_in)
     np.testing.assert_allclose(levels[1], C_OUT - 10.0 * deficit_out.mean())
     np.testing.assert_allclose(levels[2], 10.0 * deficit_out)  # grey levels at each of the outer band's offsets
     assert levels[1][0] > C_OUT + 1.0  # the outer band read the wall's level a grey level low or more
-    for smoothing_mm, covariance in ((FORMED_SPECKLE_SMOOTHING_MM, term.edge_blur_covariance), (0.0, None)):
-        term.smoothing_mm, term.edge_blur_covariance = smoothing_mm, covariance
-        same_in, same_out, none = term.unblurred_levels(obs, c_in, c_out)
-        assert same_in is c_in and same_out is c_out and np.array_equal(none, np.zeros(4))
+    assert levels[3] == 1.5  # the blur removed
+    for smoothing_mm, covariance in ((FORMED_SPECKLE_SMOOTHING_MM, state.edge_blur_covariance), (0.0, None)):
+        changed = replace(state, smoothing_mm=smoothing_mm, edge_blur_covariance=covariance)
+        same_in, same_out, none, blur = term.unblurred_levels(changed, obs, c_in, c_out)
+        assert same_in is c_in and same_out is c_out and np.array_equal(none, np.zeros(4)) and blur == 0
 
 
 def test_the_interface_reads_the_wall_not_the_tissue_beyond_a_thin_dark_wall(monkeypatch):
@@ -247,11 +269,11 @@ def test_intensity_interface_puts_the_wall_at_the_interface(spread_mm, local_bel
     if unblurred_below is None:  # a 1 mm spread's deficit is under 0.1 % of the volume
         return
     blur = IntensityInterface.estimate_blur
-    IntensityInterface.estimate_blur = lambda *args: (blur(*args)[0], None)
+    IntensityInterface.estimate_blur = staticmethod(lambda samples: (blur(samples)[0], None))
     try:
         errors["unblurred"] = segment(volume, apex, base, check=False).volume_ml / truth_ml - 1
     finally:
-        IntensityInterface.estimate_blur = blur
+        IntensityInterface.estimate_blur = staticmethod(blur)
     assert errors["unblurred"] < unblurred_below, errors
 
 
@@ -292,19 +314,21 @@ def test_a_blur_the_speckle_does_not_show_is_read_from_the_band(monkeypatch):
 def test_the_interface_reads_the_bands_only_until_its_means_are_frozen(two_regions):
     volume, model, p_on, _, _ = two_regions
     backend = NumpyBackend(model)
-    term = IntensityInterface(np.array([C_IN, C_OUT]))
-    term.nepers = 10.0  # not speckle: k given
-    assert term.needs_bands
-    obs = backend.observe_term(p_on, volume, term)
+    term = IntensityInterface()
+    state = replace(term.start(np.array([C_IN, C_OUT])), nepers=10.0)  # not speckle: k given
+    assert term.reads(state).band_offsets is not None and term.loop_kind(state) is None
+    obs = backend.observe_term(p_on, volume, term.reads(state))
     with pytest.raises(RuntimeError, match="freeze"):  # its levels come from band means, set by its stage
-        term.force(obs)
-    term.freeze(backend, volume, obs, *obs.band_means)
-    force = term.force(obs)
-    assert not term.needs_bands
-    obs = backend.observe_term(p_on, volume, term)  # no bands: the frozen means are used
-    assert obs.inside is None and obs.band_means is None and term.force(obs)[1:5] == force[1:5]
-    term.reset()
-    assert term.needs_bands
+        term.force(obs, state)
+    reads = term.freeze_reads(state)
+    assert not reads["estimates"]  # k known: no voxel-centre samples
+    frozen = term.freeze(state, obs, *obs.band_means, freeze_samples(backend, volume, obs, reads))
+    assert state.levels is None  # the state given is left as it was (rule 5: freeze is pure)
+    force = term.force(obs, frozen)
+    assert term.reads(frozen).band_offsets is None and term.loop_kind(frozen) == "fixed"
+    obs = backend.observe_term(p_on, volume, term.reads(frozen))  # no bands: the frozen means are used
+    assert obs.inside is None and obs.band_means is None and term.force(obs, frozen)[1:5] == force[1:5]
+    assert term.reset(frozen).levels is None and term.reset(frozen).nepers == 10.0
 
 
 def test_offsets_are_fresh_arrays():

@@ -8,6 +8,7 @@ import pytest
 
 from spheroseg import Tracker, Volume
 from spheroseg.descent.dataterms import FixedInterface, GlobalMeans, IntensityInterface, LocalMeans
+from spheroseg.descent.stepper import freeze_samples
 from spheroseg.descent.descent import Descent
 from spheroseg.geometry.discretisation import ROUGHNESS_SCALE
 from spheroseg.tracking.epicardium import wall_term
@@ -40,9 +41,10 @@ def test_step_solves_the_least_squares_system(phantom, backend):
     smoothness, step = 2.0, 1.0
     d = Descent(start, reference, order=8, step=step, smoothness=smoothness, landmarks=landmarks,
                 landmark_weights=weights, backend=backend)
-    term = LocalMeans(np.linspace(0, 100, 50))
-    obs = d.observe(ph.volume, term)
-    force = term.force(obs)
+    term = LocalMeans()
+    state = term.start(np.linspace(0, 100, 50))
+    obs = d.observe(ph.volume, term.reads(state))
+    force = term.force(obs, state)
     p = d.p.copy()
     motion = d.iterate(obs, force)
 
@@ -72,22 +74,22 @@ def test_step_solves_the_least_squares_system(phantom, backend):
 
 
 
-def _stepped(descent, volume, term, *, tol, max_iterations):
+def _stepped(descent, volume, term, state, *, tol, max_iterations):
     """The reference of :meth:`Descent.run`: observe, force, iterate."""
     for iteration in range(1, max_iterations + 1):
-        obs = descent.observe(volume, term)
-        force = term.force(obs)
+        obs = descent.observe(volume, term.reads(state))
+        force = term.force(obs, state)
         motion = descent.iterate(obs, force)
         if motion < tol:
             break
     return iteration, motion, motion < tol, obs, force
 
 
-@pytest.mark.parametrize("term_class, patches, adaptive_step",
-                         [(GlobalMeans, (2, 2), True), (GlobalMeans, (4, 4), False), (LocalMeans, (8, 8), True),
-                          (IntensityInterface, (8, 8), True), (FixedInterface, (4, 4), True),
+@pytest.mark.parametrize("term, patches, adaptive_step",
+                         [(GlobalMeans(), (2, 2), True), (GlobalMeans(), (4, 4), False), (LocalMeans(), (8, 8), True),
+                          (IntensityInterface(), (8, 8), True), (FixedInterface(), (4, 4), True),
                           (wall_term(15.0), (8, 8), True), (wall_term(), (8, 8), True)])
-def test_a_level_in_one_compiled_loop_equals_its_iterations(phantom, term_class, patches, adaptive_step):
+def test_a_level_in_one_compiled_loop_equals_its_iterations(phantom, term, patches, adaptive_step):
     """:meth:`Descent.run` (one compiled loop) against observe, force and
     iterate repeated, from the same start with two landmarks: the same
     iterations, and to rounding (the loop's sums are plain loops, not
@@ -97,7 +99,7 @@ def test_a_level_in_one_compiled_loop_equals_its_iterations(phantom, term_class,
     phantom's grey levels reflected, with the half-way intensity and
     with the midpoint."""
     ph = phantom
-    if getattr(term_class, "polarity", 1.0) < 0:
+    if getattr(term, "polarity", 1.0) < 0:
         ph = SimpleNamespace(volume=Volume(255.0 - ph.volume.array, spacing=ph.volume.spacing,
                                            origin=ph.volume.origin), apex=ph.apex, base=ph.base)
     start = Surface.from_apex_base(ph.apex, ph.base, patches=patches)
@@ -113,17 +115,20 @@ def test_a_level_in_one_compiled_loop_equals_its_iterations(phantom, term_class,
             # a step of 3 mm overshoots the walls: the adaptive step halves it (to its floor, 3/8, with the local means)
             d = Descent(start, start, order=8, step=step, smoothness=1.0, landmarks=landmarks,
                         landmark_weights=np.array([10.0, 1.0]), adaptive_step=adaptive_step)
-            term = term_class(samples)
-            if term_class is IntensityInterface:  # frozen on a first observation, as its stage does
-                obs = d.observe(ph.volume, term)
-                term.freeze(d.backend, ph.volume, obs, *obs.band_means)
-                d.iterate(obs, term.force(obs))
-            runs.append((d, term))
-        (d, term), (d_ref, term_ref) = runs
-        before = dict(vars(term))
-        run = d.run(ph.volume, term, tol=tol, max_iterations=cap)
+            state = term.start(samples)
+            if isinstance(term, IntensityInterface):  # frozen on a first observation, as its stage does
+                obs = d.observe(ph.volume, term.reads(state))
+                state = term.freeze(state, obs, *obs.band_means,
+                                    freeze_samples(d.backend, ph.volume, obs, term.freeze_reads(state)))
+                d.iterate(obs, term.force(obs, state))
+            runs.append((d, state))
+        (d, state), (d_ref, state_ref) = runs
+        before, state_before = dict(vars(term)), dict(vars(state))
+        run = d.run(ph.volume, term, state, tol=tol, max_iterations=cap)
         assert vars(term).keys() == before.keys() and all(vars(term)[k] is v for k, v in before.items())
-        iterations, motion, converged, obs, force = _stepped(d_ref, ph.volume, term_ref, tol=tol, max_iterations=cap)
+        assert all(vars(state)[k] is v for k, v in state_before.items())
+        iterations, motion, converged, obs, force = _stepped(d_ref, ph.volume, term, state_ref, tol=tol,
+                                                             max_iterations=cap)
         assert (run.iterations, run.converged) == (iterations, converged) and iterations > 1
         assert converged == (tol > 0)
         close = dict(rtol=1e-11, atol=1e-12)
@@ -131,7 +136,7 @@ def test_a_level_in_one_compiled_loop_equals_its_iterations(phantom, term_class,
         np.testing.assert_allclose(d.p, d_ref.p, **close)
         assert (d.step, d.h0_floor) == pytest.approx((d_ref.step, d_ref.h0_floor), rel=1e-12)
         # a wall settles without halving the step
-        assert (d.step < step) == adaptive_step or getattr(term_class, "polarity", 1.0) < 0
+        assert (d.step < step) == adaptive_step or getattr(term, "polarity", 1.0) < 0
         for name in ("f", "h0", "u", "world", "normal"):
             np.testing.assert_allclose(getattr(run.observation, name), getattr(obs, name), **close, err_msg=name)
         for a, b in zip(run.force[:5], force[:5]):
@@ -146,7 +151,7 @@ def test_a_compiled_loop_without_image_data_says_so(phantom):
     blank = Volume(np.zeros(ph.volume.shape[::-1], np.float32), spacing=ph.volume.spacing, origin=ph.volume.origin,
                    no_data_mask=np.ones(ph.volume.shape[::-1], bool))
     for tracker in trackers:
-        while tracker.levels[tracker.level].data_term is not LocalMeans:
+        while tracker.levels[tracker.level].data_term != LocalMeans():
             tracker.iterate()
         tracker.volume = blank
     with pytest.raises(ValueError, match="no image data around the surface") as looped:

@@ -272,13 +272,14 @@ def test_compiled_path_matches_numpy_reference(phantoms):
     kw = dict(order=8, step=1.0, landmarks=ph.apex[None], landmark_weights=[1.0], nu=0.0, smoothness=1.0)
     fast, ref = Descent(s, s, backend="compiled", **kw), Descent(s, s, backend="numpy", **kw)
     assert fast.backend.name == "compiled" and ref.backend.name == "numpy"
-    term = LocalMeans(np.linspace(0, 100, 50))
+    term = LocalMeans()
+    state = term.start(np.linspace(0, 100, 50))
     for _ in range(10):
-        o_fast, o_ref = fast.observe(ph.volume, term), ref.observe(ph.volume, term)
+        o_fast, o_ref = fast.observe(ph.volume, term.reads(state)), ref.observe(ph.volume, term.reads(state))
         for name in ("f", "h0", "cos", "u", "inside", "outside"):
             np.testing.assert_allclose(getattr(o_fast, name), getattr(o_ref, name), rtol=1e-9, atol=1e-9)
         for d, o in ((fast, o_fast), (ref, o_ref)):
-            force = term.force(o)
+            force = term.force(o, state)
             d.iterate(o, force._replace(scale=400.0))
     np.testing.assert_allclose(fast.p, ref.p, atol=1e-6)
 

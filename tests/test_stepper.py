@@ -31,11 +31,17 @@ def test_a_frame_caps_its_finest_levels_without_rewriting_the_schedule(phantom):
 
 
 def test_a_schedule_of_ones_own(phantom):
-    levels = [Level((4, 4), GlobalMeans, 5, 0.1), Level((8, 8), LocalMeans, 4, 0.05)]
+    levels = [Level((4, 4), GlobalMeans(), 5, 0.1), Level((8, 8), LocalMeans(), 4, 0.05)]
     tracker = Tracker(phantom.volume, phantom.apex, phantom.base, levels=levels)
     result = tracker.run()
     assert tracker.levels == tuple(levels) and tracker.patches == (8, 8)
     assert result.iterations <= 9 and result.surface.grid.n1 == 8
+
+
+def test_a_level_given_a_data_term_class_warns_and_takes_its_object():
+    with pytest.warns(DeprecationWarning, match=r"pass GlobalMeans\(\), not the class .* until 0\.3\.0"):
+        level = Level((4, 4), GlobalMeans, 5, 0.1)
+    assert level.data_term == GlobalMeans()
 
 
 def test_held_points_keep_the_cavity_side_and_the_apex():

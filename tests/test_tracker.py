@@ -12,7 +12,6 @@ import pytest
 import spheroseg
 from spheroseg import Tracker, track
 from spheroseg import segment
-from spheroseg.descent.backends import NumpyBackend
 from spheroseg.descent.dataterms import FixedInterface, GlobalMeans, IntensityInterface, LocalMeans
 from spheroseg.descent.options import SegmentOptions
 from spheroseg.synthetic.phantom import make_phantom, make_sequence
@@ -61,13 +60,17 @@ def test_results_equal_the_recorded_reference(reference):
 def test_schedule_is_data():
     levels = schedule(SegmentOptions())
     assert [(lv.patches, lv.data_term, lv.max_iterations, lv.tol) for lv in levels] == [
-        ((2, 2), GlobalMeans, 60, 0.1), ((4, 4), GlobalMeans, 60, 0.1), ((8, 8), LocalMeans, 60, 0.05),
-        ((8, 8), IntensityInterface, 60, 0.05)]
+        ((2, 2), GlobalMeans(), 60, 0.1), ((4, 4), GlobalMeans(), 60, 0.1), ((8, 8), LocalMeans(), 60, 0.05),
+        ((8, 8), IntensityInterface(), 60, 0.05)]
     assert [lv.tol for lv in schedule(SegmentOptions(tol=0.02, coarse_tol=0.3))] == [0.3, 0.3, 0.02, 0.02]
-    assert schedule(SegmentOptions(mode="local"))[-1].data_term is LocalMeans
-    assert [lv.data_term for lv in schedule(SegmentOptions(mode="fast"))] == [FixedInterface] * 3
+    assert schedule(SegmentOptions(mode="local"))[-1].data_term == LocalMeans()
+    assert [lv.data_term for lv in schedule(SegmentOptions(mode="fast"))] == [FixedInterface()] * 3
+    assert schedule(SegmentOptions(mode="fast", interface=12.0))[0].data_term == FixedInterface(interface=12.0)
+    bright = LocalMeans(polarity=-1.0, boundary_nepers=12.0)  # a term with parameters: the coarse levels' means
+    assert [lv.data_term for lv in schedule(SegmentOptions(mode=bright))] == [GlobalMeans()] * 2 + [bright]
     assert [lv.patches for lv in schedule(SegmentOptions(patches=(6, 8), mode="local"))] == [(3, 4), (6, 8)]
-    assert [lv.data_term for lv in schedule(SegmentOptions(coarse_to_fine=False))] == [LocalMeans, IntensityInterface]
+    assert [lv.data_term for lv in schedule(SegmentOptions(coarse_to_fine=False))] == [LocalMeans(),
+                                                                                      IntensityInterface()]
 
 
 @pytest.fixture(scope="module")
@@ -133,25 +136,25 @@ def test_a_callback_every_k_iterations_runs_the_compiled_loop_between(phantom):
 def test_the_interface_starts_from_the_local_means(monkeypatch):
     """The intensity stage is handed the local means' last band means, on
     every frame: it measures none itself, and its region means are theirs."""
-    observe_term = NumpyBackend.observe_term
+    reads = IntensityInterface.reads
 
-    def observe_no_bands(backend, p, volume, term, **options):
-        if isinstance(term, IntensityInterface) and term.needs_bands:
+    def reads_no_bands(term, state):
+        if reads(term, state).band_offsets is not None:
             pytest.fail("the interface measured band means again")
-        return observe_term(backend, p, volume, term, **options)
+        return reads(term, state)
 
-    monkeypatch.setattr(NumpyBackend, "observe_term", observe_no_bands)
+    monkeypatch.setattr(IntensityInterface, "reads", reads_no_bands)
 
     def run_by_hand(tracker):
         while tracker.status is None:
             stage = tracker.levels[tracker.level].data_term
             tracker.iterate()
-            if stage is LocalMeans:
+            if stage == LocalMeans():
                 c_in, c_out = tracker.c_in.copy(), tracker.c_out.copy()  # the local means' fields
-            elif stage is IntensityInterface:
+            elif stage == IntensityInterface():
                 np.testing.assert_array_equal(tracker.c_in, c_in)
                 np.testing.assert_array_equal(tracker.c_out, c_in + np.maximum(c_out - c_in, 0.0))
-        assert tracker.levels[tracker.level].data_term is IntensityInterface and tracker.status == 0
+        assert tracker.levels[tracker.level].data_term == IntensityInterface() and tracker.status == 0
 
     seq = make_sequence(seed=5, n_frames=2, spacing=2.0)
     first = seq.frames[0]
@@ -171,8 +174,8 @@ def test_the_interface_stage_takes_twice_the_step(phantom):
         stage = tracker.levels[tracker.level].data_term
         motions.setdefault(stage, []).append(tracker.iterate())
     assert IntensityInterface.step_factor == 2.0 and LocalMeans.step_factor == GlobalMeans.step_factor == 1.0
-    assert 0.55 < motions[IntensityInterface][0] <= 1.0
-    assert max(motions[GlobalMeans] + motions[LocalMeans]) < 0.5
+    assert 0.55 < motions[IntensityInterface()][0] <= 1.0
+    assert max(motions[GlobalMeans()] + motions[LocalMeans()]) < 0.5
 
 
 def test_stepping_frames_equals_track():

@@ -40,7 +40,7 @@ from .._compiled._runtime import (PARALLEL_LOCK, compiled_available, idle_cores,
                        usable_cores)
 from ..volumes.beamspace import BeamVolume
 from ..geometry.coords import ProlateSpheroidal
-from .dataterms import CAVITY_FRACTIONS, DataTerm
+from .dataterms import CAVITY_FRACTIONS, Reads
 from ..geometry.energy import Geometry, SampledSurface, normal_speed
 
 __all__ = ["Observation", "NumpyBackend", "CompiledBackend", "select_backend", "sample_points", "compiled_available",
@@ -117,21 +117,20 @@ class NumpyBackend:
             obs.outside = row_nanmean(self.samples_along(volume, obs, band_offsets, rows, exponent=exponent))
         return obs
 
-    def observe_term(self, p, volume, term: DataTerm, *, geometry: bool = False) -> Observation:
-        """:meth:`observe` with what the data term ``term`` reads: the band
-        means smoothed over the surface (:meth:`band_means`, while
-        ``term.needs_bands``), the global region means
-        (:meth:`region_means`, with ``term.needs_region_means``) and the
-        samples at its own ``term.offsets`` on the band rows."""
-        obs = self.observe(p, volume, band_offsets=term.band_offsets if term.needs_bands else None,
-                           geometry=geometry, exponent=term.exponent or 0.0)
-        if term.needs_bands:
+    def observe_term(self, p, volume, reads: Reads, *, geometry: bool = False) -> Observation:
+        """:meth:`observe` with what a data term reads (its
+        :meth:`~spheroseg.descent.dataterms.DataTerm.reads`): the band means
+        smoothed over the surface (:meth:`band_means`, at
+        ``reads.band_offsets``), the global region means
+        (:meth:`region_means`, with ``reads.shell_offsets``) and the samples
+        at its own ``reads.offsets`` on the band rows."""
+        obs = self.observe(p, volume, band_offsets=reads.band_offsets, geometry=geometry, exponent=reads.exponent)
+        if reads.band_offsets is not None:
             obs.band_means = self.band_means(obs)
-        if term.needs_region_means:
-            obs.region_means = self.region_means(volume, obs, term.shell_offsets)
-        if term.offsets is not None:
-            obs.along = self.samples_along(volume, obs, np.asarray(term.offsets, dtype=float),
-                                           self.discretisation.band_rows)
+        if reads.shell_offsets is not None:
+            obs.region_means = self.region_means(volume, obs, reads.shell_offsets)
+        if reads.offsets is not None:
+            obs.along = self.samples_along(volume, obs, reads.offsets, self.discretisation.band_rows)
         return obs
 
     def band_means(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:

@@ -1,9 +1,11 @@
 """The data terms of the descent: what ``c_in`` and ``c_out`` of paper eq. 22
 are, and the scale that makes the force dimensionless.
 
-Each data term is one class with the same small interface, chosen once from
-the ``mode`` string (:data:`DATA_TERMS`, as :func:`scipy.optimize.minimize`
-maps ``method``):
+Each data term is an object of one small protocol (:class:`DataTerm`, its
+rules numbered there), its parameters the arguments of its class
+(``LocalMeans(polarity=-1.0)``); a ``mode`` string names a built-in one
+(:data:`DATA_TERMS`, as :func:`scipy.optimize.minimize` maps ``method``),
+resolved once where the options are made:
 
 ``"fast"``: :class:`FixedInterface`
     The paper's fast mode: ``c_in``, ``c_out`` fixed once (Otsu's threshold
@@ -29,14 +31,15 @@ A data term of one's own
     (mm along the outward normal, negative inside) at which the image is
     sampled, and write :meth:`DataTerm.statistics`, a pure function of that
     observation (the grey levels at the surface and the samples along the
-    normals) to a :class:`Force`; pass the class as ``mode``.  It reads no
-    backend and keeps no state: the iteration samples the image, calls it,
-    and keeps what a result reports (as for the built-in terms, whose
-    :meth:`DataTerm.force` reads the band means or the region means that the
-    observation carries).  Such a term runs iteration by
-    iteration on either backend (the compiled level loop computes only the
-    built-in terms).  For example, a Rayleigh likelihood of the echo
-    amplitude in each band (Sarti et al. 2005)::
+    normals) to a :class:`Force`; pass an instance as ``mode``.  It reads
+    no backend and keeps no state: the iteration samples the image, calls
+    it, and keeps what a result reports (as for the built-in terms, whose
+    :meth:`DataTerm.force` reads the band means or the region means that
+    the observation carries, and whose measured levels the stepper keeps
+    as a :class:`TermState`).  Such a term runs iteration by iteration on
+    either backend (the compiled level loop computes only the built-in
+    terms).  For example, a Rayleigh likelihood of the echo amplitude in
+    each band (Sarti et al. 2005)::
 
         class Rayleigh(DataTerm):
             offsets = np.array([-6.0, -4.0, -2.0, 2.0, 4.0, 6.0])
@@ -67,8 +70,7 @@ References
 
 from __future__ import annotations
 
-import warnings
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import NamedTuple
 
@@ -79,7 +81,7 @@ from .speckle import (EDGE_PSF_MM, FORMED_SPECKLE_SMOOTHING_MM, LOG_SPREAD, NoSp
                       smoothed_edge_drop, speckle_correlations, speckle_nepers, speckle_smoothing_mm)
 
 # the speckle physics (:mod:`.speckle`) that 0.1 held here stays importable from here
-__all__ = ["DataTerm", "Force", "FixedInterface", "GlobalMeans", "LocalMeans", "IntensityInterface", "DATA_TERMS",
+__all__ = ["DataTerm", "Force", "Reads", "TermState", "FreezeSamples", "FixedInterface", "GlobalMeans", "LocalMeans", "IntensityInterface", "DATA_TERMS",
            "band_offsets", "shell_offsets", "otsu_threshold", "patch_of_rows", "nanmedian", "NoSpeckleError",
            "interface_level", "interface_nepers", "speckle_nepers"]
 
@@ -143,31 +145,138 @@ class Force(NamedTuple):
         return (self.c_in, self.c_out) if self.measured is None else self.measured
 
 
-class DataTerm:
-    """Region statistics for the force of eq. 22.
+class Reads(NamedTuple):
+    """What the iteration samples for a data term (:meth:`DataTerm.reads`),
+    each None where the term reads none of it.
 
-    Parameters
-    ----------
-    samples : array
-        Finite grey levels around the initial surface (both sides): they set
-        the least scale of the force (and the fast mode's levels).
-    band, band_out : float
-        Band widths (mm), as :class:`spheroseg.SegmentOptions`.
-    interface : float, optional
-        The fast mode's interface grey level.
+    ``band_offsets`` (mm): the inner and outer band means at these
+    distances along the normals, smoothed over the surface
+    (``Observation.band_means``); ``shell_offsets`` (mm): the global
+    region means, the cavity and a shell at these distances outside
+    (``Observation.region_means``); ``offsets`` (mm, negative inside):
+    the grey levels at these distances along the normals of the band
+    rows (``Observation.along``); ``exponent``: every sample ``v`` read as
+    ``exp(exponent v)`` (0: the grey levels)."""
+
+    band_offsets: np.ndarray | None = None
+    shell_offsets: np.ndarray | None = None
+    offsets: np.ndarray | None = None
+    exponent: float = 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class TermState:
+    """What a data term measured on a segmentation: its constants from the
+    grey levels about the initial surface (:meth:`DataTerm.start`), and what
+    a term that measures its levels once a frame set (:meth:`DataTerm.freeze`).
+    The stepper keeps it; the term never does.
 
     Attributes
     ----------
-    needs_bands : bool
-        Whether :meth:`force` reads the observation's band means
-        (``Observation.band_means``).
-    needs_region_means : bool
-        Whether it reads the global region means (``Observation.region_means``).
-    band_offsets : array or None
-        Their distances along the normal (mm).
-    exponent : float or None
-        The observation reads ``exp(exponent * v)`` for each grey level
-        ``v`` (0: the grey levels; None: not known yet).
+    spread : float
+        Standard deviation of the grey levels about the initial surface.
+    min_scale : float
+        The least squared contrast the force is divided by.
+    band_offsets, shell_offsets : array
+        The band means' and the shell's offsets (mm) of the options' widths.
+    levels : tuple or None
+        ``(c_in, c_out, scale)`` of a term whose levels are fixed (the fast
+        mode's, or the intensity interface's once frozen); None otherwise.
+    measured : tuple or None
+        The band means the levels were set from (what a result reports).
+    nepers : float or None
+        Grey levels per neper of intensity (the intensity interface's
+        estimate, once made: it holds for every frame of a sequence).
+    smoothing_mm, edge_blur_covariance
+        The grey levels' smoothing (mm) and the covariance (mm^2, world
+        axes) of the wall's blur in the speckle as formed, estimated with
+        ``nepers`` (:mod:`spheroseg.descent.speckle`).
+    wall_blur_mm : float
+        The wall's blur (mm along the normals) whose deficits the last
+        freeze removed (0: none).
+    beyond_wall, beyond_wall_fraction : float
+        Grey levels taken off the myocardium's level at the last freeze for
+        what the outer band read beyond a thin wall, and the fraction of the
+        band's rise they are (:func:`~spheroseg.descent.speckle.beyond_wall_excess`).
+    """
+
+    spread: float
+    min_scale: float
+    band_offsets: np.ndarray
+    shell_offsets: np.ndarray
+    levels: tuple | None = None
+    measured: tuple | None = None
+    nepers: float | None = None
+    smoothing_mm: float = 0.0
+    edge_blur_covariance: np.ndarray | None = None
+    wall_blur_mm: float = 0.0
+    beyond_wall: float = 0.0
+    beyond_wall_fraction: float = 0.0
+
+    @property
+    def frozen(self) -> bool:
+        """Whether fixed levels are set."""
+        return self.levels is not None
+
+
+class FreezeSamples(NamedTuple):
+    """The samples :meth:`IntensityInterface.freeze` computes its levels
+    from, taken by the stepper about the wall where the local means settled
+    (:meth:`DataTerm.freeze_reads` says which).
+
+    ``profile`` and ``beyond``: the outer band's median grey level at each
+    of its offsets and at as many again past the band (trilinear);
+    ``outer``: the outer band's grey levels at voxel centres ``(rows,
+    offsets)`` with ``patch``, the patch of each row, and ``neighbours``
+    ``(3, rows, offsets)`` those of the next voxel along each image axis,
+    whose ``spacing`` and ``direction`` they are (None where the estimates
+    are made already; ``neighbours`` None in beam space)."""
+
+    profile: np.ndarray
+    beyond: np.ndarray
+    outer: np.ndarray | None = None
+    patch: np.ndarray | None = None
+    neighbours: np.ndarray | None = None
+    spacing: np.ndarray | None = None
+    direction: np.ndarray | None = None
+
+
+class DataTerm:
+    """Region statistics for the force of eq. 22: the protocol of a data term.
+
+    1. A term is its parameters, the keyword arguments of its constructor
+       (``LocalMeans(polarity=-1.0)``), kept as its public attributes and
+       never changed after; terms of one type and equal parameters are
+       equal.
+    2. It declares what the iteration samples for it (:meth:`reads`: band
+       means, region means, grey levels at its own :attr:`offsets` along the
+       normals); the stepper samples them and hands over an observation.
+    3. :meth:`start` gives its constants from the grey levels about the
+       initial surface as a :class:`TermState`; the stepper keeps the state
+       and hands it back with every observation.
+    4. :meth:`force` is a pure function of the observation and the state:
+       it samples nothing and changes nothing.
+    5. A term whose levels are measured once a frame (the intensity
+       interface) declares the samples that takes (:meth:`freeze_reads`)
+       and gives a new state from them (:meth:`freeze`, pure as well);
+       :meth:`reset` gives the state a new frame starts from.
+    6. The built-in terms also run in the compiled level loop
+       (:meth:`loop_kind`), a specialisation the tests hold equal to
+       :meth:`force`; a term of one's own (``loop_kind`` None) runs the
+       same iteration in Python, on either backend.
+
+    A term of one's own sets :attr:`offsets` and writes :meth:`statistics`
+    (the default :meth:`force` calls it with the grey levels at the surface
+    and those at its offsets), and is passed as ``mode``.
+
+    Attributes
+    ----------
+    offsets : array or None
+        A term of one's own: the distances (mm along the outward normal,
+        negative inside) at which :meth:`statistics` reads the image.
+    exponent : float
+        The observation reads ``exp(exponent * v)`` for each grey level ``v``
+        (0: the grey levels).
     step_factor : float
         The step of this term's stage, in multiples of the ``step`` option.
     hands_over_bands : bool
@@ -177,37 +286,48 @@ class DataTerm:
     starts_from_bands : bool
         Whether its stage starts from the band means the previous stage
         measured last (:meth:`IntensityInterface.freeze`).
-    loop_kind : {"fixed", "global", "local"} or None
-        How a level run in one compiled loop computes this force
-        (:meth:`spheroseg.descent.Descent.run`): from :meth:`fixed_force`,
-        as the region means, as the band means; None: it
-        cannot (the level then runs iteration by iteration).
-    offsets : array or None
-        A term of one's own: the distances (mm along the outward normal,
-        negative inside) at which :meth:`statistics` reads the image.
     """
 
-    needs_bands = False
-    needs_region_means = False
-    exponent: float | None = 0.0
+    offsets: np.ndarray | None = None
+    exponent = 0.0
     step_factor = 1.0
     hands_over_bands = False
     starts_from_bands = False
-    loop_kind: str | None = None
-    offsets: np.ndarray | None = None
 
-    def __init__(self, samples: np.ndarray, *, band: float = 8.0, band_out: float = 15.0,
-                 interface: float | None = None):
-        self.spread = float(np.std(samples))
-        self.min_scale = (_MIN_CONTRAST * self.spread) ** 2
-        self.band_offsets = band_offsets(band) if self.needs_bands else None
-        self.shell_offsets = shell_offsets(band_out)
+    # rule 1: a term is its parameters -----------------------------------------
 
-    def force(self, obs) -> Force:
+    def parameters(self) -> dict:
+        """The term's parameters (its constructor's keyword arguments)."""
+        return dict(vars(self))
+
+    def __eq__(self, other) -> bool:
+        return type(other) is type(self) and _same(self.parameters(), other.parameters())
+
+    def __hash__(self) -> int:
+        return hash((type(self), tuple(sorted((k, repr(v)) for k, v in self.parameters().items()))))
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({', '.join(f'{k}={v!r}' for k, v in self.parameters().items())})"
+
+    # rules 2 to 6 ---------------------------------------------------------------
+
+    def start(self, samples: np.ndarray, *, band: float = 8.0, band_out: float = 15.0) -> TermState:
+        """The term's constants from ``samples``, finite grey levels about the
+        initial surface (both sides): the least scale of the force; with the
+        band widths (mm) of :class:`spheroseg.SegmentOptions`."""
+        spread = float(np.std(samples))
+        return TermState(spread, (_MIN_CONTRAST * spread) ** 2, band_offsets(band), shell_offsets(band_out))
+
+    def reads(self, state: TermState) -> Reads:
+        """What the iteration samples for :meth:`force` (here: the grey
+        levels at :attr:`offsets`)."""
+        return Reads(offsets=None if self.offsets is None else np.asarray(self.offsets, dtype=float),
+                     exponent=float(self.exponent or 0.0))
+
+    def force(self, obs, state: TermState) -> Force:
         """The :class:`Force` for the observation ``obs``
-        (:meth:`spheroseg.backends.NumpyBackend.observe_term`): a function
-        of it and of the term's constants; the term keeps nothing of it (the
-        tracker keeps what a result reports, :attr:`Force.grey_means`).
+        (:meth:`spheroseg.descent.backends.NumpyBackend.observe_term` of
+        :meth:`reads`) and the term's ``state``.
 
         Here: :meth:`statistics` of the samples at :attr:`offsets` along
         the normals of the band rows (the built-in terms override this)."""
@@ -219,7 +339,7 @@ class DataTerm:
         """A term of one's own: the force from what the iteration observed.
 
         A pure function: it reads only its arguments and the term's
-        constants, and changes nothing.
+        parameters, and changes nothing.
 
         Parameters
         ----------
@@ -243,13 +363,38 @@ class DataTerm:
         """
         raise NotImplementedError
 
-    def reset(self) -> None:
-        """Forget what was measured on earlier frames (a new frame starts)."""
+    def reset(self, state: TermState) -> TermState:
+        """The state a new frame starts from (here: the same)."""
+        return state
 
-    def fixed_force(self, u=None) -> Force:
-        """The force, at grey levels ``u``, of a term whose statistics do
-        not change in a level (``loop_kind`` "fixed")."""
-        raise NotImplementedError
+    def loop_kind(self, state: TermState) -> str | None:
+        """How a level run in one compiled loop computes this force
+        (:meth:`spheroseg.descent.descent.Descent.run`): ``"fixed"`` from
+        :meth:`fixed_force`, ``"global"`` as the region means, ``"local"``
+        as the band means; None: it cannot (the level then runs iteration
+        by iteration)."""
+        return None
+
+    def fixed_force(self, state: TermState, u=None) -> Force:
+        """The force, at grey levels ``u``, of a term whose levels are fixed
+        (``loop_kind`` ``"fixed"``): ``state.levels``."""
+        return Force(u, *state.levels, measured=state.measured)
+
+    def freeze_reads(self, state: TermState) -> dict | None:
+        """What :meth:`freeze` needs sampled: the outer band's ``offsets``,
+        those ``beyond`` it, and whether the speckle's ``estimates`` are
+        still to be made (None: the term has no levels to freeze)."""
+        return None
+
+    def freeze(self, state: TermState, obs, c_in, c_out, samples: FreezeSamples) -> TermState:
+        """A state with the term's levels set from the band means ``c_in``,
+        ``c_out`` about the surface of ``obs``, and ``samples``."""
+        raise NotImplementedError(f"{type(self).__name__} has no levels to freeze")
+
+
+def _same(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) if isinstance(a[k], np.ndarray) else a[k] == b[k]
+                                        for k in a)
 
 
 class FixedInterface(DataTerm):
@@ -257,20 +402,25 @@ class FixedInterface(DataTerm):
     around the initial surface (``interface``: Otsu's threshold by default;
     the two levels are the class means about it, centred on it)."""
 
-    loop_kind = "fixed"
+    def __init__(self, *, interface: float | None = None):
+        self.interface = None if interface is None else float(interface)
 
-    def __init__(self, samples, *, band=8.0, band_out=15.0, interface=None):
-        super().__init__(samples, band=band, band_out=band_out)
-        mid = otsu_threshold(samples) if interface is None else float(interface)
+    def start(self, samples, *, band=8.0, band_out=15.0) -> TermState:
+        state = super().start(samples, band=band, band_out=band_out)
+        mid = otsu_threshold(samples) if self.interface is None else self.interface
         lo, hi = samples[samples <= mid], samples[samples > mid]
-        half = (hi.mean() - lo.mean()) / 2 if lo.size and hi.size else self.spread
-        self.c_in, self.c_out = mid - half, mid + half
+        half = (hi.mean() - lo.mean()) / 2 if lo.size and hi.size else state.spread
+        c_in, c_out = mid - half, mid + half
+        return replace(state, levels=(c_in, c_out, (c_out - c_in) ** 2))
 
-    def force(self, obs) -> Force:
-        return self.fixed_force(obs.u)
+    def reads(self, state) -> Reads:
+        return Reads()
 
-    def fixed_force(self, u=None) -> Force:
-        return Force(u, self.c_in, self.c_out, (self.c_out - self.c_in) ** 2)
+    def force(self, obs, state) -> Force:
+        return self.fixed_force(state, obs.u)
+
+    def loop_kind(self, state) -> str:
+        return "fixed"
 
 
 class GlobalMeans(DataTerm):
@@ -285,35 +435,50 @@ class GlobalMeans(DataTerm):
     level.
     """
 
-    loop_kind = "global"
-    needs_region_means = True
+    def reads(self, state) -> Reads:
+        return Reads(shell_offsets=state.shell_offsets)
 
-    def force(self, obs) -> Force:
+    def force(self, obs, state) -> Force:
         c_in, measured_out = obs.region_means
         c_out = max(measured_out, c_in)
-        return Force(obs.u, c_in, c_out, max((c_out - c_in) ** 2, self.min_scale), measured=(c_in, measured_out))
+        return Force(obs.u, c_in, c_out, max((c_out - c_in) ** 2, state.min_scale), measured=(c_in, measured_out))
+
+    def loop_kind(self, state) -> str:
+        return "global"
 
 
 class LocalMeans(DataTerm):
     """Band means along each normal, smoothed over the surface.
 
     The boundary lies where the grey level is half way between the inner
-    and the outer band means, or, with :attr:`boundary_nepers` finite,
-    where the echo intensity is (:func:`interface_level`).  Band means of
-    the wrong :attr:`polarity` give no force there.
+    and the outer band means, or, with ``boundary_nepers`` finite, where the
+    echo intensity is (:func:`interface_level`).  Band means of the wrong
+    polarity give no force there.
+
+    Parameters
+    ----------
+    polarity : {1, -1}
+        1: the inside (``c_in``'s region) is the darker, as the cavity's
+        blood; -1: the brighter, as a bright wall seen from within.
+    boundary_nepers : float
+        Grey levels per neper of echo intensity of the half-way intensity
+        boundary; inf: the grey levels' midpoint.
     """
 
-    needs_bands = True
     hands_over_bands = True
-    loop_kind = "local"
-    #: +1: the inside (``c_in``'s region) is the darker, as the cavity's
-    #: blood; -1: the brighter, as a bright wall seen from within
-    polarity = 1.0
-    #: grey levels per neper of echo intensity of the half-way intensity
-    #: boundary; inf: the grey levels' midpoint
-    boundary_nepers = np.inf
 
-    def force(self, obs) -> Force:
+    def __init__(self, *, polarity: float = 1.0, boundary_nepers: float = np.inf):
+        if polarity not in (1, -1):
+            raise ValueError(f"polarity must be 1 (a dark inside) or -1 (a bright one), got {polarity!r}")
+        if not boundary_nepers > 0:
+            raise ValueError(f"boundary_nepers must be positive (inf: the grey levels' midpoint), "
+                             f"got {boundary_nepers!r}")
+        self.polarity, self.boundary_nepers = float(polarity), float(boundary_nepers)
+
+    def reads(self, state) -> Reads:
+        return Reads(band_offsets=state.band_offsets)
+
+    def force(self, obs, state) -> Force:
         c_in, c_out = obs.band_means
         sign = self.polarity
         contrast = np.maximum(sign * (c_out - c_in), 0.0)  # the wrong polarity: no force
@@ -322,8 +487,11 @@ class LocalMeans(DataTerm):
             dark, bright = (force_in, force_out) if sign > 0 else (force_out, force_in)
             level = interface_level(dark, bright, self.boundary_nepers)
             force_in, force_out = level - sign * contrast / 2, level + sign * contrast / 2
-        return Force(obs.u, force_in, force_out, max(nanmedian(contrast) ** 2, self.min_scale),
+        return Force(obs.u, force_in, force_out, max(nanmedian(contrast) ** 2, state.min_scale),
                      measured=(c_in, c_out))
+
+    def loop_kind(self, state) -> str:
+        return "local"
 
 
 class IntensityInterface(LocalMeans):
@@ -402,6 +570,7 @@ class IntensityInterface(LocalMeans):
        IEEE Trans. Med. Imaging 25(11):1483-1491 (2006). doi:10.1109/TMI.2006.881376
     """
 
+    #: standard deviation of ln I for exponential (fully developed speckle) intensity
     LOG_SPREAD = LOG_SPREAD
     #: The stage starts at the local means' wall, within the blurred edge,
     #: where the force grows with the distance to the interface: at the
@@ -414,167 +583,136 @@ class IntensityInterface(LocalMeans):
     hands_over_bands = False
     starts_from_bands = True
 
-    _frozen = None  # the levels, once set (:meth:`freeze`)
+    def __init__(self):
+        super().__init__()
 
-    def __init__(self, samples, *, band=8.0, band_out=15.0, interface=None):
-        super().__init__(samples, band=band, band_out=band_out)
-        self.nepers = None  #: grey levels per neper of intensity, once estimated
-        self.smoothing_mm = 0.0  #: the grey levels' smoothing (mm), estimated with ``nepers``
-        #: covariance (mm^2, world axes) of the wall's blur in the speckle as formed, estimated with ``nepers``
-        self.edge_blur_covariance = None
-        #: the wall's blur (mm, standard deviation along the normals) whose
-        #: deficits the last :meth:`freeze` removed (0: none removed)
-        self.wall_blur_mm = 0.0
-        #: grey levels taken off the myocardium's level at the last
-        #: :meth:`freeze`: what the outer band's far half read beyond a
-        #: thin wall darker than what lies beyond it
-        #: (:func:`beyond_wall_excess`); 0 when it read none
-        self.beyond_wall = 0.0
-        #: the fraction of the far half's rise that :attr:`beyond_wall` took
-        #: (1: all of it; between 0 and 1 where the rise may be an edge's)
-        self.beyond_wall_fraction = 0.0
+    def parameters(self) -> dict:
+        return {}  # the local means' defaults, not parameters of its own
 
-    def reset(self) -> None:
-        """Measure the region means again on the next observation."""
-        self._frozen = None
+    def reset(self, state) -> TermState:
+        """Measure the region means again on the next observation (the log
+        compression and the blur stay: one image formation a sequence)."""
+        return replace(state, levels=None)
 
-    @property
-    def needs_bands(self) -> bool:
-        """Only until the region means are frozen: the band samples after
-        that would be read by nothing (two thirds of an iteration's samples)."""
-        return self._frozen is None
+    def reads(self, state) -> Reads:
+        """The band means until the levels are frozen; after that, the band
+        samples would be read by nothing (two thirds of an iteration's)."""
+        return Reads(band_offsets=state.band_offsets) if state.levels is None else Reads()
 
-    @property
-    def loop_kind(self) -> str | None:
+    def loop_kind(self, state) -> str | None:
         """Fixed once frozen; before, the first observation measures them
         (and the log compression) iteration by iteration."""
-        return None if self._frozen is None else "fixed"
+        return None if state.levels is None else "fixed"
 
-    @property
-    def frozen(self) -> bool:
-        """Whether its levels are set (:meth:`freeze`)."""
-        return self._frozen is not None
-
-    def force(self, obs) -> Force:
-        if self._frozen is None:
+    def force(self, obs, state) -> Force:
+        if state.levels is None:
             raise RuntimeError("the intensity interface's levels are not set: freeze() them from band means first")
-        return self.fixed_force(obs.u)
+        return self.fixed_force(state, obs.u)
 
-    def fixed_force(self, u=None) -> Force:
-        return Force(u, *self._frozen, measured=self._measured)
+    def freeze_reads(self, state) -> dict:
+        past = state.band_offsets + state.band_offsets[-1]  # as far again past the band: what lies beyond the wall
+        return {"offsets": state.band_offsets, "beyond": past, "estimates": state.nepers is None}
 
-    def freeze(self, backend, volume, obs, c_in, c_out) -> None:
-        """Set the frozen levels from the band means ``c_in``, ``c_out``
-        (fields at the sample points, ``Observation.band_means``) about
-        the surface of ``obs`` (an observation with its bands).  The
+    def freeze(self, state, obs, c_in, c_out, samples: FreezeSamples) -> TermState:
+        """The state with the frozen levels set from the band means ``c_in``,
+        ``c_out`` (fields at the sample points, ``Observation.band_means``)
+        about the surface of ``obs`` (an observation with its bands).  The
         schedule hands over the local means' last ones, measured about the
         wall they settled on, so that this stage's first observation needs
         no bands.  The levels lose the blurred edge's deficits
         (:meth:`unblurred_levels`) and ``c_out`` what the outer band read
-        beyond a thin wall (:attr:`beyond_wall`)."""
-        if self.nepers is None:
-            self.nepers = self.estimate_nepers(backend, volume, obs)
-            self.smoothing_mm, self.edge_blur_covariance = self.estimate_blur(backend, volume, obs)
+        beyond a thin wall (``beyond_wall``)."""
+        if state.nepers is None:
+            smoothing, covariance = self.estimate_blur(samples)
+            state = replace(state, nepers=self.estimate_nepers(samples, obs), smoothing_mm=smoothing,
+                            edge_blur_covariance=covariance)
         contrast = np.maximum(c_out - c_in, 0.0)
         c_out = c_in + contrast
-        k = self.nepers
-        self._measured = (c_in, c_out)  # what a result reports (their medians)
-
-        def medians(offsets):  # the outer band's median grey level at each offset
-            outer = backend.samples_along(volume, obs, offsets, backend.discretisation.band_rows)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # an offset off the data everywhere: NaN
-                return np.nanmedian(outer, axis=0)
-
-        band = medians(self.band_offsets)
-        past = self.band_offsets + self.band_offsets[-1]  # as far again past the band: what lies beyond the wall
-        c_in, c_out, deficits = self.unblurred_levels(obs, c_in, c_out, band, lambda: (past, medians(past)))
-        self.beyond_wall, self.beyond_wall_fraction = beyond_wall_excess(band - deficits)
-        c_out = c_out - self.beyond_wall
+        k = state.nepers
+        measured = (c_in, c_out)  # what a result reports (their medians)
+        band = samples.profile
+        beyond = (self.freeze_reads(state)["beyond"], samples.beyond)
+        c_in, c_out, deficits, wall_blur = self.unblurred_levels(state, obs, c_in, c_out, band, beyond)
+        excess, fraction = beyond_wall_excess(band - deficits)
+        c_out = c_out - excess
         contrast = c_out - c_in
         threshold = interface_level(c_in, c_out, k)
-        if self.smoothing_mm > 0:
+        if state.smoothing_mm > 0:
             sigma = EDGE_PSF_MM / (2 * np.sqrt(2 * np.log(2)))
-            threshold = threshold + k * smoothed_edge_drop(self.smoothing_mm / sigma, float(nanmedian(contrast)) / k)
-        self._frozen = (threshold - contrast / 2, threshold + contrast / 2,
-                        max(float(nanmedian(contrast)) ** 2, self.min_scale))
+            threshold = threshold + k * smoothed_edge_drop(state.smoothing_mm / sigma, float(nanmedian(contrast)) / k)
+        levels = (threshold - contrast / 2, threshold + contrast / 2,
+                  max(float(nanmedian(contrast)) ** 2, state.min_scale))
+        return replace(state, levels=levels, measured=measured, wall_blur_mm=wall_blur, beyond_wall=excess,
+                       beyond_wall_fraction=fraction)
 
-    def unblurred_levels(self, obs, c_in: np.ndarray, c_out: np.ndarray, profile=None,
-                         beyond=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    @staticmethod
+    def unblurred_levels(state: TermState, obs, c_in: np.ndarray, c_out: np.ndarray, profile=None,
+                         beyond=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         """The band means ``c_in``, ``c_out`` less what the wall's blurred
         edge left in them (:func:`band_contamination`), where the speckle is
         as the scanner formed it: smoothed by less than
-        :data:`FORMED_SPECKLE_SMOOTHING_MM`, and what it left at each of the
-        outer band's offsets (grey levels, ``<= 0``).  Unchanged, and
-        zeros, otherwise: a smoothing's correlation hides the point-spread
-        function's (a voxel apart, its speckle correlates by 0.8-0.97 along
-        every axis), and :func:`smoothed_edge_drop` models the smoothed
-        edge.
+        :data:`FORMED_SPECKLE_SMOOTHING_MM`; what it left at each of the
+        outer band's offsets (grey levels, ``<= 0``); and that blur (mm).
+        Unchanged, zeros and 0 otherwise: a smoothing's correlation hides
+        the point-spread function's (a voxel apart, its speckle correlates
+        by 0.8-0.97 along every axis), and :func:`smoothed_edge_drop`
+        models the smoothed edge.
 
         The edge's blur along the surface's normals is the median of the
-        quadratic form of :attr:`edge_blur_covariance` on them, or more
+        quadratic form of ``state.edge_blur_covariance`` on them, or more
         where the outer band's ``profile`` (its grey level at each offset,
         the medians over the surface) still rises as a blurred edge does
-        (:func:`profile_blur_mm`; ``beyond`` returns the offsets and the
-        readings past the band): an image whose speckle does not show the
-        blur of its walls.  It is kept as :attr:`wall_blur_mm`.
+        (:func:`profile_blur_mm`; ``beyond``: the offsets and the readings
+        past the band): an image whose speckle does not show the blur of
+        its walls.
         """
-        k = self.nepers
+        k, offsets = state.nepers, state.band_offsets
         contrast = float(nanmedian(c_out - c_in))
-        none = np.zeros(len(self.band_offsets))
-        self.wall_blur_mm = 0.0
-        if self.edge_blur_covariance is None or not contrast > 0 or self.smoothing_mm >= FORMED_SPECKLE_SMOOTHING_MM:
-            return c_in, c_out, none
+        none = np.zeros(len(offsets))
+        if (state.edge_blur_covariance is None or not contrast > 0
+                or state.smoothing_mm >= FORMED_SPECKLE_SMOOTHING_MM):
+            return c_in, c_out, none, 0.0
 
         def deficits(sigma):  # the regions' contrast is the band means' less what the edge took from it
             inside, outside = 0.0, none
             for _ in range(2):
-                inside, outside = band_contamination(sigma, (contrast - k * (outside.mean() - inside)) / k,
-                                                     self.band_offsets)
+                inside, outside = band_contamination(sigma, (contrast - k * (outside.mean() - inside)) / k, offsets)
             return inside, outside
 
         n = obs.normal  # (3, samples), unit
-        sigma = float(np.sqrt(nanmedian(np.einsum("is,ij,js->s", n, self.edge_blur_covariance, n))))
+        sigma = float(np.sqrt(nanmedian(np.einsum("is,ij,js->s", n, state.edge_blur_covariance, n))))
         deficit_in, deficits_out = deficits(sigma)
         if profile is not None:
-            options = dict(sigma_mm=sigma, nepers=k, offsets=self.band_offsets, deficits=k * deficits_out,
+            options = dict(sigma_mm=sigma, nepers=k, offsets=offsets, deficits=k * deficits_out,
                            contrast_nepers=contrast / k - (deficits_out.mean() - deficit_in))
             read = profile_blur_mm(profile, **options)
-            if read > sigma and beyond is not None:  # what lies past the band, read only when it matters
-                read = profile_blur_mm(profile, beyond=beyond(), **options)
+            if read > sigma and beyond is not None:  # what lies past the band matters
+                read = profile_blur_mm(profile, beyond=beyond, **options)
             if read > sigma:
                 sigma = read
                 deficit_in, deficits_out = deficits(sigma)
-        self.wall_blur_mm = sigma
-        return c_in - k * deficit_in, c_out - k * deficits_out.mean(), k * deficits_out
+        return c_in - k * deficit_in, c_out - k * deficits_out.mean(), k * deficits_out, sigma
 
-    def estimate_nepers(self, backend, volume, obs) -> float:
+    @staticmethod
+    def estimate_nepers(samples: FreezeSamples, obs) -> float:
         """``k`` of :func:`interface_nepers` from the grey levels of the outer
         band at voxel centres and the band means' contrast."""
-        d = backend.discretisation
-        rows = d.band_rows
-        outer = backend.samples_along(volume, obs, self.band_offsets, rows, order=0)  # (rows, offsets)
-        return interface_nepers(outer, patch_of_rows(d.grid, d.order, rows), nanmedian(obs.outside - obs.inside))
+        return interface_nepers(samples.outer, samples.patch, nanmedian(obs.outside - obs.inside))
 
-    def estimate_blur(self, backend, volume, obs) -> tuple[float, np.ndarray | None]:
+    @staticmethod
+    def estimate_blur(samples: FreezeSamples) -> tuple[float, np.ndarray | None]:
         """The speckle's correlation between the outer band's voxel centres
         and their next voxels along the image's axes
         (:func:`speckle_correlations`): :func:`speckle_smoothing_mm` and the
         covariance (mm^2, world axes) of the wall's blur,
         :func:`edge_blur_mm` along the image axes.  ``(0, None)`` in beam
         space (no post-processing there, and axes of angles)."""
-        if not hasattr(volume, "direction"):
+        if samples.neighbours is None:
             return 0.0, None
-        d = backend.discretisation
-        rows = d.band_rows
-        direction = np.asarray(volume.direction, float)
-        steps = direction * np.asarray(volume.spacing, float)  # columns: one voxel
-        outer, *neighbours = (backend.samples_along(volume, replace(obs, world=obs.world + step[:, None]),
-                                                    self.band_offsets, rows, order=0)
-                              for step in (np.zeros(3), *steps.T))
-        correlations = speckle_correlations(outer, np.stack(neighbours), patch_of_rows(d.grid, d.order, rows))
-        blur = edge_blur_mm(correlations, volume.spacing)
-        return speckle_smoothing_mm(correlations, volume.spacing), (direction * blur**2) @ direction.T
+        correlations = speckle_correlations(samples.outer, samples.neighbours, samples.patch)
+        blur = edge_blur_mm(correlations, samples.spacing)
+        return (speckle_smoothing_mm(correlations, samples.spacing),
+                (samples.direction * blur**2) @ samples.direction.T)
 
 
 def patch_of_rows(grid, order: int, rows: np.ndarray) -> np.ndarray:

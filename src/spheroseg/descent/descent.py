@@ -31,7 +31,7 @@ import numpy as np
 from scipy.linalg import blas
 
 from .backends import Observation, select_backend
-from .dataterms import CAVITY_FRACTIONS, Force, nanmedian
+from .dataterms import CAVITY_FRACTIONS, DataTerm, Force, Reads, TermState, nanmedian
 from ..geometry.energy import Landmarks, SampledSurface, area_gradient
 from ..surfaces.surface import Surface
 
@@ -133,11 +133,11 @@ class Descent:
                             *((lm.basis, lm.v0, lm.h0, np.ascontiguousarray(self._landmark_pull)) if lm is not None
                               else (np.empty((0, n)), empty, empty, np.empty((n, 0)))))
 
-    def observe(self, volume, data_term) -> Observation:
-        """The surface and the image at the sample points, with what the
-        data term reads (:meth:`~spheroseg.backends.NumpyBackend.observe_term`)
+    def observe(self, volume, reads: Reads) -> Observation:
+        """The surface and the image at the sample points, with what a data
+        term ``reads`` (:meth:`~spheroseg.descent.backends.NumpyBackend.observe_term`)
         and, with an area term, the geometry."""
-        return self.backend.observe_term(self.p, volume, data_term, geometry=self.nu > 0)
+        return self.backend.observe_term(self.p, volume, reads, geometry=self.nu > 0)
 
     def iterate(self, obs: Observation, force: Force) -> float:
         """One step with the data term's force; returns the RMS motion of
@@ -170,29 +170,32 @@ class Descent:
             self._adapt_step(motion, squared)
         return math.sqrt(squared / self._area)
 
-    def run(self, volume, data_term, *, tol: float, max_iterations: int) -> LevelRun | None:
+    def run(self, volume, data_term: DataTerm, state: TermState, *, tol: float,
+            max_iterations: int) -> LevelRun | None:
         """:meth:`observe` and :meth:`iterate` with ``data_term``'s force
-        until the RMS motion falls below ``tol`` (mm) or ``max_iterations``
-        have run, in one compiled loop (:func:`spheroseg._kernels.descend`).
+        (its ``state`` held) until the RMS motion falls below ``tol`` (mm)
+        or ``max_iterations`` have run, in one compiled loop
+        (:func:`spheroseg._compiled._kernels.descend`: the built-in terms
+        as its specialisations).
 
         Returns a :class:`LevelRun`, or None where that loop does not apply
         and nothing ran: the numpy backend, a beam-space volume, the area
         term, a data term it does not compute (``data_term.loop_kind``)."""
-        kind = data_term.loop_kind
+        kind = data_term.loop_kind(state)
         if kind is None or self.nu > 0 or not self.backend.descends(volume):
             return None
         from .._compiled import _kernels
 
         n = self.model.n_samples
         if kind == "fixed":
-            fixed = data_term.fixed_force()
+            fixed = data_term.fixed_force(state)
             means = tuple(np.broadcast_to(np.asarray(c, float), n).copy() for c in (fixed.c_in, fixed.c_out))
         else:
             fixed, means = Force(None, 0.0, 0.0, 0.0), (self._no_means, self._no_means)
         term = _kernels.LoopTerm(
             {"fixed": _kernels.FIXED_MEANS, "global": _kernels.GLOBAL_MEANS, "local": _kernels.LOCAL_MEANS}[kind],
-            *means, float(fixed.scale), data_term.min_scale, CAVITY_FRACTIONS, data_term.shell_offsets,
-            data_term.band_offsets if kind == "local" else _NO_OFFSETS,
+            *means, float(fixed.scale), state.min_scale, CAVITY_FRACTIONS, state.shell_offsets,
+            state.band_offsets if kind == "local" else _NO_OFFSETS,
             *((float(data_term.polarity), float(data_term.boundary_nepers)) if kind == "local" else ()))
         previous = np.zeros(n) if self._previous_motion is None else self._previous_motion[0].copy()
         state = np.zeros(1, dtype=_kernels.LOOP_STATE)

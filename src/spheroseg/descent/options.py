@@ -7,11 +7,13 @@ result records it as ``parameters`` (:meth:`SegmentOptions.as_parameters`).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
-from .dataterms import DATA_TERMS, DataTerm
+from .._moved import MOVED_IN, REMOVED_IN
+from .dataterms import DATA_TERMS, DataTerm, FixedInterface
 from ..surfaces.surface import DEFAULT_RADIUS_RATIO
 
 __all__ = ["SegmentOptions", "MODES", "SYSTEMS", "BACKENDS", "LIMITS", "format_point"]
@@ -52,11 +54,13 @@ class SegmentOptions:
     patches : (int, int)
         Hermite patches around (theta) and along (apex to base) the cavity;
         the paper's 8 x 8 by default.
-    mode : {"intensity", "local", "chan-vese", "fast"} or DataTerm subclass
-        Data term (:mod:`spheroseg.dataterms`); "intensity", the default,
-        runs the local means and then moves the wall to the intensity
-        interface.  A :class:`~spheroseg.dataterms.DataTerm` subclass of
-        one's own (its ``offsets`` and ``statistics``) runs at every level.
+    mode : {"intensity", "local", "chan-vese", "fast"} or DataTerm
+        Data term (:mod:`spheroseg.descent.dataterms`); "intensity", the
+        default, runs the local means and then moves the wall to the
+        intensity interface.  A :class:`~spheroseg.descent.dataterms.DataTerm`
+        object, a built-in one with parameters (``LocalMeans(polarity=-1.0)``)
+        or one's own (its ``offsets`` and ``statistics``), runs at every
+        level (the local means' coarse levels excepted).
     step : float
         Largest normal displacement of the surface per iteration, mm.  The
         default 1 mm is about 4 % of a ventricle's radius: the paper's
@@ -139,7 +143,7 @@ class SegmentOptions:
 
     system: str = "prolate"
     patches: tuple[int, int] = (8, 8)
-    mode: str | type[DataTerm] = "intensity"
+    mode: str | DataTerm = "intensity"
     step: float = 1.0
     adaptive_step: bool = True
     max_iterations: int = 60
@@ -164,9 +168,12 @@ class SegmentOptions:
         if system not in SYSTEMS:
             raise ValueError(f"system must be one of {SYSTEMS}, got {self.system!r}")
         object.__setattr__(self, "system", system)
-        if not (self.mode in MODES if isinstance(self.mode, str)
-                else isinstance(self.mode, type) and issubclass(self.mode, DataTerm)):
-            raise ValueError(f"mode must be one of {MODES} or a spheroseg.dataterms.DataTerm subclass, "
+        if isinstance(self.mode, type) and issubclass(self.mode, DataTerm):  # 0.1 took the class
+            warnings.warn(f"mode takes a DataTerm object since spheroseg {MOVED_IN}: pass {self.mode.__name__}(), "
+                          f"not the class (which it takes until {REMOVED_IN})", DeprecationWarning, stacklevel=4)
+            object.__setattr__(self, "mode", self.mode())
+        if not (self.mode in MODES if isinstance(self.mode, str) else isinstance(self.mode, DataTerm)):
+            raise ValueError(f"mode must be one of {MODES} or a spheroseg.descent.dataterms.DataTerm object, "
                              f"got {self.mode!r}")
         if self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
@@ -226,16 +233,25 @@ class SegmentOptions:
         return tuple(f.name for f in fields(cls))
 
     @property
-    def data_term(self) -> type[DataTerm]:
-        """The data term ``mode`` names (or is)."""
-        return DATA_TERMS[self.mode] if isinstance(self.mode, str) else self.mode
+    def data_term(self) -> DataTerm:
+        """The data term ``mode`` names (the fast mode's with the
+        ``interface`` option), or is."""
+        if not isinstance(self.mode, str):
+            return self.mode
+        if self.mode == "fast":
+            return FixedInterface(interface=self.interface)
+        return DATA_TERMS[self.mode]()
 
     def as_parameters(self) -> dict:
         """The options as plain JSON-ready values (what results record)."""
         out = {name: getattr(self, name) for name in self.names()}  # all scalars: no deep copy
         out["patches"] = list(self.patches)
-        if not isinstance(self.mode, str):  # a term of one's own, by name
-            out["mode"] = f"{self.mode.__module__}.{self.mode.__qualname__}"
+        if not isinstance(self.mode, str):  # a term object, by its class's name and its parameters
+            term = type(self.mode)
+            out["mode"] = f"{term.__module__}.{term.__qualname__}"
+            if self.mode.parameters():
+                out["mode_parameters"] = {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                                          for k, v in self.mode.parameters().items()}
         return out
 
     def replace(self, **changes) -> "SegmentOptions":

@@ -15,32 +15,42 @@ puts those parts together.
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
 from .._compiled._runtime import kernel_thread_count, kernel_threads
-from .dataterms import (DataTerm, GlobalMeans, IntensityInterface, LocalMeans, NoSpeckleError, band_offsets, nanmedian,
-                        shell_offsets)
+from .dataterms import (DataTerm, FreezeSamples, GlobalMeans, IntensityInterface, LocalMeans, NoSpeckleError,
+                        band_offsets, nanmedian, patch_of_rows, shell_offsets)
 from .descent import Descent
 from .options import SegmentOptions
+from .._moved import MOVED_IN, REMOVED_IN
 from .results import STATUS_MESSAGES
 from ..surfaces.surface import Surface
 
-__all__ = ["Level", "schedule", "Stepper", "held_points"]
+__all__ = ["Level", "schedule", "Stepper", "held_points", "freeze_samples"]
 
 
 @dataclass(frozen=True)
 class Level:
     """One level of the coarse-to-fine schedule: it stops when the RMS
     motion of an iteration falls below ``tol`` mm, or after
-    ``max_iterations``."""
+    ``max_iterations``; ``data_term`` is a
+    :class:`~spheroseg.descent.dataterms.DataTerm` object."""
 
     patches: tuple[int, int]
-    data_term: type[DataTerm]
+    data_term: DataTerm
     max_iterations: int
     tol: float
+
+    def __post_init__(self):
+        if isinstance(self.data_term, type) and issubclass(self.data_term, DataTerm):  # 0.1 took the class
+            warnings.warn(f"Level takes a DataTerm object since spheroseg {MOVED_IN}: pass "
+                          f"{self.data_term.__name__}(), not the class (which it takes until {REMOVED_IN})",
+                          DeprecationWarning, stacklevel=3)
+            object.__setattr__(self, "data_term", self.data_term())
 
 
 def schedule(options: SegmentOptions, *, coarse_to_fine: bool | None = None) -> tuple[Level, ...]:
@@ -57,14 +67,14 @@ def schedule(options: SegmentOptions, *, coarse_to_fine: bool | None = None) -> 
     while coarse_to_fine and min(patches[0]) >= 4 and patches[0][0] % 2 == 0 and patches[0][1] % 2 == 0:
         patches.insert(0, (patches[0][0] // 2, patches[0][1] // 2))
     term = options.data_term
-    coarse = GlobalMeans if issubclass(term, LocalMeans) else term
+    coarse = GlobalMeans() if isinstance(term, LocalMeans) else term
     finest = len(patches) - 1
     coarse_tol = 2.0 * options.tol if options.coarse_tol is None else options.coarse_tol
     levels = [Level(p, term if k == finest else coarse, options.max_iterations,
                     options.tol if k == finest else coarse_tol)
               for k, p in enumerate(patches)]
-    if term is IntensityInterface:  # found by the local means first, then moved to the interface
-        levels.insert(-1, Level(levels[-1].patches, LocalMeans, options.max_iterations, options.tol))
+    if isinstance(term, IntensityInterface):  # found by the local means first, then moved to the interface
+        levels.insert(-1, Level(levels[-1].patches, LocalMeans(), options.max_iterations, options.tol))
     return tuple(levels)
 
 
@@ -82,6 +92,38 @@ def held_points(pose, landmarks: np.ndarray, apex: np.ndarray, options: SegmentO
         points = np.concatenate([points, apex[None]])
         weights = np.concatenate([weights, [options.apex_weight]])
     return (points, weights) if len(points) else (None, None)
+
+
+def freeze_samples(backend, volume, obs, reads: dict) -> FreezeSamples:
+    """What a data term's :meth:`~spheroseg.descent.dataterms.DataTerm.freeze`
+    reads about the surface of ``obs`` (``reads``: its ``freeze_reads``):
+    the outer band's median profile at its ``offsets`` and those
+    ``beyond`` it, and where its ``estimates`` are still to be made, the
+    band's grey levels at voxel centres with their patches, and those of
+    the next voxel along each image axis (none in beam space)."""
+    d = backend.discretisation
+    rows = d.band_rows
+
+    def medians(offsets):  # the outer band's median grey level at each offset
+        outer = backend.samples_along(volume, obs, offsets, rows)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # an offset off the data everywhere: NaN
+            return np.nanmedian(outer, axis=0)
+
+    offsets = reads["offsets"]
+    profile, beyond = medians(offsets), medians(reads["beyond"])
+    if not reads["estimates"]:
+        return FreezeSamples(profile, beyond)
+    outer = backend.samples_along(volume, obs, offsets, rows, order=0)  # (rows, offsets), at voxel centres
+    patch = patch_of_rows(d.grid, d.order, rows)
+    if not hasattr(volume, "direction"):  # beam space: axes of angles
+        return FreezeSamples(profile, beyond, outer, patch)
+    direction = np.asarray(volume.direction, float)
+    spacing = np.asarray(volume.spacing, float)
+    steps = direction * spacing  # columns: one voxel
+    neighbours = np.stack([backend.samples_along(volume, replace(obs, world=obs.world + step[:, None]), offsets, rows,
+                                                 order=0) for step in steps.T])
+    return FreezeSamples(profile, beyond, outer, patch, neighbours, spacing, direction)
 
 
 class Stepper:
@@ -136,7 +178,7 @@ class Stepper:
         self.descent = self.new_descent(surface, surface)
         self.threads = kernel_thread_count(options.threads)
         with kernel_threads(self.threads):
-            self.terms = self._prepare_terms()
+            self.states = self._start_terms()
         self.band_fields = None  # the band means the last local-means level measured
         self.iteration, self.level_iterations, self.motion, self.status = 0, 0, np.nan, None
         self.converged = False
@@ -176,10 +218,11 @@ class Stepper:
         larger step would carry that motion further)."""
         return self.options.step * (self.levels[self.level].data_term.step_factor if settled else 1.0)
 
-    def _prepare_terms(self) -> dict:
-        """The data terms of the schedule, from the grey levels around the
-        initial surface: a check that there is something to segment, the
-        scale of the contrast, the fast mode's levels."""
+    def _start_terms(self) -> dict:
+        """The states of the schedule's data terms (``{term: TermState}``),
+        from the grey levels around the initial surface: a check that there
+        is something to segment, the scale of the contrast, the fast mode's
+        levels."""
         d, opts = self.descent, self.options
         obs = d.backend.observe(d.p, self.volume)
         shell = shell_offsets(opts.band_out)
@@ -197,13 +240,12 @@ class Stepper:
         samples = samples[np.isfinite(samples)]
         if samples.size < 10 or np.ptp(samples) <= 1e-6 * max(np.abs(samples).max(), 1.0):
             raise ValueError("the image is constant (or empty) around the initial surface: nothing to segment")
-        terms = {}
+        states = {}
         # and the coarse levels' term, for a frame segmented again from it
         for level in self.levels + schedule(self.options)[:1]:
-            if level.data_term not in terms:
-                terms[level.data_term] = level.data_term(samples, band=opts.band, band_out=opts.band_out,
-                                                         interface=opts.interface)
-        return terms
+            if level.data_term not in states:
+                states[level.data_term] = level.data_term.start(samples, band=opts.band, band_out=opts.band_out)
+        return states
 
     @property
     def start_means(self) -> tuple[float, float]:
@@ -248,12 +290,12 @@ class Stepper:
         Returns the RMS motion of the surface in the iteration (mm)."""
         self._check_running()
         started = time.perf_counter()
-        term = self.terms[self.levels[self.level].data_term]
+        term = self.levels[self.level].data_term
         with kernel_threads(self.threads):
-            obs = self.descent.observe(self.volume, term)
-            if term.starts_from_bands and not term.frozen:  # no band means handed over: its own
-                term.freeze(self.descent.backend, self.volume, obs, *obs.band_means)
-            force = term.force(obs)
+            obs = self.descent.observe(self.volume, term.reads(self.states[term]))
+            if term.starts_from_bands and not self.states[term].frozen:  # no band means handed over: its own
+                self._freeze(term, obs, *obs.band_means)
+            force = term.force(obs, self.states[term])
             motion = self.descent.iterate(obs, force)
         self._advance(term, obs, force, motion, 1)
         self.seconds += time.perf_counter() - started
@@ -267,12 +309,12 @@ class Stepper:
         self._check_running()
         started = time.perf_counter()
         level = self.levels[self.level]
-        term = self.terms[level.data_term]
+        term = level.data_term
         remaining = self.max_iterations() - self.level_iterations
         if max_iterations is not None:
             remaining = min(remaining, max_iterations)
         with kernel_threads(self.threads):
-            run = self.descent.run(self.volume, term, tol=level.tol, max_iterations=remaining)
+            run = self.descent.run(self.volume, term, self.states[term], tol=level.tol, max_iterations=remaining)
         if run is None:
             return False
         self._advance(term, run.observation, run.force, run.motion, run.iterations)
@@ -286,7 +328,7 @@ class Stepper:
         self.c_in, self.c_out = force.grey_means
         if term.hands_over_bands:
             self.band_fields = force.measured  # what the next stage may start from
-        self.last = (obs.u, force, term.spread)
+        self.last = (obs.u, force, self.states[term].spread)
         self.observation = obs
         self.motion = motion
         self.iteration += iterations
@@ -336,18 +378,25 @@ class Stepper:
     def _start_term(self) -> None:
         """The current level's data term forgets what it measured before
         (a new level or frame), and so do the band means it hands over."""
-        term = self.terms[self.levels[self.level].data_term]
-        term.reset()
+        term = self.levels[self.level].data_term
+        self.states[term] = term.reset(self.states[term])
         if term.hands_over_bands:
             self.band_fields = None
 
     def _hand_over(self) -> None:
         """The intensity interface starts from the local means' last band
         means, about the wall where they stopped (when they ran in this frame)."""
-        term = self.terms[self.levels[self.level].data_term]
+        term = self.levels[self.level].data_term
         if self.band_fields is not None and term.starts_from_bands:
             with kernel_threads(self.threads):
-                term.freeze(self.descent.backend, self.volume, self.observation, *self.band_fields)
+                self._freeze(term, self.observation, *self.band_fields)
+
+    def _freeze(self, term: DataTerm, obs, c_in, c_out) -> None:
+        """The term's levels set from the band means ``c_in``, ``c_out``
+        about the surface of ``obs``, with the samples it asks for."""
+        state = self.states[term]
+        samples = freeze_samples(self.descent.backend, self.volume, obs, term.freeze_reads(state))
+        self.states[term] = term.freeze(state, obs, c_in, c_out, samples)
 
     def _skip_empty_levels(self) -> None:
         if self.status is None and self.max_iterations() == 0:
@@ -362,9 +411,10 @@ class Stepper:
         """Scalar ``(c_in, c_out)`` (grey levels) about the finest level's
         interface: the medians of its fixed levels (the intensity
         interface's), else of the region means last measured."""
-        term = self.terms[self.levels[-1].data_term]
-        if term.loop_kind == "fixed":
-            fixed = term.fixed_force()
+        term = self.levels[-1].data_term
+        state = self.states[term]
+        if term.loop_kind(state) == "fixed":
+            fixed = term.fixed_force(state)
             c_in, c_out = fixed.c_in, fixed.c_out
         else:
             c_in, c_out = self.c_in, self.c_out
@@ -373,21 +423,21 @@ class Stepper:
     def log_compression(self) -> float | None:
         """Grey levels per neper of echo intensity, as the finest level's
         intensity interface estimated them from the wall's speckle
-        (:attr:`IntensityInterface.nepers`); None before that, or with
-        another data term."""
-        term = self.terms[self.levels[-1].data_term]
-        return float(term.nepers) if isinstance(term, IntensityInterface) and term.nepers is not None else None
+        (``TermState.nepers``); None before that, or with another data term."""
+        term = self.levels[-1].data_term
+        nepers = self.states[term].nepers
+        return float(nepers) if isinstance(term, IntensityInterface) and nepers is not None else None
 
     def beyond_wall(self) -> tuple[float, float]:
         """Grey levels the finest level's intensity interface took off the
         myocardium's level for what its outer band read beyond a thin wall,
         and the fraction of that band's rise they are
-        (:attr:`IntensityInterface.beyond_wall`,
-        :attr:`~IntensityInterface.beyond_wall_fraction`); ``(0, 0)`` with
-        another data term or before its levels were set."""
-        term = self.terms[self.levels[-1].data_term]
-        if isinstance(term, IntensityInterface) and term.frozen:
-            return float(term.beyond_wall), float(term.beyond_wall_fraction)
+        (``TermState.beyond_wall``, ``beyond_wall_fraction``); ``(0, 0)``
+        with another data term or before its levels were set."""
+        term = self.levels[-1].data_term
+        state = self.states[term]
+        if isinstance(term, IntensityInterface) and state.frozen:
+            return float(state.beyond_wall), float(state.beyond_wall_fraction)
         return 0.0, 0.0
 
     # what changes between runs -----------------------------------------------
@@ -442,8 +492,8 @@ class Stepper:
         """Continue from ``other``'s end instead of this one's (the same
         frame segmented again, on the same grid and pose): its descent, data
         terms and what they measured; the frame's iterations count both."""
-        self.descent, self.terms, self.band_fields, self.reference = (other.descent, other.terms, other.band_fields,
-                                                                      other.reference)
+        self.descent, self.states, self.band_fields, self.reference = (other.descent, other.states, other.band_fields,
+                                                                       other.reference)
         for name in ("c_in", "c_out", "last", "observation"):
             if getattr(other, name) is not None:
                 setattr(self, name, getattr(other, name))

@@ -13,7 +13,7 @@ a prior on the thickness and its smoothness.  The outer boundary of the
 myocardium is mostly bright myocardium against darker tissue, lung and the
 right ventricle's blood: when the wall is the brighter side of it (measured
 at the start), the local means run with the wall inside
-(:func:`wall_term`: ``LocalMeans.polarity`` -1, in the compiled level loop
+(:func:`wall_term`: ``LocalMeans(polarity=-1)``, in the compiled level loop
 as the endocardium's) and put the boundary where the echo intensity is half
 way between the wall's and what lies beyond it: the midpoint of the grey
 levels lies on the dim side of a blurred edge.  A thickness below
@@ -241,13 +241,13 @@ def wall_nepers(volume: Volume, endocardium: Surface, epicardium: Surface, *, pe
     return speckle_nepers(samples.reshape(-1, 3), patch.ravel())
 
 
-def wall_term(nepers: float = np.inf) -> type[LocalMeans]:
+def wall_term(nepers: float = np.inf) -> LocalMeans:
     """The data term of a bright wall's outer boundary: the local means
-    with the wall inside (:attr:`LocalMeans.polarity` -1), the boundary
-    where the echo intensity is half way between the wall's and what lies
-    beyond it at ``nepers`` grey levels per neper (:func:`wall_nepers`;
-    inf: the grey levels' midpoint)."""
-    return type("OuterWall", (LocalMeans,), {"polarity": -1.0, "boundary_nepers": float(nepers)})
+    with the wall inside (``polarity`` -1), the boundary where the echo
+    intensity is half way between the wall's and what lies beyond it at
+    ``nepers`` grey levels per neper (:func:`wall_nepers`; inf: the grey
+    levels' midpoint)."""
+    return LocalMeans(polarity=-1.0, boundary_nepers=float(nepers))
 
 
 def segment_epicardium(volume: Volume, endocardium: Surface, *, thickness_mm: float = PRIOR_THICKNESS_MM,
