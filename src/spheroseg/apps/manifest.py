@@ -67,14 +67,15 @@ class Study:
 
 
 def _numbers(value, count: int | None, what: str) -> tuple:
+    given = value  # the message quotes what the manifest says, not its split
     if isinstance(value, str):
         value = value.replace(",", " ").split()
     try:
         numbers = tuple(float(v) for v in value)
     except (TypeError, ValueError):
-        raise ValueError(f"{what} must be numbers, got {value!r}") from None
+        raise ValueError(f"{what} must be numbers, got {given!r}") from None
     if (count is not None and len(numbers) != count) or not all(np.isfinite(numbers)):
-        raise ValueError(f"{what} must be {count} finite numbers (x y z), got {value!r}")
+        raise ValueError(f"{what} must be {count} finite numbers (x y z), got {given!r}")
     return numbers
 
 

@@ -196,7 +196,8 @@ class TrackingResult:
         ``warnings`` prefixed with the frame, and ``frames`` (one each)."""
         reports = [f.quality or {} for f in self.frames]
         warnings = [f"frame {t}: {w}" for t, q in enumerate(reports) for w in q.get("warnings", [])]
-        return {"poor": bool(warnings), "warnings": warnings, "frames": reports}
+        return {"poor": bool(warnings) or any(q.get("poor", False) for q in reports), "warnings": warnings,
+                "frames": reports}
 
 
 @dataclass(frozen=True)
