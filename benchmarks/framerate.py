@@ -36,7 +36,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, write_json  # noqa: E402
 from report import write_markdown  # noqa: E402
 
-import spheroseg.tracking.tracker  # noqa: E402
 from spheroseg.synthetic.phantom import FORMATIONS, POSTPROCESSINGS, make_sequence  # noqa: E402
 from spheroseg.tracking.segment import track  # noqa: E402
 from spheroseg.tracking.tracker import Tracker  # noqa: E402
@@ -44,14 +43,14 @@ from spheroseg.tracking.tracker import Tracker  # noqa: E402
 SEGMENTED_AGAIN = []  # the frames the tracker segmented again, counted through its call
 
 
-def _counting(keep_better_start):
+def _counting(segment_again):
     def counted(tracker, start, **options):
         SEGMENTED_AGAIN.append(1)
-        return keep_better_start(tracker, start, **options)
+        return segment_again(tracker, start, **options)
     return counted
 
 
-spheroseg.tracker.keep_better_start = _counting(spheroseg.tracker.keep_better_start)
+Tracker.segment_again = _counting(Tracker.segment_again)
 
 DESCENT_MM = 10.0
 
@@ -136,18 +135,18 @@ def speed(repeats: int = 3) -> dict:
     first = seq.frames[0]
     times = {"where the wall was left behind or moved far (the default)": [], "every frame": [], "none": []}
     load = os.getloadavg()[0]
-    followed_the_wall = spheroseg.tracker.followed_the_wall
+    followed_the_wall = Tracker.followed_the_wall
     for _ in range(repeats):
         for name, rows in times.items():
             tracker = Tracker(seq.volumes[0], first.apex, first.base)
             tracker.run()
             if name == "none":
                 tracker.options = replace(tracker.options, coarse_to_fine=False)
-            spheroseg.tracker.followed_the_wall = (lambda tracker: False) if name == "every frame" else followed_the_wall
+            Tracker.followed_the_wall = (lambda tracker: False) if name == "every frame" else followed_the_wall
             t0 = time.perf_counter()
             steps = [tracker.next_frame(volume, max_iterations=5) for volume in seq.volumes[1:]]
             seconds = time.perf_counter() - t0
-            spheroseg.tracker.followed_the_wall = followed_the_wall
+            Tracker.followed_the_wall = followed_the_wall
             volumes = np.array([s.volume_ml for s in steps])
             rows.append((seconds, volumes))
     t0 = time.perf_counter()

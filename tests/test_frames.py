@@ -4,8 +4,9 @@ import numpy as np
 
 from spheroseg import Tracker
 from spheroseg.geometry.coords import Pose, ProlateSpheroidal
-from spheroseg.tracking.frames import (BASE_RING_MM, LEFT_BEHIND, WALL_SECTORS, base_ring_floor, base_ring_points, wall_motion_mm,
-                              wall_sides)
+from spheroseg.tracking.frames import (BASE_RING_MM, LEFT_BEHIND, RESEGMENT_MARGIN, WALL_SECTORS, base_ring_floor,
+                                      base_ring_points, kept_candidate, left_behind, wall_motion_mm, wall_offsets,
+                                      wall_sides)
 from spheroseg.geometry.hermite import HermiteGrid
 from spheroseg.surfaces.surface import Surface
 from spheroseg.volumes.volume import ImageGrid, Volume
@@ -47,14 +48,38 @@ def test_the_wall_sides_read_blood_inside_and_wall_outside():
     1 mm samples nearest the step.  Around a cavity drawn two thirds as
     wide (the base radius 15 mm against 23), the surface reads wall on both
     sides: the wall left behind."""
+    offsets = wall_offsets(4.0)
+
+    def sides_of(image):  # of the start surface, before any iteration
+        tracker = Tracker(image, APEX, BASE)
+        model = tracker.descent.model
+        return wall_sides(tracker.samples_along_normals(offsets), offsets, model.v1, model.v2, model.grid.v2_range,
+                          (20.0, 120.0))
+
+    np.testing.assert_array_equal(offsets, [-1.0, -2.0, -3.0, -4.0, 1.0, 2.0, 3.0, 4.0])
     image = step_image(Surface.from_apex_base(APEX, BASE), c_in=20.0, c_out=120.0)
-    on_wall = Tracker(image, APEX, BASE).stepper.descent
-    sides = wall_sides(on_wall, image, (20.0, 120.0), width=4.0)
+    sides = sides_of(image)
     assert sides.shape == (WALL_SECTORS[0] * WALL_SECTORS[1], 2)
-    assert np.all(sides[:, 0] < 0.1) and np.all(sides[:, 1] > 0.9)
+    assert np.all(sides[:, 0] < 0.1) and np.all(sides[:, 1] > 0.9) and not left_behind(sides)
     smaller = step_image(Surface.from_apex_base(APEX, BASE, radius_ratio=0.2), c_in=20.0, c_out=120.0)
-    behind = wall_sides(Tracker(smaller, APEX, BASE).stepper.descent, smaller, (20.0, 120.0), width=4.0)
-    assert np.all(behind[:, 0] > LEFT_BEHIND) and np.all(behind[:, 1] > 0.9)
+    behind = sides_of(smaller)
+    assert np.all(behind[:, 0] > LEFT_BEHIND) and np.all(behind[:, 1] > 0.9) and left_behind(behind)
+
+
+def test_a_sector_without_data_leaves_nothing_behind():
+    sides = np.array([[0.0, 1.0], [np.nan, np.nan], [0.1, 0.8]])
+    assert not left_behind(sides)
+    assert left_behind(np.array([[0.0, 1.0], [0.0, LEFT_BEHIND - 0.01]]))  # blood on the outer side
+
+
+def test_the_candidate_kept_is_the_stepped_one_unless_another_is_clearly_lower():
+    margin = RESEGMENT_MARGIN * 100.0
+    assert kept_candidate([-100.0, -100.0 - 0.9 * margin, -90.0]) == 0  # within the descent's noise
+    assert kept_candidate([-100.0, -100.0 - 1.1 * margin, -90.0]) == 1
+    assert kept_candidate([-100.0, -90.0, -120.0]) == 2
+    # where the stepped wall was left behind, one on the wall wins whatever the energies
+    assert kept_candidate([-100.0, -90.0, -80.0], on_wall=[1, 2]) == 1
+    assert kept_candidate([-100.0, -90.0, -95.0], on_wall=[1, 2]) == 2
 
 
 def test_the_wall_motion_of_two_confocal_half_spheroids():

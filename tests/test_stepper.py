@@ -24,7 +24,7 @@ def test_a_frame_caps_its_finest_levels_without_rewriting_the_schedule(phantom):
     tracker.run()
     result = tracker.next_frame(phantom.volume, max_iterations=3)
     assert tracker.levels == levels  # the frame's cap lives beside the schedule
-    stepper = tracker.stepper
+    stepper = tracker  # a Tracker is the stepper of its frame
     assert [stepper.max_iterations(k) for k in range(len(levels))] == [60, 60, 3]
     assert result.parameters["max_iterations"] == 3 and result.parameters["coarse_to_fine"] is False
     assert tracker.level == len(levels) - 1 and result.status in (0, 1)
@@ -59,7 +59,7 @@ def test_a_result_before_any_iteration_reports_the_start_region_means(phantom):
     means about its initial surface (measured only then): the cavity's
     below the blood's grey-level ceiling, the shell's above it."""
     tracker = Tracker(phantom.volume, phantom.apex, phantom.base)
-    descent = tracker.stepper.descent  # still at its start
+    descent = tracker.descent  # still at its start
     reference = NumpyBackend(descent.backend.model)
     means = reference.region_means(phantom.volume, reference.observe(descent.p, phantom.volume),
                                    shell_offsets(tracker.options.band_out))
@@ -67,6 +67,6 @@ def test_a_result_before_any_iteration_reports_the_start_region_means(phantom):
     tracker.stop()
     result = tracker.result()
     np.testing.assert_allclose((result.c_in, result.c_out), means, rtol=1e-9)
-    assert tracker.stepper.start_means == (result.c_in, result.c_out)
+    assert tracker.start_means == (result.c_in, result.c_out)
     assert result.iterations == 0 and result.status == 2 and result.c_in < result.c_out
 

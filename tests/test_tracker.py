@@ -353,13 +353,12 @@ def test_a_wall_left_behind_where_the_check_does_not_look_is_segmented_again(mon
     kept the apical one at end-diastole (ESV +21 %, EF 7 points low).  Its
     wall moved by 6.8 mm on the whole, more than half the local means'
     band: segmented again, kept by energy, EF within 3 points."""
-    import spheroseg.tracking.tracker as tracker_module
     from spheroseg.synthetic.phantom import FORMATIONS
 
     again = []
-    keep_better_start = tracker_module.keep_better_start
-    monkeypatch.setattr(tracker_module, "keep_better_start",
-                        lambda tracker, start, **kw: again.append(kw) or keep_better_start(tracker, start, **kw))
+    segment_again = Tracker.segment_again
+    monkeypatch.setattr(Tracker, "segment_again",
+                        lambda tracker, start, **kw: again.append(kw) or segment_again(tracker, start, **kw))
     pair = make_sequence(seed=0, n_frames=2, spacing=1.5, base_descent=10.0, formation=FORMATIONS["clutter_strong"])
     assert abs(tracked_ef_error(pair.frames)) < 3.0  # +0.2
     assert again == [{"left_behind": False}]  # followed where the check looks
@@ -371,12 +370,10 @@ def test_only_a_frame_whose_wall_was_left_behind_is_segmented_again(six_frames, 
     plane followed, as :func:`spheroseg.track` does) leaves the
     basal wall behind and is segmented again (and then within 3 EF points,
     the test above)."""
-    import spheroseg.tracking.tracker as tracker_module
-
     again = []
-    keep_better_start = tracker_module.keep_better_start
-    monkeypatch.setattr(tracker_module, "keep_better_start",
-                        lambda tracker, start, **kw: again.append(kw) or keep_better_start(tracker, start, **kw))
+    segment_again = Tracker.segment_again
+    monkeypatch.setattr(Tracker, "segment_again",
+                        lambda tracker, start, **kw: again.append(kw) or segment_again(tracker, start, **kw))
     frames = six_frames.frames
     tracker = Tracker(frames[0].volume, frames[0].apex, frames[0].base)
     tracker.next_frame(frames[1].volume, max_iterations=20, follow_base=True)
@@ -405,3 +402,16 @@ def test_a_frame_whose_descent_did_not_settle_is_flagged(six_frames):
     es = tr.frames[1]
     assert not es.converged and es.quality["poor"]
     assert "still moving" in es.quality["warnings"][0]
+
+
+def test_the_tracker_is_its_stepper_and_the_old_name_warns(phantom):
+    """One object owns the state and steps (no pass-through to a second);
+    ``Tracker.stepper``, as 0.1 had it, is the tracker itself, with a
+    warning."""
+    from spheroseg.descent.stepper import Stepper
+
+    tracker = Tracker(phantom.volume, phantom.apex, phantom.base, mode="local")
+    assert isinstance(tracker, Stepper)
+    assert not [name for name, value in vars(Tracker).items() if isinstance(value, property) and name != "stepper"]
+    with pytest.warns(DeprecationWarning, match="the tracker itself since spheroseg 0.2.0; it goes in 0.3.0"):
+        assert tracker.stepper is tracker

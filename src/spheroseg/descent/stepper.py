@@ -407,6 +407,13 @@ class Stepper:
         self.status = status
         self.converged = False
 
+    def samples_along_normals(self, offsets: np.ndarray) -> np.ndarray:
+        """The frame's grey levels at ``offsets`` (mm along the outward
+        normals, negative inside) at the current surface's sample points,
+        ``(n, len(offsets))``, trilinear (NaN off the data)."""
+        backend = self.descent.backend
+        return backend.samples_along(self.volume, backend.observe(self.descent.p, self.volume), offsets)
+
     def interface_levels(self) -> tuple[float, float]:
         """Scalar ``(c_in, c_out)`` (grey levels) about the finest level's
         interface: the medians of its fixed levels (the intensity

@@ -2,27 +2,25 @@
 the mitral annulus, the base ring held open, and a frame segmented again
 when the wall moved farther than the finest levels can follow.
 
-These are the parts of :meth:`spheroseg.Tracker.next_frame` that look at
-more than one frame or at more than one segmentation of a frame; the level
-state machine itself is :class:`spheroseg.stepper.Stepper`.
+These are what :meth:`spheroseg.Tracker.next_frame` decides a frame by,
+as functions of plain data (surfaces, grey levels along the normals,
+energies): whether the stepped surface followed the wall, how far the
+wall moved, which of a frame's segmentations to keep.  The tracker samples
+the image and runs the segmentations; nothing here steps one.
 """
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from .annulus import annulus_shift
-from ..geometry.energy import data_energy
 from ..surfaces.fit import fit_surface
 from .initial import start_surface
 from ..descent.options import SegmentOptions
-from ..descent.stepper import Level, schedule
 from ..surfaces.surface import Surface
 
 __all__ = ["BASE_RING_MM", "RESEGMENT_MARGIN", "LEFT_BEHIND", "base_ring_floor", "base_ring_points", "followed_base",
-           "keep_better_start", "wall_sides", "followed_the_wall", "wall_motion_mm"]
+           "wall_offsets", "wall_sides", "left_behind", "wall_motion_mm", "kept_candidate"]
 
 #: plausible radii of the mitral annulus in adults, mm (the base ring's range)
 BASE_RING_MM = (10.0, 20.0)
@@ -108,29 +106,32 @@ def followed_base(surface: Surface, volume, next_volume, *, apex: np.ndarray, an
     return base, annulus, fitted
 
 
-def wall_sides(descent, volume, levels, *, width: float) -> np.ndarray:
-    """Where the grey levels either side of a descent's surface lie between
-    the blood's and the wall's, sector by sector of the wall.
+def wall_offsets(width: float) -> np.ndarray:
+    """The offsets (mm along the outward normal) the wall's sides are read
+    at: 1 mm steps over ``width`` mm inside and outside."""
+    return np.concatenate([-np.arange(1.0, width + 0.5), np.arange(1.0, width + 0.5)])
 
-    ``volume`` is read along the outward normals at the sample points of the
-    ``descent`` (a :class:`spheroseg.descent.Descent`, through its backend),
-    at 1 mm steps over ``width`` mm inside and outside, and each sample is
+
+def wall_sides(samples: np.ndarray, offsets: np.ndarray, v1: np.ndarray, v2: np.ndarray, v2_range,
+               levels) -> np.ndarray:
+    """Where the grey levels either side of a surface lie between the
+    blood's and the wall's, sector by sector of the wall.
+
+    ``samples`` ``(n, len(offsets))`` are the grey levels at ``offsets``
+    (:func:`wall_offsets`) along the outward normals at a surface's sample
+    points of parameters ``v1``, ``v2`` (``v2_range`` its grid's), each
     scaled as ``(u - c_in) / (c_out - c_in)`` with ``levels = (c_in,
     c_out)``.  Returns an array ``(sectors, 2)``: the mean scaled level of
     the inner and of the outer band in each of :data:`WALL_SECTORS` (NaN
     where no sample has image data).
     """
-    model, backend = descent.model, descent.backend
-    observation = backend.observe(descent.p, volume)
-    offsets = np.concatenate([-np.arange(1.0, width + 0.5), np.arange(1.0, width + 0.5)])
-    samples = backend.samples_along(volume, observation, offsets)
     c_in, c_out = levels
     scaled = (samples - c_in) / (c_out - c_in)
-    inner = offsets < 0
-    lo, hi = model.grid.v2_range
+    inner = np.asarray(offsets) < 0
+    lo, hi = v2_range
     around, along = WALL_SECTORS
-    sector_1 = np.minimum((model.v1 % (2 * np.pi)) * (around / (2 * np.pi)), around - 1).astype(int)
-    t2 = ((model.v2 - lo) / (hi - lo) - WALL_SPAN[0]) / (WALL_SPAN[1] - WALL_SPAN[0])
+    sector_1 = np.minimum((v1 % (2 * np.pi)) * (around / (2 * np.pi)), around - 1).astype(int)
+    t2 = ((v2 - lo) / (hi - lo) - WALL_SPAN[0]) / (WALL_SPAN[1] - WALL_SPAN[0])
     read = (t2 >= 0) & (t2 < 1)
     sector = (sector_1 * along + np.floor(t2 * along).astype(int))[read]
     sides = np.empty((around * along, 2))
@@ -142,26 +143,19 @@ def wall_sides(descent, volume, levels, *, width: float) -> np.ndarray:
     return sides
 
 
-def followed_the_wall(tracker) -> bool:
-    """Whether ``tracker``'s stepped frame settled on the wall: its finest
-    level converged, and in every sector of the wall the band just inside
-    the surface (half the local means' band, ``options.band / 2`` mm) reads
-    as blood and the band just outside as wall (:data:`LEFT_BEHIND`, on
-    the interface's levels).
+def left_behind(sides: np.ndarray) -> bool:
+    """Whether a surface left the wall behind: in some sector of
+    :func:`wall_sides` the band just inside reads more than
+    :data:`LEFT_BEHIND` of the way to the wall, or the band just outside
+    less (a sector without image data leaves nothing behind).
 
     A wall that moved by more than the finest levels' bands can follow is
     left with tissue on the surface's inner side (systole) or blood on its
     outer side (diastole), where the local means balance on the wrong side
-    of it; only then is the frame segmented again
-    (:func:`keep_better_start`: two more segmentations and their energies).
+    of it.
     """
-    if tracker.status != 0:
-        return False
-    with np.errstate(invalid="ignore", divide="ignore"):  # a sector without image data: NaN, not left behind
-        sides = wall_sides(tracker.stepper.descent, tracker.volume, tracker.interface_levels(),
-                           width=tracker.options.band / 2)
-    inner, outer = sides[:, 0], sides[:, 1]
-    return not (np.any(inner > LEFT_BEHIND) or np.any(outer < LEFT_BEHIND))
+    with np.errstate(invalid="ignore"):
+        return bool(np.any(sides[:, 0] > LEFT_BEHIND) or np.any(sides[:, 1] < LEFT_BEHIND))
 
 
 def wall_motion_mm(start: Surface, surface: Surface) -> float:
@@ -171,7 +165,7 @@ def wall_motion_mm(start: Surface, surface: Surface) -> float:
     everywhere by ``w`` along its normals changes the volume by ``w A`` to
     first order; the base plane left open).
 
-    Where :func:`followed_the_wall` cannot look, it bounds what the finest
+    Where :func:`left_behind` cannot look, it bounds what the finest
     levels were asked to follow: their local means find a wall within half
     their band (``options.band / 2``).  The stepped surface moves less
     than a wall it left behind, so this is a lower bound of the wall's
@@ -181,59 +175,19 @@ def wall_motion_mm(start: Surface, surface: Surface) -> float:
     return 1000.0 * abs(surface.volume_ml() - start.volume_ml()) / mean_area
 
 
-def keep_better_start(tracker, start: Surface, *, left_behind: bool = False) -> None:
-    """Segment ``tracker``'s current frame again through the coarse data
-    term, from ``start`` (the frame's start surface) and from the initial
-    shape posed at the current apex and base (coarse to fine, smoothed on
-    the finest patches towards that shape fitted to the coarse levels'
-    volume: ``smoothness_reference="fitted"``), and keep the
-    segmentation of the lowest data energy: the stepped one unless another
-    is lower by more than :data:`RESEGMENT_MARGIN` of it.  Where the
-    stepped surface ``left_behind`` the wall (:func:`followed_the_wall`)
-    the same check judges the others, and the one of lowest energy among
-    those on the wall replaces it (by energy as above where none is): the
-    energy's scalar levels can prefer a wall left inside the surface where
-    the time-gain compensation left it dark.
-
-    A wall that moved between frames by more than the finest levels' bands
-    can follow leaves the stepped surface where the local means balance on
-    the wrong side of it (a long time step: few frames a cycle, or
-    end-diastole to end-systole directly), while the global means bring the
-    surface to the walls from afar.  The surfaces share the pose and the
-    grid; all are scored by the Chan-Vese data energy (paper eq. 14) with
-    the same scalar levels, the mean of the segmentations' interface levels:
-    ``int_cavity (u - c_in)^2 - (u - c_out)^2 dV``, lowest when the cavity
-    holds every voxel darker than the interface and none brighter.
-    """
-    started = time.perf_counter()
-    stepper = tracker.stepper
-    options = {name: getattr(tracker.options, name) for name in SegmentOptions.names()}
-    place = dict(annulus=tracker.annulus, landmarks=tracker.landmarks if len(tracker.landmarks) else None)
-    # the clicked shape's proportions are the first frame's; a frame far from it (an end-systole reached from
-    # end-diastole) is smoothed towards the shape holding what the coarse levels found in it
-    fresh = type(tracker)(tracker.volume, tracker.apex, tracker.base, **place,
-                          **{**options, "smoothness_reference": "fitted"})
-    coarse, finest = schedule(tracker.options)[0], schedule(tracker.options, coarse_to_fine=False)
-    again_levels = (Level(finest[0].patches, coarse.data_term, coarse.max_iterations, coarse.tol), *finest)
-    again = type(tracker)(tracker.volume, tracker.apex, tracker.base, init=start, levels=again_levels, **place,
-                          **options)
-    candidates = [tracker]
-    for candidate in (again, fresh):
-        candidate.run()
-        if candidate.patches == tracker.patches:
-            candidates.append(candidate)
-    model = stepper.descent.model
-    levels = np.mean([candidate.interface_levels() for candidate in candidates], axis=0)
-
-    def sample(world):  # no data weighs nothing
-        return tracker.volume.sample(world, fill_value=float(levels.mean()))
-
-    energies = np.array([data_energy(model, model.parameters(candidate.surface.coefficients), sample, *levels)
-                         for candidate in candidates])
-    # where the stepped wall was left behind, the check that found it judges the others: one on the wall wins
-    on_wall = [k for k, candidate in enumerate(candidates) if k and followed_the_wall(candidate)] if left_behind else []
-    if on_wall:
-        stepper.adopt(candidates[min(on_wall, key=lambda k: energies[k])].stepper)
-    elif energies[0] - energies.min() > RESEGMENT_MARGIN * abs(energies[0]):
-        stepper.adopt(candidates[int(np.argmin(energies))].stepper)
-    stepper.seconds += time.perf_counter() - started
+def kept_candidate(energies, on_wall=()) -> int:
+    """Which of a frame's segmentations to keep (0: the stepped one), from
+    their data ``energies`` (the stepped one first) and the indices of
+    those ``on_wall`` (the others that did not leave the wall behind, where
+    the stepped one did): the one of lowest energy on the wall; else the
+    stepped one unless another is lower by more than
+    :data:`RESEGMENT_MARGIN` of its energy.  The energy's scalar levels can
+    prefer a wall left inside the surface where the time-gain compensation
+    left it dark: where the stepped surface left the wall, the check that
+    found it judges the others first."""
+    energies = np.asarray(energies, dtype=float)
+    if len(on_wall):
+        return int(min(on_wall, key=lambda k: energies[k]))
+    if energies[0] - energies.min() > RESEGMENT_MARGIN * abs(energies[0]):
+        return int(np.argmin(energies))
+    return 0

@@ -8,12 +8,14 @@ sequence); :func:`spheroseg.segment` and :func:`spheroseg.track` are short
 loops over it, as :func:`scipy.integrate.solve_ivp` loops over its solver.
 Its ``status`` is ``None`` while it runs, then says why it stopped.
 
-It is a facade over four parts, one job each: :mod:`spheroseg.initial`
-builds the initial model (the points checked, the pose, the start surface),
-:class:`spheroseg.stepper.Stepper` runs the levels of the coarse-to-fine
-:func:`schedule` on a frame, :mod:`spheroseg.frames` follows the ventricle
-from frame to frame, and :class:`spheroseg.quality.FrameQuality` reports
-how far a result can be trusted.
+It is the :class:`~spheroseg.descent.stepper.Stepper` of a frame's levels
+(one object: the state and its steps) with what a sequence adds:
+:mod:`~spheroseg.tracking.initial` builds the initial model (the points
+checked, the pose, the start surface), the tracker decides each new frame
+(the stepped surface kept, or the frame segmented again) by the plain
+functions of :mod:`~spheroseg.tracking.frames`, and
+:class:`~spheroseg.descent.quality.FrameQuality` reports how far a result
+can be trusted.
 """
 
 from __future__ import annotations
@@ -24,20 +26,22 @@ from functools import partial
 
 import numpy as np
 
-from .frames import (BASE_RING_MM, base_ring_floor, base_ring_points, followed_base, followed_the_wall, keep_better_start,
-                     wall_motion_mm)
+from .frames import (BASE_RING_MM, base_ring_floor, base_ring_points, followed_base, kept_candidate, left_behind,
+                     wall_motion_mm, wall_offsets, wall_sides)
 from .initial import check_landmarks, check_volume, fitted_start, initial_model
 from ..descent.dataterms import nanmedian
 from ..descent.options import SegmentOptions
 from ..descent.quality import FrameQuality
 from ..descent.results import Intermediate, SegmentationResult, STATUS_MESSAGES
 from ..descent.stepper import Level, Stepper, schedule
+from ..geometry.energy import data_energy
 from ..surfaces.surface import Surface
+from .._moved import MOVED_IN, REMOVED_IN
 
 __all__ = ["Tracker", "Level", "schedule", "BASE_RING_MM"]
 
 
-class Tracker:
+class Tracker(Stepper):
     """A segmentation that steps: iteration by iteration, frame by frame.
 
     Parameters
@@ -82,8 +86,9 @@ class Tracker:
         RMS motion of the last iteration (mm).
     levels : tuple of Level
         The schedule.
-    stepper : spheroseg.stepper.Stepper
-        The level state machine of the current frame.
+    surface : Surface
+        The current surface; the rest of the state as a
+        :class:`~spheroseg.descent.stepper.Stepper`'s.
 
     Examples
     --------
@@ -111,94 +116,17 @@ class Tracker:
         # the clicked shape's family, for a smoothing reference fitted to the coarse levels' end
         family = None if init is not None else partial(fitted_start, model.apex, model.base, annulus=model.annulus,
                                                        options=opts)
-        self.stepper = Stepper(volume, model.surface, levels=model.levels, options=opts, apex=model.apex,
-                               landmarks=model.landmarks, fitted_start=family)
+        super().__init__(volume, model.surface, levels=model.levels, options=opts, apex=model.apex,
+                         landmarks=model.landmarks, fitted_start=family)
         self._quality = FrameQuality(model.surface, model.apex)
-        self.stepper.seconds = time.perf_counter() - started
-
-    # the current state, as the stepper holds it -----------------------------
+        self.seconds = time.perf_counter() - started
 
     @property
-    def volume(self):
-        """The current frame."""
-        return self.stepper.volume
-
-    @volume.setter
-    def volume(self, volume) -> None:
-        self.stepper.volume = volume
-
-    @property
-    def landmarks(self) -> np.ndarray:
-        """The user's landmarks (world mm, ``(k, 3)``)."""
-        return self.stepper.landmarks
-
-    @property
-    def levels(self) -> tuple[Level, ...]:
-        return self.stepper.levels
-
-    @property
-    def level(self) -> int:
-        return self.stepper.level
-
-    @property
-    def status(self) -> int | None:
-        return self.stepper.status
-
-    @property
-    def iteration(self) -> int:
-        return self.stepper.iteration
-
-    @property
-    def motion(self) -> float:
-        return self.stepper.motion
-
-    @property
-    def c_in(self):
-        """The grey levels inside the wall the last iteration's force kept."""
-        return self.stepper.c_in
-
-    @property
-    def c_out(self):
-        """The grey levels outside the wall the last iteration's force kept."""
-        return self.stepper.c_out
-
-    @property
-    def surface(self) -> Surface:
-        """The current surface."""
-        return self.stepper.surface
-
-    @property
-    def patches(self) -> tuple[int, int]:
-        return self.stepper.patches
-
-    @property
-    def message(self) -> str:
-        """Why the current frame stopped (empty while running)."""
-        return self.stepper.message
-
-    # stepping --------------------------------------------------------------
-
-    def iterate(self) -> float:
-        """Run one iteration; at the end of a level, move to the next.
-
-        Returns
-        -------
-        float
-            RMS motion of the surface in the iteration (mm).
-        """
-        return self.stepper.iterate()
-
-    def run_level(self, max_iterations: int | None = None) -> bool:
-        """Run the current level to its end (as :meth:`iterate` until the
-        level changes), or at most ``max_iterations`` of it, in one compiled
-        loop (:meth:`Descent.run`): the same iterations without their
-        Python-level cost.  False, having run nothing, where that loop does
-        not apply (see :meth:`Descent.run`)."""
-        return self.stepper.run_level(max_iterations)
-
-    def stop(self, status: int = 2) -> None:
-        """End the current frame now (``status`` 2: stopped from outside)."""
-        self.stepper.stop(status)
+    def stepper(self) -> Tracker:
+        """Deprecated: the tracker is its stepper since 0.2.0."""
+        warnings.warn(f"Tracker.stepper is the tracker itself since spheroseg {MOVED_IN}; it goes in {REMOVED_IN}",
+                      DeprecationWarning, stacklevel=2)
+        return self
 
     def intermediate(self) -> Intermediate:
         """The state after the last iteration, as ``iter_callback`` gets it."""
@@ -250,11 +178,11 @@ class Tracker:
         ring = base_ring_points(surface, self.base_ring_floor())
         if ring is None:
             return False
-        points, weights = self.stepper.held_points(surface.pose)
+        points, weights = self.held_points(surface.pose)
         weight = np.full(len(ring), self.options.landmark_weight)
         points = ring if points is None else np.concatenate([points, ring])
         weights = weight if weights is None else np.concatenate([weights, weight])
-        self.stepper.resume(points, weights, level=len(self.levels) - 1)
+        self.resume(points, weights, level=len(self.levels) - 1)
         return True
 
     # frames ----------------------------------------------------------------
@@ -271,12 +199,12 @@ class Tracker:
         long axis with the annulus (:func:`spheroseg.frames.followed_base`)
         and the model is posed there.  With ``coarse_to_fine``, a frame
         whose stepped surface did not settle on the wall
-        (:func:`spheroseg.frames.followed_the_wall`), or whose wall moved on
-        the whole by more than half the local means' band
-        (:func:`spheroseg.frames.wall_motion_mm`), is then segmented again
-        from afar and the better segmentation kept
-        (:func:`spheroseg.frames.keep_better_start`).  ``iter_callback``
-        and ``callback_every`` as in :meth:`run`.
+        (:meth:`followed_the_wall`), or whose wall moved on the whole by
+        more than half the local means' band
+        (:func:`spheroseg.tracking.frames.wall_motion_mm`), is then
+        segmented again from afar and the better segmentation kept
+        (:meth:`segment_again`).  ``iter_callback`` and ``callback_every``
+        as in :meth:`run`.
         """
         check_volume(volume)
         if max_iterations is not None and not (isinstance(max_iterations, (int, np.integer)) and max_iterations >= 1):
@@ -284,25 +212,94 @@ class Tracker:
         if self.status is None:
             self.run()  # the current frame first
         started = time.perf_counter()
-        stepper = self.stepper
-        stepper.count_threads()  # the machine's load, at each frame
+        self.count_threads()  # the machine's load, at each frame
         if follow_base:
             followed = followed_base(self.surface, self.volume, volume, apex=self.apex, annulus=self.annulus,
                                      options=self.options)
             if followed is not None:
                 self.base, self.annulus, fitted = followed
-                stepper.restart_from(fitted)
+                self.restart_from(fitted)
         start = self.surface
-        stepper.start_frame(volume, self.options.max_iterations if max_iterations is None else int(max_iterations))
-        stepper.seconds = time.perf_counter() - started
+        self.start_frame(volume, self.options.max_iterations if max_iterations is None else int(max_iterations))
+        self.seconds = time.perf_counter() - started
         self.run(iter_callback, callback_every=callback_every)
         if self.options.coarse_to_fine and self.status != 2:  # (not when stopped from outside)
             # settled, yet not followed: the wall was left behind; followed where the check looks (the basal
             # wall), yet moved by more than the local means can follow: maybe left behind where it does not
-            followed = followed_the_wall(self)
+            followed = self.followed_the_wall()
             if not followed or wall_motion_mm(start, self.surface) > self.options.band / 2:
-                keep_better_start(self, start, left_behind=not followed and self.status == 0)
+                self.segment_again(start, left_behind=not followed and self.status == 0)
         return self.result()
+
+    def followed_the_wall(self) -> bool:
+        """Whether the stepped frame settled on the wall: its finest level
+        converged, and in every sector of the wall the band just inside the
+        surface (half the local means' band, ``options.band / 2`` mm)
+        reads as blood and the band just outside as wall, on the
+        interface's levels (:func:`~spheroseg.tracking.frames.left_behind`).
+        Only where it did not is the frame segmented again
+        (:meth:`segment_again`: two more segmentations and their energies).
+        """
+        if self.status != 0:
+            return False
+        offsets = wall_offsets(self.options.band / 2)
+        model = self.descent.model
+        with np.errstate(invalid="ignore", divide="ignore"):  # a sector without image data: NaN, not left behind
+            sides = wall_sides(self.samples_along_normals(offsets), offsets, model.v1, model.v2, model.grid.v2_range,
+                               self.interface_levels())
+        return not left_behind(sides)
+
+    def segment_again(self, start: Surface, *, left_behind: bool = False) -> None:
+        """Segment the current frame again through the coarse data term,
+        from ``start`` (the frame's start surface) and from the initial
+        shape posed at the current apex and base (coarse to fine, smoothed
+        on the finest patches towards that shape fitted to the coarse
+        levels' volume: ``smoothness_reference="fitted"``), and continue
+        from the segmentation :func:`~spheroseg.tracking.frames.kept_candidate`
+        keeps by their data energies: the stepped one unless another is
+        lower by more than ``RESEGMENT_MARGIN`` of it; where the stepped
+        surface ``left_behind`` the wall (:meth:`followed_the_wall`), the
+        one of lowest energy among those on the wall.
+
+        A wall that moved between frames by more than the finest levels'
+        bands can follow leaves the stepped surface where the local means
+        balance on the wrong side of it (a long time step: few frames a
+        cycle, or end-diastole to end-systole directly), while the global
+        means bring the surface to the walls from afar.  The surfaces share
+        the pose and the grid; all are scored by the Chan-Vese data energy
+        (paper eq. 14) with the same scalar levels, the mean of the
+        segmentations' interface levels: ``int_cavity (u - c_in)^2 - (u -
+        c_out)^2 dV``, lowest when the cavity holds every voxel darker than
+        the interface and none brighter.
+        """
+        started = time.perf_counter()
+        options = {name: getattr(self.options, name) for name in SegmentOptions.names()}
+        place = dict(annulus=self.annulus, landmarks=self.landmarks if len(self.landmarks) else None)
+        # the clicked shape's proportions are the first frame's; a frame far from it (an end-systole reached from
+        # end-diastole) is smoothed towards the shape holding what the coarse levels found in it
+        fresh = Tracker(self.volume, self.apex, self.base, **place, **{**options, "smoothness_reference": "fitted"})
+        coarse, finest = schedule(self.options)[0], schedule(self.options, coarse_to_fine=False)
+        again_levels = (Level(finest[0].patches, coarse.data_term, coarse.max_iterations, coarse.tol), *finest)
+        again = Tracker(self.volume, self.apex, self.base, init=start, levels=again_levels, **place, **options)
+        candidates = [self]
+        for candidate in (again, fresh):
+            candidate.run()
+            if candidate.patches == self.patches:
+                candidates.append(candidate)
+        model = self.descent.model
+        levels = np.mean([candidate.interface_levels() for candidate in candidates], axis=0)
+
+        def sample(world):  # no data weighs nothing
+            return self.volume.sample(world, fill_value=float(levels.mean()))
+
+        energies = [data_energy(model, model.parameters(candidate.surface.coefficients), sample, *levels)
+                    for candidate in candidates]
+        on_wall = [k for k, candidate in enumerate(candidates) if k and candidate.followed_the_wall()] \
+            if left_behind else []
+        kept = kept_candidate(energies, on_wall)
+        if kept:
+            self.adopt(candidates[kept])
+        self.seconds += time.perf_counter() - started
 
     def step(self, volume, *, max_iterations: int | None = None, iter_callback=None,
              follow_base: bool = False) -> SegmentationResult:
@@ -313,20 +310,13 @@ class Tracker:
         return self.next_frame(volume, max_iterations=max_iterations, iter_callback=iter_callback,
                                follow_base=follow_base)
 
-    def interface_levels(self) -> tuple[float, float]:
-        """Scalar ``(c_in, c_out)`` (grey levels) about the finest level's
-        interface: the medians of its fixed levels (the intensity
-        interface's), else of the region means last measured."""
-        return self.stepper.interface_levels()
-
     def set_landmarks(self, landmarks) -> None:
         """Replace the user's landmarks (world points ``(k, 3)``) and continue
         the finest level from the current surface (the viewer's edits)."""
-        stepper = self.stepper
-        stepper.landmarks = check_landmarks(self.volume, landmarks)
-        stepper.count_threads()
-        stepper.resume(*stepper.held_points(stepper.descent.model.pose),
-                       level=len(self.levels) - 1 if self.status is not None else self.level)
+        self.landmarks = check_landmarks(self.volume, landmarks)
+        self.count_threads()
+        self.resume(*self.held_points(self.descent.model.pose),
+                    level=len(self.levels) - 1 if self.status is not None else self.level)
 
     # the result ------------------------------------------------------------
 
@@ -334,18 +324,17 @@ class Tracker:
         """The current frame's result; its ``quality`` None without
         ``report`` (a caller that judges the surface by its own measures, as
         :func:`spheroseg.epicardium.segment_epicardium` its wall's)."""
-        stepper = self.stepper
-        c_in, c_out = stepper.start_means if stepper.c_in is None else (stepper.c_in, stepper.c_out)
+        c_in, c_out = self.start_means if self.c_in is None else (self.c_in, self.c_out)
         parameters = self.options.as_parameters()
-        if stepper.frame_cap is not None:
-            parameters.update(max_iterations=stepper.frame_cap, coarse_to_fine=False)
+        if self.frame_cap is not None:
+            parameters.update(max_iterations=self.frame_cap, coarse_to_fine=False)
         status = 2 if self.status is None else self.status
         surface = self.surface
         quality = None if not report else self._quality.report(
-            surface, observed=stepper.last, converged=self.status == 0, landmarks=self.landmarks,
-            no_speckle=stepper.no_speckle, beyond_wall=stepper.beyond_wall())
+            surface, observed=self.last, converged=self.status == 0, landmarks=self.landmarks,
+            no_speckle=self.no_speckle, beyond_wall=self.beyond_wall())
         return SegmentationResult(
-            surface=surface, iterations=self.iteration, converged=stepper.converged,
-            c_in=float(nanmedian(c_in)), c_out=float(nanmedian(c_out)), seconds=stepper.seconds,
+            surface=surface, iterations=self.iteration, converged=self.converged,
+            c_in=float(nanmedian(c_in)), c_out=float(nanmedian(c_out)), seconds=self.seconds,
             parameters=parameters, status=status, message=STATUS_MESSAGES[status], quality=quality,
-            log_compression=stepper.log_compression())
+            log_compression=self.log_compression())
