@@ -164,7 +164,7 @@ class NumpyBackend:
         weights = d.weights[rows]
         w_in = weights * obs.f[rows]
         w_out = weights * obs.area[rows] * count
-        shell[count == 0] = 0.0  # no sample, no weight (np.nan_to_num costs five times this)
+        shell[count == 0] = 0.0  # no sample, no weight (np.nan_to_num checks every value)
         return _ratio(w_in @ cavity, w_in @ volume_sum), _ratio(w_out @ shell, w_out.sum())
 
     def samples_along(self, volume, obs: Observation, offsets, rows=slice(None), *, exponent: float = 0.0,

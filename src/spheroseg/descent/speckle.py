@@ -41,10 +41,9 @@ LOG_SPREAD = np.pi / np.sqrt(6.0)
 
 
 def nanmedian(values) -> np.float64:
-    """:func:`numpy.nanmedian` of all the values, equal to the last bit, in a
-    third of its time (a partition; numpy's overhead dominates at the few
-    thousand values of a surface); NaN, without a warning, when there are
-    none."""
+    """:func:`numpy.nanmedian` of all the values, equal to the last bit, by
+    one partition (numpy's overhead dominates at the few thousand values of
+    a surface); NaN, without a warning, when there are none."""
     x = np.asarray(values, dtype=float).ravel()
     x = x[~np.isnan(x)]
     n = x.size

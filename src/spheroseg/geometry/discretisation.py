@@ -117,7 +117,7 @@ class Discretisation:
     def smoothing(self, smoothness: float) -> sp.csr_matrix:
         """``a T``: the thin-plate matrix scaled to the mass matrix (sparse;
         cached per smoothness, its values read-only: every new descent
-        reads it, and scaling a sparse matrix costs 25 us).
+        reads it, and scaling a sparse matrix costs more than the rest of it).
 
         ``T`` is per unit area and ``M`` is not, hence the domain's area."""
         key = float(smoothness)
@@ -142,8 +142,8 @@ class Discretisation:
 def spd_inverse(matrix: np.ndarray) -> np.ndarray:
     """Inverse of a symmetric positive definite matrix (through Cholesky).
 
-    An iteration applies the inverses as mat-vecs: at 259 unknowns that is
-    5 us against 23 for a triangular solve."""
+    An iteration applies the inverses as mat-vecs: at a few hundred
+    unknowns a dense product is cheaper than a triangular solve."""
     factor = scipy.linalg.cho_factor(matrix)
     inverse = scipy.linalg.cho_solve(factor, np.eye(len(matrix)))
     return (inverse + inverse.T) / 2
