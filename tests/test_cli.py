@@ -406,3 +406,26 @@ def test_profile_and_seconds_block(case, tmp_path):
     proc = run("segment", path, *points_args(ph, shift), "--out", tmp_path / "quiet", "--quiet", "--no-report")
     assert proc.returncode == 0 and proc.stderr == ""  # the kernels were compiled above: no message
     assert "report" not in json.loads((tmp_path / "quiet" / "results.json").read_text())["seconds"]
+
+
+def test_track_from_a_start_frame_is_recorded_and_reproduced(tmp_path):
+    """``--start-frame`` is recorded in results.json; the API from the same
+    frame gives the same EF to the last bit."""
+    from spheroseg.tracking.segment import track
+
+    seq = make_sequence(seed=42, n_frames=3, spacing=2.0)
+    image = sitk.GetImageFromArray(np.stack([v.array for v in seq.volumes]).astype(np.uint8), isVector=False)
+    image.SetSpacing((2.0, 2.0, 2.0, 1.0))
+    sitk.WriteImage(image, str(tmp_path / "seq.mha"))
+    clicked = seq.frames[1]
+    proc = run("track", tmp_path / "seq.mha", "--apex", *clicked.apex, "--base", *clicked.base, "--out", tmp_path / "o",
+               "--quiet", "--no-report", "--start-frame", 1)
+    assert proc.returncode == 0, proc.stderr
+    results = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert results["start_frame"] == 1
+    volumes = [v for v in __import__("spheroseg").load_sequence(tmp_path / "seq.mha")]
+    api = track(volumes, clicked.apex, clicked.base, start_frame=1)
+    assert results["ef_percent"] == api.ef
+    proc = run("track", tmp_path / "seq.mha", "--apex", *clicked.apex, "--base", *clicked.base, "--out", tmp_path / "p",
+               "--quiet", "--no-report", "--start-frame", 3)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "start_frame must be a frame" in proc.stderr

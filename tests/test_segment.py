@@ -439,3 +439,36 @@ def test_the_functions_shadow_their_modules_as_documented():
     from spheroseg.tracking.segment import track as from_module
 
     assert from_module is spheroseg.track
+
+
+def test_tracking_from_a_start_frame_steps_out_from_it_both_ways():
+    """``start_frame=k``: frame k is segmented from the points as by
+    :func:`segment`, the frames after it stepped forwards and those before it
+    backwards, each from its neighbour (a tracker started again on frame k
+    for the second direction); recorded as ``start_frame``.  ``k=0`` is
+    the forward track of old."""
+    from spheroseg import Tracker
+    from spheroseg.synthetic.phantom import make_sequence
+    from spheroseg.tracking.segment import track, tracking_order
+
+    assert tracking_order(5, 2) == [2, 3, 4, 1, 0] and tracking_order(5, -1) == [4, 3, 2, 1, 0]
+    assert tracking_order(3) == [0, 1, 2]
+    for bad in (5, -6, 1.5, True):
+        with pytest.raises(ValueError, match="start_frame must be a frame of the sequence's 5"):
+            tracking_order(5, bad)
+    seq = make_sequence(seed=3, n_frames=4, spacing=2.0)
+    first = seq.frames[2]
+    kw = dict(iterations_per_frame=4, check=False)
+    tr = track(seq.volumes, first.apex, first.base, start_frame=2, **kw)
+    assert tr.start_frame == 2 and len(tr.frames) == 4
+    clicked = segment(seq.volumes[2], first.apex, first.base, check=False)
+    np.testing.assert_array_equal(tr.frames[2].surface.coefficients, clicked.surface.coefficients)
+    for direction in ([3], [1, 0]):
+        tracker = Tracker(seq.volumes[2], first.apex, first.base)
+        tracker.run()
+        for t in direction:
+            stepped = tracker.next_frame(seq.volumes[t], max_iterations=4, follow_base=True)
+            np.testing.assert_array_equal(tr.frames[t].surface.coefficients, stepped.surface.coefficients)
+    default = track(seq.volumes[:2], seq.frames[0].apex, seq.frames[0].base, **kw)
+    again = track(seq.volumes[:2], seq.frames[0].apex, seq.frames[0].base, start_frame=0, **kw)
+    assert default.start_frame == 0 and default.volumes_ml.tolist() == again.volumes_ml.tolist()

@@ -154,6 +154,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("sequence", help="4D image, .seq.nrrd, folder or glob of 3D frames, DICOM folder")
     _add_common(tr)
     tr.add_argument("--iterations-per-frame", type=int, default=20)
+    tr.add_argument("--start-frame", type=int, default=0, metavar="K",
+                    help="the frame the points are placed on (0-based; tracked forwards, then backwards from it; "
+                         "recorded in results.json)")
     _add_myocardium(tr, "every frame's myocardium mask (masks/frame_TTT_myocardium*), and in results.json the LV "
                         "mass per frame, the 17 segments' volume curves, their times to minimum volume and the SDI")
     sc = sub.add_parser("scan-convert", help="resample a beam-space image or 3D+t sequence on a Cartesian grid")
@@ -474,7 +477,8 @@ def cmd_track(args) -> int:
         try:
             result = track(volumes, apex, base, annulus=annulus, landmarks=landmarks,
                            iterations_per_frame=args.iterations_per_frame, progress=progress,
-                           myocardium=args.myocardium, rv_insertion=args.rv_insertion, **_segment_kwargs(args))
+                           myocardium=args.myocardium, rv_insertion=args.rv_insertion, start_frame=args.start_frame,
+                           **_segment_kwargs(args))
         finally:
             if bar is not None:
                 bar.close()

@@ -128,14 +128,17 @@ class SegmentationResult:
 
 @dataclass
 class TrackingResult:
-    """Per-frame results of :func:`spheroseg.track`, and the clinical indices."""
+    """Per-frame results of :func:`spheroseg.track`, and the clinical indices;
+    ``start_frame``, the frame the points were placed on (tracked forwards
+    and then backwards from it)."""
 
     frames: list[SegmentationResult]
+    start_frame: int = 0
 
     @property
     def initialisation(self) -> dict | None:
-        """How the first frame was started (:func:`spheroseg.locate.initialise`)."""
-        return self.frames[0].initialisation if self.frames else None
+        """How the start frame was started (:func:`spheroseg.tracking.locate.initialise`)."""
+        return self.frames[self.start_frame].initialisation if self.frames else None
 
     @property
     def volumes_ml(self) -> np.ndarray:

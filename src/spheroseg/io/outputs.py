@@ -299,16 +299,18 @@ def write_tracking_outputs(out: Path, volumes, result, *, source=None, apex, bas
         drawing()
     timings = dict(seconds or {})
     timings.setdefault("segment", [f.seconds for f in result.frames])
-    later = result.frames[1].parameters if len(result.frames) > 1 else {}
+    start = getattr(result, "start_frame", 0)
+    first = result.frames[start]
+    later = result.frames[1 if start == 0 else 0].parameters if len(result.frames) > 1 else {}
     results = {
-        "input": None if source is None else str(source), "frames": len(result.frames),
+        "input": None if source is None else str(source), "frames": len(result.frames), "start_frame": start,
         "volumes_ml": result.volumes_ml, "edv_ml": result.edv_ml, "esv_ml": result.esv_ml, "ef_percent": result.ef,
         "ed_frame": result.ed_frame, "es_frame": result.es_frame, **_outcome(result),
-        "iterations": [f.iterations for f in result.frames], "log_compression": result.frames[0].log_compression,
+        "iterations": [f.iterations for f in result.frames], "log_compression": first.log_compression,
         "seconds": timings,
-        **_placement(result.frames[0], apex, base, annulus), "landmarks": _points(landmarks),
+        **_placement(first, apex, base, annulus), "landmarks": _points(landmarks),
         "bases": [f.surface.pose.origin for f in result.frames],
-        "parameters": {**result.frames[0].parameters, "iterations_per_frame": later.get("max_iterations")},
+        "parameters": {**first.parameters, "iterations_per_frame": later.get("max_iterations")},
         "units": {**_UNITS, "ef": "percent"}, "versions": versions(),
         **({"myocardium": myocardium} if myocardium else {}), **(extra or {}),
     }

@@ -22,7 +22,7 @@ from ..descent.results import Intermediate, SegmentationResult, TrackingResult
 from ..surfaces.surface import Surface
 from .tracker import Tracker
 
-__all__ = ["segment", "track", "add_checks", "SegmentationResult", "TrackingResult", "Intermediate", "MODES"]
+__all__ = ["segment", "track", "tracking_order", "add_checks", "SegmentationResult", "TrackingResult", "Intermediate", "MODES"]
 
 
 def add_checks(result: SegmentationResult, volume, initialisation: dict, located, *,
@@ -191,13 +191,16 @@ def track(
     myocardium: bool = False,
     rv_insertion=None,
     epicardium_options: dict | None = None,
+    start_frame: int = 0,
     **options,
 ) -> TrackingResult:
     """Segment every frame of a 3D+t sequence.
 
-    The first frame is segmented from ``apex`` and ``base`` as by
-    :func:`segment` (all its keywords apply); every later frame starts from
-    the previous frame's surface (:meth:`Tracker.next_frame`) and runs until the
+    The start frame (the first by default) is segmented from ``apex`` and
+    ``base`` as by :func:`segment` (all its keywords apply); every other
+    frame starts from its neighbour's surface, forwards to the last frame
+    and then backwards from the start frame to the first
+    (:func:`tracking_order`; :meth:`Tracker.next_frame`), and runs until the
     surface stops moving (``tol``), at most ``iterations_per_frame``
     iterations: the paper used 3 to 5; on the 10-frame phantom cycles, where
     the wall moves up to 4 mm between frames, 4 to 7 are run.  The matrices
@@ -220,6 +223,9 @@ def track(
         frame's plane throughout).
     progress : callable, optional
         ``progress(frames_done, frames)`` after each frame.
+    start_frame : int
+        The frame the points are placed on (0-based; negative counts from
+        the last), recorded in the result (``TrackingResult.start_frame``).
     myocardium, rv_insertion, epicardium_options
         As :func:`segment`, for every frame: the epicardium of each frame
         after the first starts from the previous frame's wall moved onto
@@ -238,19 +244,38 @@ def track(
         raise ValueError(f"a sequence needs at least 2 frames, got {len(volumes)}")
     if not (isinstance(iterations_per_frame, (int, np.integer)) and iterations_per_frame >= 1):
         raise ValueError(f"iterations_per_frame must be a positive integer, got {iterations_per_frame!r}")
-    apex, base, initialisation, located = initialise(volumes[0], apex, base, annulus=annulus, init=init, check=check)
-    tracker = Tracker(volumes[0], apex, base, annulus=annulus, landmarks=landmarks, init=init, **options)
-    frames = []
-    for volume in volumes:
-        if frames:
-            frames.append(tracker.next_frame(volume, max_iterations=iterations_per_frame, iter_callback=iter_callback,
-                                       follow_base=follow_base))
+    order = tracking_order(len(volumes), start_frame)
+    start = order[0]
+    apex, base, initialisation, located = initialise(volumes[start], apex, base, annulus=annulus, init=init,
+                                                     check=check)
+    frames: dict[int, SegmentationResult] = {}
+    for t in order:
+        if t == start or t == start - 1:  # each direction starts from the start frame
+            tracker = Tracker(volumes[start], apex, base, annulus=annulus, landmarks=landmarks, init=init, **options)
+            first = tracker.run(iter_callback)
+        if t == start:
+            frames[t] = first
+            add_checks(first, volumes[t], initialisation, located)
         else:
-            frames.append(tracker.run(iter_callback))
-            add_checks(frames[0], volume, initialisation, located)
+            frames[t] = tracker.next_frame(volumes[t], max_iterations=iterations_per_frame, iter_callback=iter_callback,
+                                           follow_base=follow_base)
         if myocardium:
-            add_epicardium(frames[-1], volume, rv_insertion=rv_insertion, previous=frames[-2] if len(frames) > 1
-                           else None, **(epicardium_options or {}))
+            neighbour = t - 1 if t > start else t + 1
+            add_epicardium(frames[t], volumes[t], rv_insertion=rv_insertion, previous=frames.get(neighbour),
+                           **(epicardium_options or {}))
         if progress is not None:
             progress(len(frames), len(volumes))
-    return TrackingResult(frames)
+    return TrackingResult([frames[t] for t in range(len(volumes))], start_frame=start)
+
+
+def tracking_order(n_frames: int, start_frame: int = 0) -> list[int]:
+    """The order :func:`track` segments ``n_frames`` frames in from
+    ``start_frame`` (negative: from the last): forwards to the last frame,
+    then backwards from the start frame to the first, each direction
+    stepping from its neighbour."""
+    if not (isinstance(start_frame, (int, np.integer)) and not isinstance(start_frame, bool)
+            and -n_frames <= start_frame < n_frames):
+        raise ValueError(f"start_frame must be a frame of the sequence's {n_frames} (0 to {n_frames - 1}, or "
+                         f"negative from the last), got {start_frame!r}")
+    start = int(start_frame) % n_frames
+    return list(range(start, n_frames)) + list(range(start - 1, -1, -1))

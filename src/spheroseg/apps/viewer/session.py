@@ -29,7 +29,7 @@ from ...volumes.beamspace import BeamVolume, scan_convert
 from ...io import save_volume, write_markups
 from ...descent.options import SegmentOptions
 from ...descent.results import TrackingResult
-from ...tracking.segment import add_checks
+from ...tracking.segment import add_checks, tracking_order
 from ...surfaces.surface import Surface
 from ...tracking.tracker import Tracker
 from ...volumes.volume import Volume
@@ -548,7 +548,7 @@ class Session:
 
     def _track(self, job: int, frame: int, points: Points) -> None:
         n = len(self.frames)
-        order = list(range(frame, n)) + list(range(frame - 1, -1, -1))
+        order = tracking_order(n, frame)  # as spheroseg track --start-frame
         results: dict[int, object] = {}
         tracker = None
         for done, t in enumerate(order, 1):
@@ -568,7 +568,7 @@ class Session:
             self._publish_frame(job, t, results[t], done, n)
         if not self._current(job):
             return
-        tracking = TrackingResult([results[t] for t in range(n)])
+        tracking = TrackingResult([results[t] for t in range(n)], start_frame=frame)
         with self._lock:
             self.tracking, self.tracked_points = tracking, points
         self.events.publish("tracked", {"job": job, **self._tracking_summary()})
