@@ -134,57 +134,41 @@ def _one_line(exc: BaseException) -> str:
     return text if text and expected else f"{type(exc).__name__}: {text}".rstrip(": ")
 
 
-def _is_sequence(image: str) -> bool:
-    """Whether an input is 3D+t (folder of frames, glob, 4D or multi-component image, 4D .npy)."""
-    from .io import IMAGE_SUFFIXES, image_format
+def _is_sequence(study: Study) -> bool:
+    """Whether a study's input is 3D+t (a pattern, a folder of frames, a 4D
+    or multi-component image, a 4D .npy)."""
+    from .io import IMAGE_SUFFIXES, image_format, is_sequence_file
 
-    path = Path(image)
-    if any(ch in image for ch in "*?["):
+    path = Path(study.image)
+    if study.glob:
         return True
     if path.is_dir():
         return any(image_format(p) in IMAGE_SUFFIXES for p in path.iterdir())
-    try:
-        if image_format(path) == ".npy":
-            return np.load(path, mmap_mode="r", allow_pickle=False).ndim == 4
-        import SimpleITK as sitk
-
-        reader = sitk.ImageFileReader()
-        reader.SetFileName(str(path))
-        reader.ReadImageInformation()
-        return reader.GetDimension() == 4 or reader.GetNumberOfComponents() > 1
-    except (OSError, ValueError, RuntimeError):
-        return False  # the loader reports why
+    return is_sequence_file(path)
 
 
 def _points(study: Study):
     """apex, base (or None), landmarks (or None), annulus (or None), as the CLI reads them."""
-    apex, base, landmarks, annulus = study.apex, study.base, list(study.landmarks), list(study.annulus)
-    if study.points:
-        from .io import read_markups
+    from .markups import points_with_markups
 
-        marks = read_markups(study.points)
-        apex = marks["apex"] if apex is None else apex
-        base = marks["base"] if base is None else base
-        landmarks += [tuple(p) for p in marks["landmarks"]]
-        annulus = annulus or [tuple(p) for p in marks.get("annulus", [])]
-    as_array = lambda points: np.array(points, dtype=float) if points else None  # noqa: E731
-    if apex is None and base is None and not annulus and not study.points:
+    apex, base, landmarks, annulus = points_with_markups(
+        study.points, apex=study.apex, base=study.base, landmarks=[np.asarray(p, float) for p in study.landmarks],
+        annulus=[np.asarray(p, float) for p in study.annulus])
+    as_array = lambda points: np.array(points, dtype=float) if len(points) else None  # noqa: E731
+    if apex is None and base is None and not annulus:
         return None, None, as_array(landmarks), None  # the ventricle is located
     if apex is None or (base is None and not annulus):
-        raise ValueError(f"{study.points}: no points labelled apex and base (or annulus)")
+        raise ValueError("give the apex and the base (or the annulus)")
     return (np.asarray(apex, float), None if base is None else np.asarray(base, float), as_array(landmarks),
             as_array(annulus))
 
 
 def _install(tmp: Path, final: Path) -> None:
-    """Rename the complete folder ``tmp`` to ``final`` (replacing an older one)."""
-    old = None
-    if final.exists():
-        old = final.parent / f".{final.name}.old-{uuid.uuid4().hex[:8]}"
-        os.replace(final, old)
-    os.replace(tmp, final)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+    """Rename the complete folder ``tmp`` to ``final`` (replacing an older
+    one all or nothing: :func:`spheroseg.atomic.replace_folder`)."""
+    from .atomic import replace_folder
+
+    replace_folder(tmp, final)
 
 
 def _failed_row(study_id: str, error: str, seconds: float | None = None) -> dict:
@@ -231,14 +215,14 @@ def run_study(study: Study, out: str | os.PathLike, *, options: dict | None = No
     try:
         with _Deadline(timeout):
             apex, base, landmarks, annulus = _points(study)
-            sequence = _is_sequence(study.image) if study.track is None else study.track
+            sequence = _is_sequence(study) if study.track is None else study.track
             common = dict(source=study.image, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
                           mask_suffix=suffix, extra={"id": study.id, "checksum": checksum, "study": study.as_entry(),
                                  "options": {**options, "iterations_per_frame": per_frame, "no_data_value": no_data,
                                              "mask_suffix": suffix, **writer}}, **writer)
             t0 = time.perf_counter()
             if sequence:
-                volumes = load_sequence(study.image, spacing=study.spacing, no_data_value=no_data)
+                volumes = load_sequence(study.image, spacing=study.spacing, no_data_value=no_data, glob=study.glob)
                 t_load = time.perf_counter() - t0
                 result = track(volumes, apex, base, annulus=annulus, landmarks=landmarks,
                                iterations_per_frame=per_frame, **options)
@@ -384,7 +368,7 @@ def _run_executor(jobs: list, executor: Executor, call: Callable) -> Iterator[tu
 
 def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executor | None = None,
                  workers: int | None = None, timeout: float | None = None,
-                 options: dict | None = None) -> Iterator[StudyOutcome]:
+                 options: dict | None = None, protect=()) -> Iterator[StudyOutcome]:
     """Segment or track many studies; yield each one's outcome as it finishes.
 
     Parameters
@@ -412,6 +396,9 @@ def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executo
         Seconds a study may take; over it the study fails.
     options : dict, optional
         As :func:`run_study`.
+    protect : paths, optional
+        Files besides the studies' inputs that no study folder may replace
+        (``spheroseg batch`` gives its manifest).
 
     Returns
     -------
@@ -440,7 +427,26 @@ def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executo
     if unknown:
         raise ValueError(f"unknown option(s) {', '.join(unknown)}")
     SegmentOptions(**{k: v for k, v in options.items() if k not in RUN_OPTIONS})  # raises on a bad value
+    check_study_folders(studies, Path(out), protect)
     return _outcomes(studies, Path(out), executor, workers, timeout, options)
+
+
+def check_study_folders(studies, out: Path, protect=()) -> None:
+    """Refuse a cohort where a study's folder ``out/<id>`` (replaced whole
+    when it runs) is or holds an input of any study, or one of ``protect``
+    (an id ``p1.mha`` with ``--out`` the images' folder)."""
+    from .atomic import refuse_overwriting_inputs
+    from .io import image_files
+
+    inputs = [Path(p) for p in protect]
+    for study in studies:
+        inputs += [Path(study.image), *image_files(study.image, glob=study.glob)]
+        inputs += [Path(study.points)] if study.points else []
+    for study in studies:
+        try:
+            refuse_overwriting_inputs([out / study.id], inputs, hint="choose another id or --out")
+        except ValueError as exc:
+            raise ValueError(f"study {study.id}: {exc}") from None
 
 
 def _outcomes(studies, out: Path, executor, workers, timeout, options) -> Iterator[StudyOutcome]:

@@ -151,7 +151,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "epicardial mesh and the heart as CMISS volume elements")
     tr = sub.add_parser("track", help="segment every frame of a 3D+t sequence; EDV, ESV, EF",
                         description="Segment every frame of a 3D+t sequence; EDV, ESV, EF. " + _EXIT_HELP)
-    tr.add_argument("sequence", help="4D image, .seq.nrrd, folder or glob of 3D frames, DICOM folder")
+    tr.add_argument("sequence", help="4D image, .seq.nrrd, folder of 3D frames (ordered by the numbers in their "
+                                     "names), DICOM folder, or with --glob a pattern")
+    tr.add_argument("--glob", action="store_true",
+                    help="SEQUENCE is a pattern ('frame_*.mha', quoted) whose matches are the frames; without it a "
+                         "name is a name, *?[ included")
     _add_common(tr)
     tr.add_argument("--iterations-per-frame", type=int, default=20)
     _add_myocardium(tr, "every frame's myocardium mask (masks/frame_TTT_myocardium*), and in results.json the LV "
@@ -228,10 +232,21 @@ def _output_set() -> list[str]:
             + ["mask" + s for s in MASK_SUFFIXES] + ["myocardium" + s for s in MASK_SUFFIXES])
 
 
+def _inputs(args) -> list[Path]:
+    """Every path a command reads: the image (a folder, a pattern's matches,
+    a header's data file) and the points file."""
+    from .io import image_files
+
+    image = getattr(args, "image", None) or args.sequence
+    glob = getattr(args, "glob", False)
+    paths = ([] if glob else [Path(image)]) + image_files(image, glob=glob)
+    return paths + ([Path(args.points)] if getattr(args, "points", None) else [])
+
+
 def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -> None:
     """Refuse an output folder the outputs ``names`` cannot go to (before any
     input is read); nothing is created."""
-    from .io import image_files
+    from .atomic import refuse_overwriting_inputs
 
     out = Path(os.path.abspath(out))
     if out.exists() and not out.is_dir():
@@ -244,11 +259,9 @@ def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -
                        f"cannot create output folder {out}: {anchor} is not a writable folder")
     if anchor == out and not os.access(out.parent, os.W_OK):
         raise CliError(f"cannot write beside output folder {out}: {out.parent} is not writable")
-    resolved_inputs = {f.resolve() for p in inputs for f in image_files(str(p)) if f.exists()}
+    refuse_overwriting_inputs([out / name for name in names], inputs)
     for name in names:
         target = (out / name).resolve()
-        if any(f == target or target in f.parents for f in resolved_inputs):
-            raise CliError(f"output {target} would overwrite an input; choose another --out")
         if target.exists() and not force:
             raise CliError(f"{target} exists; use --force to overwrite")
 
@@ -256,16 +269,11 @@ def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -
 def _points(args):
     apex = None if args.apex is None else _point(args.apex)
     base = None if args.base is None else _point(args.base)
-    landmarks = [_point(p) for p in args.landmark]
-    annulus = [_point(p) for p in args.annulus]
-    if args.points:
-        from .io import read_markups
+    from .markups import points_with_markups
 
-        marks = read_markups(args.points)
-        apex = marks["apex"] if apex is None else apex
-        base = marks["base"] if base is None else base
-        landmarks += list(marks["landmarks"])
-        annulus = annulus or list(marks["annulus"])
+    apex, base, landmarks, annulus = points_with_markups(
+        args.points, apex=apex, base=base, landmarks=[_point(p) for p in args.landmark],
+        annulus=[_point(p) for p in args.annulus])
     if apex is None and base is None and not annulus:
         apex = base = annulus = None  # none: the ventricle is located
     elif apex is None or (base is None and not annulus):
@@ -398,7 +406,7 @@ def cmd_segment(args) -> int:
     suffix = _mask_suffix(args, source)
     apex, base, landmarks, annulus = _points(args)
     out = Path(args.out)
-    _prepare_out(out, _output_set(), args.force, [source])
+    _prepare_out(out, _output_set(), args.force, _inputs(args))
     with _report_worker(args) as worker:
         volume = _load_timed(source, args, seconds)
         t0 = time.perf_counter()
@@ -457,10 +465,10 @@ def cmd_track(args) -> int:
     suffix = _mask_suffix(args, source)
     apex, base, landmarks, annulus = _points(args)
     out = Path(args.out)
-    _prepare_out(out, _output_set(), args.force, [source])
+    _prepare_out(out, _output_set(), args.force, _inputs(args))
     with _report_worker(args) as worker:
         t0 = time.perf_counter()
-        volumes = load_sequence(args.sequence, spacing=args.spacing, no_data_value=args.no_data)
+        volumes = load_sequence(args.sequence, spacing=args.spacing, no_data_value=args.no_data, glob=args.glob)
         t_load = time.perf_counter() - t0
         timings = {"load": t_load}
         _kernels_loaded(timings)
@@ -498,8 +506,11 @@ def cmd_scan_convert(args) -> int:
     source, target = Path(args.image), Path(args.output)
     if image_format(target) not in MASK_SUFFIXES or image_format(target) == ".npy":
         raise CliError(f"output {target} must be one of {', '.join(s for s in MASK_SUFFIXES if s != '.npy')}")
-    if source.exists() and target.exists() and source.resolve() == target.resolve():
-        raise CliError(f"output {target} would overwrite the input")
+    from .atomic import refuse_overwriting_inputs
+    from .io import image_files
+
+    refuse_overwriting_inputs([target] + ([target.with_suffix(".raw")] if image_format(target) == ".mhd" else []),
+                              [source] + image_files(source), hint="choose another output")
     if target.exists() and not args.force:
         raise CliError(f"{target} exists; use --force to overwrite")
     if not target.parent.is_dir():
@@ -536,6 +547,14 @@ def cmd_batch(args) -> int:
                "no_data_value": args.no_data, "mask_suffix": _mask_suffix(args, Path("")) if args.mask_format else None,
                "stl": args.stl, "report": not args.no_report}
     out = Path(args.out)
+    name = "summary" if args.shard is None else "summary-{}-of-{}".format(*args.shard)
+    from .atomic import refuse_overwriting_inputs
+    from .batch import check_study_folders
+
+    check_study_folders(studies, out, [args.manifest])
+    refuse_overwriting_inputs([out / f"{name}.json", out / f"{name}.csv"],
+                              [Path(args.manifest)] + [Path(s.image) for s in studies]
+                              + [Path(s.points) for s in studies if s.points], hint="choose another --out")
     _make_folder(out)
     for variable in BLAS_THREADS:  # one worker per core: single-threaded BLAS in each (as Dask's workers)
         os.environ.setdefault(variable, "1")
@@ -554,7 +573,7 @@ def cmd_batch(args) -> int:
     rows = {}
     bar = tqdm(total=len(studies), unit="study", desc="batch", file=sys.stderr, disable=args.quiet)
     outcomes = segment_many(studies, out=out, executor=executor, workers=args.workers, timeout=args.timeout,
-                            options=options)
+                            options=options, protect=[args.manifest])
     try:
         for outcome in outcomes:
             rows[outcome.id] = outcome.row
@@ -570,7 +589,6 @@ def cmd_batch(args) -> int:
         bar.close()
         if client is not None:
             client.close()
-    name = "summary" if args.shard is None else "summary-{}-of-{}".format(*args.shard)
     write_summary(out, [rows[s.id] for s in studies], name=name)
     failed = sum(row["status"] != "ok" for row in rows.values())
     poor = sum(bool(row.get("poor")) for row in rows.values())
@@ -678,14 +696,31 @@ def main(argv: list[str] | None = None) -> int:
     handlers = {"segment": cmd_segment, "track": cmd_track, "batch": cmd_batch, "scan-convert": cmd_scan_convert,
                 "demo": cmd_demo, "view": cmd_view}
     try:
-        return handlers[args.command](args)
+        with _owning(args):
+            return handlers[args.command](args)
     except KeyboardInterrupt:
         print("spheroseg: interrupted", file=sys.stderr)
         return 130
     except (CliError, ValueError, TypeError, OSError, RuntimeError, MemoryError) as exc:
-        message = " ".join(str(exc).split()) or type(exc).__name__
-        print(f"spheroseg: error: {message}", file=sys.stderr)
+        print(f"spheroseg: error: {error_line(exc)}", file=sys.stderr)
         return EXIT_ERROR
+
+
+def error_line(exc: BaseException) -> str:
+    """An error as one line of text, a path's bytes that are not UTF-8
+    shown as ``\\xff`` (never an encoding error, whatever the path)."""
+    message = " ".join(str(exc).split()) or type(exc).__name__
+    return message.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
+def _owning(args):
+    """The run's hold on its output folder (:mod:`spheroseg.lock`): a second
+    run on the same ``--out`` is refused while this one runs."""
+    if args.command not in ("segment", "track", "batch", "demo") or not getattr(args, "out", None):
+        return contextlib.nullcontext()
+    from .lock import hold_output
+
+    return hold_output(args.out, f"spheroseg {args.command}")
 
 
 #: commands that leave nothing running when they return (no server, no

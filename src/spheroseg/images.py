@@ -16,9 +16,10 @@ image type.
 
 from __future__ import annotations
 
-import glob
+import glob as _glob
 import math
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -30,7 +31,7 @@ from .raster import outside_sector
 from .volume import ImageGrid, Volume
 
 __all__ = ["load", "load_sequence", "load_frames", "save_mask", "save_volume", "image_format", "image_files",
-           "check_image_size", "beam_header", "beam_geometry_from_header", "ImageFileError", "IMAGE_SUFFIXES",
+           "frame_order", "shown_path", "is_sequence_file", "check_image_size", "beam_header", "beam_geometry_from_header", "ImageFileError", "IMAGE_SUFFIXES",
            "MASK_SUFFIXES", "BEAM_SUFFIXES", "BEAM_KEYS", "BEAM_OPTIONAL_KEYS", "BUDGET_VARIABLE"]
 
 IMAGE_SUFFIXES = (".mhd", ".mha", ".nii", ".nii.gz", ".nrrd", ".nhdr", ".npy")
@@ -59,8 +60,70 @@ class ImageFileError(ValueError):
     ``ImageFileError``; a ``ValueError``, so ``except ValueError`` catches it)."""
 
 
+def shown_path(path) -> str:
+    """A path as text for a message, whatever its bytes: those that are not
+    UTF-8 written ``\\xff``."""
+    return os.fsencode(os.fspath(path)).decode("utf-8", "backslashreplace")
+
+
+def _itk_path(path) -> str:
+    """``path`` as the text SimpleITK takes.  SimpleITK aborts the process
+    (in C++, no exception) on a path that is not UTF-8: every path given to
+    it passes here first and such a one is refused with its bytes shown."""
+    text = os.fspath(path)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ImageFileError(f"{shown_path(path)}: the path is not UTF-8 text, which the image library cannot open; "
+                             "rename it (or a folder above it)") from None
+    return text
+
+
 def _missing(path) -> FileNotFoundError:
-    return FileNotFoundError(f"{path}: no such file")
+    path = Path(path)
+    if path.exists() or path.is_symlink():  # there, but this user may not read it (or a dangling link)
+        if path.is_symlink() and not path.exists():
+            return FileNotFoundError(f"{shown_path(path)}: a link to a missing file")
+        return PermissionError(f"{shown_path(path)}: cannot read (permission denied)")
+    hint = " (a pattern? give --glob)" if any(ch in str(path) for ch in "*?[") else ""
+    return FileNotFoundError(f"{shown_path(path)}: no such file{hint}")
+
+
+#: the frame number of a frame's file: the last run of digits in its name
+_FRAME_NUMBER = re.compile(r"(\d+)(?!.*\d)")
+
+
+def frame_order(files) -> list[Path]:
+    """The frames of a folder (or of a pattern) in the order of the numbers
+    in their names (``frame_2`` before ``frame_10``: natural order, not the
+    text's), each name's last number its frame's.
+
+    Raises
+    ------
+    ValueError
+        A frame without a number in its name (of two or more), two frames of
+        one number (``frame_1`` and ``frame_01``) or a number missing between
+        the first and the last: the sequence would be out of time order.
+    """
+    files = [Path(f) for f in files]
+    if len(files) < 2:
+        return files
+    numbered = []
+    for f in files:
+        stem = f.name[:len(f.name) - len(image_format(f))]
+        found = _FRAME_NUMBER.search(stem)
+        if found is None:
+            raise ValueError(f"{shown_path(f)}: no frame number in the name; the frames of a sequence are ordered by "
+                             "the numbers in their names (frame_0, frame_1, ...)")
+        numbered.append((int(found.group(1)), f))
+    numbered.sort(key=lambda item: (item[0], item[1].name))
+    for (a, fa), (b, fb) in zip(numbered, numbered[1:]):
+        if a == b:
+            raise ValueError(f"{shown_path(fa)} and {fb.name}: two frames numbered {a}")
+        if b != a + 1:
+            missing = f"frame {a + 1}" if b == a + 2 else f"frames {a + 1} to {b - 1}"
+            raise ValueError(f"{shown_path(fa.parent)}: {missing} missing between {fa.name} and {fb.name}")
+    return [f for _, f in numbered]
 
 
 def image_format(path: str | os.PathLike) -> str:
@@ -141,15 +204,15 @@ def _read_image(path: Path):
     sitk = _sitk()
     if path.is_dir():
         reader = sitk.ImageSeriesReader()
-        series = _quietly(lambda: reader.GetGDCMSeriesIDs(str(path)), succeeded=bool)
+        series = _quietly(lambda: reader.GetGDCMSeriesIDs(_itk_path(path)), succeeded=bool)
         if not series:
             raise ImageFileError(f"{path}: a folder with no DICOM series (for a folder of 3D frames use load_sequence)")
-        reader.SetFileNames(reader.GetGDCMSeriesFileNames(str(path), series[0]))
+        reader.SetFileNames([_itk_path(f) for f in reader.GetGDCMSeriesFileNames(_itk_path(path), series[0])])
         return _quietly(reader.Execute)
-    if not path.is_file():
+    if not path.is_file() or not os.access(path, os.R_OK):
         raise _missing(path)
     reader = sitk.ImageFileReader()
-    reader.SetFileName(str(path))
+    reader.SetFileName(_itk_path(path))
     try:
         _quietly(reader.ReadImageInformation)
     except RuntimeError:
@@ -158,7 +221,7 @@ def _read_image(path: Path):
         check_image_size(path, reader.GetSize(), reader.GetNumberOfComponents())
         _check_data_file(path)
     try:
-        return _quietly(lambda: sitk.ReadImage(str(path)))
+        return _quietly(lambda: sitk.ReadImage(_itk_path(path)))
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()
         detail = next((line for line in first if "ERROR" in line or "Unable" in line), first[-1] if first else "")
@@ -412,62 +475,77 @@ def load(path: str | os.PathLike, *, spacing=None,
     return volume
 
 
-def load_frames(path: str | os.PathLike, *, spacing=None,
-                no_data_value: float | str | None = "auto") -> list[Volume] | list[BeamVolume]:
-    """Read a 3D image as one frame, or a 3D+t sequence as its frames
-    (whichever the file holds; the keywords are :func:`load`'s).
-
-    A folder or a glob pattern is a sequence (:func:`load_sequence`), as is
-    a 4D image, a 3D image of several components or a 4D ``.npy``.
-    """
-    path_str = str(path)
+def is_sequence_file(path: str | os.PathLike) -> bool:
+    """Whether one file holds a 3D+t sequence (a 4D image, a 3D image of
+    several components, a 4D ``.npy``), from its header; False when it
+    cannot be read (the loader then says why, in one line)."""
     path = Path(path)
-    if any(ch in path_str for ch in "*?[") or path.is_dir():
-        return load_sequence(path_str, spacing=spacing, no_data_value=no_data_value)
-    if image_format(path) == ".npy":
-        if not path.is_file():
-            raise _missing(path)
-        try:
-            sequence = np.load(path, mmap_mode="r", allow_pickle=False).ndim == 4
-        except (ValueError, OSError):
-            sequence = False  # load says why, in one line
-    else:
-        if not path.is_file():
-            raise _missing(path)
+    if not path.is_file():
+        return False
+    try:
+        if image_format(path) == ".npy":
+            return np.load(path, mmap_mode="r", allow_pickle=False).ndim == 4
         reader = _sitk().ImageFileReader()
-        reader.SetFileName(str(path))
-        try:
-            reader.ReadImageInformation()
-        except RuntimeError:
-            return [load(path, spacing=spacing, no_data_value=no_data_value)]  # load says why, in one line
-        sequence = reader.GetDimension() == 4 or reader.GetNumberOfComponents() > 1
-    if sequence:
-        return load_sequence(path, spacing=spacing, no_data_value=no_data_value)
+        reader.SetFileName(_itk_path(path))
+        _quietly(reader.ReadImageInformation)
+    except (ValueError, OSError, RuntimeError):
+        return False
+    return reader.GetDimension() == 4 or reader.GetNumberOfComponents() > 1
+
+
+def _frame_files(path, glob: bool) -> list[Path] | None:
+    """The frame files of a pattern (``glob``) or a folder, in frame order;
+    None for anything else."""
+    if glob:
+        files = [Path(f) for f in _glob.glob(os.fspath(path)) if image_format(f) in IMAGE_SUFFIXES]
+        if not files:
+            raise FileNotFoundError(f"{shown_path(path)}: no image files match the pattern")
+        return frame_order(files)
+    path = Path(path)
+    if path.is_dir():
+        return frame_order(p for p in path.iterdir() if image_format(p) in IMAGE_SUFFIXES and p.is_file()
+                           and not p.name.startswith("."))
+    return None
+
+
+def load_frames(path: str | os.PathLike, *, spacing=None, no_data_value: float | str | None = "auto",
+                glob: bool = False) -> list[Volume] | list[BeamVolume]:
+    """Read a 3D image as one frame, or a 3D+t sequence as its frames
+    (whichever the file holds; the keywords are :func:`load_sequence`'s).
+
+    A folder or (``glob=True``) a pattern is a sequence
+    (:func:`load_sequence`), as is a 4D image, a 3D image of several
+    components or a 4D ``.npy``.
+    """
+    if glob or Path(path).is_dir() or is_sequence_file(path):
+        return load_sequence(path, spacing=spacing, no_data_value=no_data_value, glob=glob)
     return [load(path, spacing=spacing, no_data_value=no_data_value)]
 
 
-def load_sequence(path: str | os.PathLike, *, spacing=None,
-                  no_data_value: float | str | None = "auto") -> list[Volume] | list[BeamVolume]:
+def load_sequence(path: str | os.PathLike, *, spacing=None, no_data_value: float | str | None = "auto",
+                  glob: bool = False) -> list[Volume] | list[BeamVolume]:
     """Read a 3D+t sequence as a list of :class:`Volume` (of
     :class:`~spheroseg.beamspace.BeamVolume` for beam-space files).
 
     Accepts a 4D image (.mha, .nrrd, .nii: the fourth axis is time), a
     vector image whose components are frames (3D Slicer's ``.seq.nrrd``), a
-    folder of 3D frames or a glob pattern (frames in name order), a
-    DICOM series folder holding a 4D image, or a 4D ``.npy`` ``[t, z, y, x]``.
+    folder of 3D frames, a DICOM series folder holding a 4D image, or a 4D
+    ``.npy`` ``[t, z, y, x]``.  The frames of a folder are ordered by the
+    numbers in their names (:func:`frame_order`: a gap or a repeated number
+    is an error).
+
+    Parameters
+    ----------
+    glob : bool
+        ``path`` is a pattern (``frame_*.mha``) whose matches are the frames,
+        in the same order.  Otherwise a name is a name: ``cine[12].mha`` is
+        that file, whatever its characters.
     """
     sitk = _sitk()
-    path_str = str(path)
-    if any(ch in path_str for ch in "*?["):
-        files = sorted(glob.glob(path_str))
-        if not files:
-            raise ValueError(f"{path_str}: no files match")
-        return [load(f, spacing=spacing, no_data_value=no_data_value) for f in files]
+    frames = _frame_files(path, glob)
+    if frames:
+        return [load(f, spacing=spacing, no_data_value=no_data_value) for f in frames]
     path = Path(path)
-    if path.is_dir():
-        frames = sorted(p for p in path.iterdir() if image_format(p) in IMAGE_SUFFIXES and p.suffix != ".raw")
-        if frames:
-            return [load(f, spacing=spacing, no_data_value=no_data_value) for f in frames]
     if image_format(path) == ".npy":
         if not path.is_file():
             raise _missing(path)
@@ -512,11 +590,11 @@ def _header_data_file(path: Path) -> Path | None:
     return None
 
 
-def image_files(image: str) -> list[Path]:
+def image_files(image: str | os.PathLike, *, glob: bool = False) -> list[Path]:
     """The files an image reads: the file and the data file its header names
-    (.mhd, .nhdr), a folder's files, a glob pattern's matches."""
-    if any(ch in image for ch in "*?["):
-        files = [Path(f) for f in sorted(glob.glob(image))]
+    (.mhd, .nhdr), a folder's files, a pattern's matches (``glob=True``)."""
+    if glob:
+        files = [Path(f) for f in sorted(_glob.glob(os.fspath(image)))]
     elif Path(image).is_dir():
         files = sorted(p for p in Path(image).rglob("*") if p.is_file())
     else:
@@ -545,7 +623,7 @@ def save_mask(path: str | os.PathLike, mask: np.ndarray, like: Volume | BeamVolu
         return
     image = sitk.GetImageFromArray(mask)
     _set_grid(image, grid)
-    write_atomically(path, lambda tmp: sitk.WriteImage(image, str(tmp), True))
+    write_atomically(path, lambda tmp: sitk.WriteImage(image, _itk_path(tmp), True))
 
 
 def _set_grid(image, grid: ImageGrid) -> None:
@@ -604,4 +682,4 @@ def save_volume(path: str | os.PathLike, volume, *, dtype=np.float32) -> None:
     if beam:
         for key, value in beam_header(first.geometry, no_data_value=no_data).items():
             image.SetMetaData(key, value)
-    write_atomically(path, lambda tmp: sitk.WriteImage(image, str(tmp), True))
+    write_atomically(path, lambda tmp: sitk.WriteImage(image, _itk_path(tmp), True))

@@ -11,7 +11,7 @@ import numpy as np
 from .atomic import write_atomically
 from .images import ImageFileError
 
-__all__ = ["read_markups", "write_markups", "MARKUPS_UNITS"]
+__all__ = ["read_markups", "write_markups", "points_with_markups", "MARKUPS_UNITS"]
 
 
 #: millimetres per unit of a markups file's ``coordinateUnits``
@@ -41,7 +41,7 @@ def read_markups(path: str | os.PathLike) -> dict:
     -------
     dict
         ``{"apex": array or None, "base": array or None, "annulus": array (k, 3),
-        "landmarks": array (k, 3)}``
+        "landmarks": array (k, 3), "labels": every control point's label}``
 
     Raises
     ------
@@ -58,12 +58,13 @@ def read_markups(path: str | os.PathLike) -> dict:
         raise FileNotFoundError(f"{path}: no such file")
     try:
         doc = json.loads(path.read_text())
-        out = {"apex": None, "base": None, "annulus": [], "landmarks": []}
+        out = {"apex": None, "base": None, "annulus": [], "landmarks": [], "labels": []}
         for markup in doc["markups"]:
             ras = str(markup.get("coordinateSystem", "LPS")).upper() == "RAS"
             scale = _markups_scale(markup, path)
             for point in markup.get("controlPoints", []):
                 label = str(point.get("label", "")).strip().lower()
+                out["labels"].append(str(point.get("label", "")))
                 used = label in ("apex", "base") or label.startswith(("annulus", "landmark"))
                 if not used:
                     continue
@@ -90,6 +91,38 @@ def read_markups(path: str | os.PathLike) -> dict:
     out["landmarks"] = np.array(out["landmarks"]).reshape(-1, 3)
     out["annulus"] = np.array(out["annulus"]).reshape(-1, 3)
     return out
+
+
+def points_with_markups(points_file=None, *, apex=None, base=None, landmarks=(), annulus=()):
+    """The starting points of a segmentation: those given, completed from a
+    markups file (given points win; the file's landmarks are added).
+
+    A markups file is given for its points: one that leaves the apex, or
+    both the base and the annulus, unknown (Slicer's default labels ``F-1``,
+    ``F-2``, a misspelt label, no control points) is refused with the
+    labels it has, never read as "no points" (the ventricle would be
+    located instead, silently).  The one place ``segment``, ``track`` and
+    ``batch`` read their points file.
+
+    Returns
+    -------
+    apex, base : array or None
+    landmarks, annulus : list of arrays
+    """
+    landmarks, annulus = list(landmarks), list(annulus)
+    if points_file is None:
+        return apex, base, landmarks, annulus
+    marks = read_markups(points_file)
+    apex = marks["apex"] if apex is None else apex
+    base = marks["base"] if base is None else base
+    landmarks += list(marks["landmarks"])
+    annulus = annulus or list(marks["annulus"])
+    if apex is None or (base is None and len(annulus) == 0):
+        labels = ", ".join(repr(label) for label in marks["labels"][:6]) + (", ..." if len(marks["labels"]) > 6 else "")
+        has = f"its labels are {labels}" if labels else "it has no control points"
+        raise ImageFileError(f"{points_file}: no control points labelled apex and base (or annulus...); {has}: "
+                             "label the points apex and base in Slicer")
+    return apex, base, landmarks, annulus
 
 
 def write_markups(path: str | os.PathLike, *, apex=None, base=None, annulus=None, landmarks=None) -> None:
