@@ -189,6 +189,16 @@ class SegmentOptions:
         if self.coarse_tol is not None and not (isinstance(self.coarse_tol, (int, float, np.number))
                                                 and np.isfinite(self.coarse_tol) and self.coarse_tol > 0):
             raise ValueError(f"coarse_tol must be a positive number (or None: twice tol), got {self.coarse_tol!r}")
+        # a level stops when the RMS motion of an iteration is below its
+        # tolerance, and no iteration moves the wall more than the step: a
+        # step at or below the tolerance stops every level at its first
+        # iteration, returning the start as "converged"
+        stops = max(self.tol, (self.coarse_tol or 2 * self.tol) if self.coarse_to_fine else 0.0)
+        if not self.step > stops:
+            which = "tol" if stops == self.tol else "the coarse levels' tolerance (coarse_tol, default 2 x tol)"
+            raise ValueError(f"step must be more than {which}, {stops:g} mm, got {self.step:g}: no iteration could "
+                             "move the wall by more than the motion that counts as settled (a smaller step needs a "
+                             "smaller tol)")
         if not isinstance(self.adaptive_step, (bool, np.bool_)):
             raise ValueError(f"adaptive_step must be True or False, got {self.adaptive_step!r}")
         for name in ("max_iterations", "order"):
