@@ -70,3 +70,17 @@ def test_parameters_are_the_dataclass_fields():
     first = opts.as_parameters()
     first["patches"].append(3)
     assert opts.as_parameters()["patches"] == [6, 4]
+
+
+@pytest.mark.parametrize("step", [1e-9, 0.001, 0.05, 0.1])
+def test_a_step_the_tolerance_cannot_see_is_refused(step):
+    """A level stops when an iteration's RMS motion is below its tolerance
+    (tol, the coarse levels twice it) and no iteration moves the wall more
+    than the step: at or below it every level stopped at once and returned
+    the start as converged (round 4: --step 0.001 gave the initial shape)."""
+    with pytest.raises(ValueError, match=r"step must be more than .*0\.1 mm, got"):
+        SegmentOptions(step=step)
+    SegmentOptions(step=step, tol=step / 4, coarse_tol=step / 2)  # a smaller tol sees it
+    SegmentOptions(step=0.11)
+    with pytest.raises(ValueError, match=r"step must be more than tol, 0\.05 mm"):
+        SegmentOptions(step=0.05, coarse_to_fine=False)

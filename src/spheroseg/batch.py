@@ -25,9 +25,11 @@ from __future__ import annotations
 
 import ctypes
 import json
+import math
 import os
 import re
 import shutil
+import sys
 import threading
 import time
 import uuid
@@ -50,6 +52,8 @@ __all__ = ["Study", "StudyOutcome", "StudyTimeout", "ManifestError", "read_manif
 RUN_OPTIONS = ("iterations_per_frame", "no_data_value", "mask_suffix", "stl", "report")
 #: a worker stuck past its timeout exits after this many more seconds (or half the timeout, if longer)
 HARD_TIMEOUT_GRACE = 10.0
+#: the longest finite timeout, s (a year; the system's timers take no more than ~292 years)
+MAX_TIMEOUT = 365 * 86400.0
 
 
 class StudyTimeout(Exception):
@@ -90,42 +94,72 @@ def _die() -> None:
     os.kill(os.getpid(), signal.SIGKILL)
 
 
+def _importing(frame) -> bool:
+    """Whether a thread whose innermost frame is ``frame`` is importing a module."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
 class _Deadline:
     """Raise :class:`StudyTimeout` in this thread after ``seconds``; if the
     thread is still busy ``grace`` seconds later (stuck in compiled code),
-    end the process so that the pool or the cluster replaces the worker."""
+    end the process so that the pool or the cluster replaces the worker.
+
+    Use ``start()`` inside a ``try`` whose ``finally`` calls ``stop()``:
+    the exception may arrive at any line, even within ``start`` (a timeout
+    of a millisecond), and ``stop`` always ends the watch.  It is held back
+    while the thread imports a module: raised there, it would leave a
+    half-imported module (``matplotlib`` without its attributes) that fails
+    every later study of the worker.
+    """
 
     def __init__(self, seconds: float | None):
         self.seconds = seconds
         self.thread_id = threading.get_ident()
         self.done = threading.Event()
-        self.timers: list[threading.Timer] = []
+        self.lock = threading.Lock()
+        self.watcher: threading.Thread | None = None
 
-    def _raise(self):
-        if not self.done.is_set():
+    def _watch(self):
+        if self.done.wait(self.seconds):
+            return
+        while not self.done.is_set() and _importing(sys._current_frames().get(self.thread_id)):
+            self.done.wait(0.01)
+        with self.lock:
+            if self.done.is_set():
+                return
             ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(self.thread_id), ctypes.py_object(StudyTimeout))
-
-    def _exit(self):
-        if not self.done.is_set():
+        if not self.done.wait(max(HARD_TIMEOUT_GRACE, 0.5 * self.seconds)):
             _die()
 
-    def __enter__(self):
+    def start(self) -> None:
         if self.seconds is not None:
-            grace = max(HARD_TIMEOUT_GRACE, 0.5 * self.seconds)
-            self.timers = [threading.Timer(self.seconds, self._raise), threading.Timer(self.seconds + grace, self._exit)]
-            for timer in self.timers:
-                timer.daemon = True
-                timer.start()
-        return self
+            self.watcher = threading.Thread(target=self._watch, daemon=True, name="spheroseg-deadline")
+            self.watcher.start()
 
-    def __exit__(self, *exc):
-        self.done.set()
-        for timer in self.timers:
-            timer.cancel()
-            timer.join()
-        if self.timers:  # a StudyTimeout sent just as the study ended must not land after it
-            ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(self.thread_id), None)
-        return False
+    def stop(self) -> None:
+        """End the watch; no StudyTimeout arrives after this returns (one
+        that arrives while it runs is raised once it is done)."""
+        late = False
+        while True:
+            try:
+                with self.lock:
+                    self.done.set()
+                break
+            except StudyTimeout:
+                late = True
+        if self.watcher is not None:
+            try:
+                ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(self.thread_id), None)
+                self.watcher.join()
+            except StudyTimeout:  # sent just before the lock was taken
+                late = True
+                self.watcher.join()
+        if late:
+            raise StudyTimeout
 
 
 def _one_line(exc: BaseException) -> str:
@@ -212,8 +246,10 @@ def run_study(study: Study, out: str | os.PathLike, *, options: dict | None = No
     out = Path(out)
     started = time.perf_counter()
     tmp = out / f".{study.id}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    deadline = _Deadline(timeout)
     try:
-        with _Deadline(timeout):
+        try:
+            deadline.start()
             apex, base, landmarks, annulus = _points(study)
             sequence = _is_sequence(study) if study.track is None else study.track
             common = dict(source=study.image, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
@@ -232,6 +268,8 @@ def run_study(study: Study, out: str | os.PathLike, *, options: dict | None = No
                 t_load = time.perf_counter() - t0
                 result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, **options)
                 written = write_segmentation_outputs(tmp, volume, result, seconds={"load": t_load}, **common)
+        finally:
+            deadline.stop()
         _install(tmp, out / study.id)
         return summary_row(written)
     except StudyTimeout:
@@ -271,9 +309,13 @@ def _complete(out: Path, study: Study, checksum: str) -> dict | None:
     return results if isinstance(results, dict) and results.get("checksum") == checksum else None
 
 
-def _pool_worker_init(threads: int | None) -> None:
+def _pool_worker_init(threads: int | None, parent: int | None = None) -> None:
     import signal
 
+    from ._runtime import die_with_parent
+
+    if parent is not None:  # a worker dies with the command (kill -9 of it included), not under PID 1
+        die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: running studies finish, then it stops
     if threads is not None:
         try:
@@ -291,7 +333,7 @@ def _local_pool(workers: int) -> ProcessPoolExecutor:
     # spawn: the parent holds threads (progress bar, timers), which fork must not copy;
     # several workers share the cores: one kernel thread each, or they only contend
     return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_pool_worker_init, initargs=(1 if workers > 1 else None,))
+                               initializer=_pool_worker_init, initargs=(1 if workers > 1 else None, os.getpid()))
 
 
 def _crash_message(exc: BaseException) -> str:
@@ -420,6 +462,10 @@ def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executo
         raise ValueError("study ids must be unique")
     if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0):
         raise ValueError(f"timeout must be positive seconds, got {timeout!r}")
+    if timeout is not None and math.isinf(timeout):
+        timeout = None  # no limit
+    if timeout is not None and timeout > MAX_TIMEOUT:
+        raise ValueError(f"timeout must be at most {MAX_TIMEOUT:g} s (or inf: no limit), got {timeout:g}")
     if workers is not None and not (isinstance(workers, int) and workers >= 1):
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
     options = dict(options or {})

@@ -500,7 +500,7 @@ def cmd_track(args) -> int:
 
 
 def cmd_scan_convert(args) -> int:
-    from .beamspace import BeamVolume, scan_convert
+    from .beamspace import BeamVolume, check_scan_conversion, scan_convert
     from .io import MASK_SUFFIXES, image_format, load, load_sequence, save_volume
 
     source, target = Path(args.image), Path(args.output)
@@ -528,6 +528,7 @@ def cmd_scan_convert(args) -> int:
         raise CliError(f"{source} is not a beam-space file (no AzimuthAngularSeparation, ElevationAngularSeparation, "
                        "RadiusSampleSize, FirstSampleDistance keys)")
     grid = volumes[0].geometry.cartesian_grid(args.voxel_size)
+    check_scan_conversion(grid, len(volumes))
     converted = [scan_convert(v, grid, order=0 if args.nearest else 1) for v in volumes]
     save_volume(target, converted if len(converted) > 1 else converted[0])
     nz, ny, nx = grid.shape

@@ -27,6 +27,7 @@ import numpy as np
 
 from .atomic import write_atomically
 from .beamspace import CONVENTIONS, BeamGeometry, BeamVolume
+from .budget import BUDGET_VARIABLE, DEFAULT_BUDGET_GB, budget_bytes as _budget_bytes  # noqa: F401 (their old home)
 from .raster import outside_sector
 from .volume import ImageGrid, Volume
 
@@ -46,13 +47,6 @@ BEAM_KEYS = ("AzimuthAngularSeparation", "ElevationAngularSeparation", "RadiusSa
 #: no-data value
 BEAM_OPTIONAL_KEYS = ("BeamSpaceConvention", "AzimuthCenterIndex", "ElevationCenterIndex", "ProbeToWorldTransform",
                       "NoDataValue")
-
-
-#: the environment variable that sets the memory budget of one image file,
-#: GB of float32 voxels (all its frames), and its default: a 3D+t file of
-#: 60 frames of 250^3 voxels is within it, a 1000^3 volume is not
-BUDGET_VARIABLE = "SPHEROSEG_MAX_IMAGE_GB"
-DEFAULT_BUDGET_GB = 4.0
 
 
 class ImageFileError(ValueError):
@@ -139,17 +133,6 @@ def _sitk():
     import SimpleITK as sitk
 
     return sitk
-
-
-def _budget_bytes() -> float:
-    text = os.environ.get(BUDGET_VARIABLE, "")
-    try:
-        gb = float(text) if text.strip() else DEFAULT_BUDGET_GB
-    except ValueError:
-        gb = math.nan
-    if not gb > 0 or not math.isfinite(gb):
-        raise ValueError(f"{BUDGET_VARIABLE} must be a positive number of GB, got {text!r}")
-    return gb * 1e9
 
 
 def check_image_size(path, shape, components: int = 1) -> None:
