@@ -52,7 +52,7 @@ def test_scan_convert_verb(capfd, case, tmp_path):
     # never over an existing output without --force, never over the input
     assert_one_line_error(cli(capfd, "scan-convert", folder / "beam.mha", tmp_path / "cart.nii.gz"), "exists")
     assert_one_line_error(cli(capfd, "scan-convert", folder / "beam.mha", folder / "beam.mha", "--force"),
-                          "overwrite the input")
+                          "would overwrite an input")
     assert cli(capfd, "scan-convert", folder / "beam.mha", tmp_path / "cart.nii.gz", "--force", "--nearest",
                "--quiet").returncode == 0
 

@@ -1,0 +1,430 @@
+"""The rules of docs/failures.md against the round-4 hostile-input review
+(``../shared/notes/reliability-round4.md``): each test names its case and
+fails without the rule's check."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from conftest import cli
+
+from spheroseg.synthetic.phantom import make_phantom
+
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+FAST = ["--no-report", "--quiet", "--allow-poor"]
+
+
+def run(*args, env=None, timeout=120, **kwargs):
+    env = {**os.environ, "PYTHONWARNINGS": "ignore", "PYTHONPATH": SRC, **(env or {})}
+    return subprocess.run([sys.executable, "-m", "spheroseg", *args], capture_output=True, env=env,
+                          timeout=timeout, **kwargs)
+
+
+def one_error_line(stderr) -> str:
+    text = stderr.decode(errors="surrogateescape") if isinstance(stderr, bytes) else stderr
+    lines = text.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("spheroseg: error:"), text
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def phantom(tmp_path_factory):
+    """A small phantom written as .mha, its apex and base as arguments."""
+    folder = tmp_path_factory.mktemp("phantom")
+    ph = make_phantom(seed=1, spacing=3.0)
+    image = sitk.GetImageFromArray(ph.volume.array.astype(np.uint8))
+    image.SetSpacing(tuple(ph.volume.spacing))
+    sitk.WriteImage(image, str(folder / "p1.mha"))
+    points = ["--apex", *map(str, ph.apex), "--base", *map(str, ph.base)]
+    return folder / "p1.mha", points, ph
+
+
+# 1. batch replaced an input with a study folder --------------------------------
+
+
+@pytest.mark.parametrize("ident", ["p1.mha", "m.json", "P1.MHA"])
+def test_batch_never_replaces_an_input_with_a_study_folder(capfd, phantom, tmp_path, ident):
+    """Round 4: ``id: p1.mha`` with ``--out`` the images' folder made the
+    image a folder of outputs (the manifest too, with ``id: m.json``)."""
+    image, _, ph = phantom
+    folder = tmp_path / "X"
+    folder.mkdir()
+    (folder / "p1.mha").write_bytes(image.read_bytes())
+    (folder / "p2.mha").write_bytes(image.read_bytes())
+    entry = {"apex": list(map(float, ph.apex)), "base": list(map(float, ph.base))}
+    manifest = folder / "m.json"
+    manifest.write_text(json.dumps([{"id": ident, "image": "p1.mha", **entry}, {"id": "s2", "image": "p2.mha", **entry}]))
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    if ident == "P1.MHA" and (folder / "P1.MHA").exists():
+        pytest.skip("a case-insensitive file system: the id is the input's name")
+    proc = cli(capfd, "batch", manifest, "--out", folder, "--workers", "1", *FAST)
+    if ident == "P1.MHA":  # another name on a case-sensitive file system: no input in the way
+        assert proc.returncode in (0, 3), proc.stderr
+        assert (folder / "P1.MHA" / "results.json").exists()
+    else:
+        assert proc.returncode == 2
+        assert "would overwrite an input" in one_error_line(proc.stderr)
+    after = {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file() and not p.name.startswith("summary")}
+    assert after == before  # every input as it was
+
+
+def test_segment_refuses_an_out_inside_the_input_folder_of_frames(capfd, phantom, tmp_path):
+    """A folder of frames gaining a mask.mha would gain a frame."""
+    image, points, _ = phantom
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for t in range(2):
+        (frames / f"frame_{t}.mha").write_bytes(image.read_bytes())
+    proc = cli(capfd, "track", frames, *points, "--out", frames, *FAST)
+    assert proc.returncode == 2 and "would overwrite an input" in one_error_line(proc.stderr)
+    assert sorted(p.name for p in frames.iterdir()) == ["frame_0.mha", "frame_1.mha"]
+
+
+# 3. non-UTF-8 paths aborted in C++ -------------------------------------------
+
+
+def test_a_path_that_is_not_utf8_is_an_error_line_never_an_abort(phantom, tmp_path):
+    """Round 4: exit 134 (SimpleITK's abort), no ``spheroseg:`` line."""
+    image, points, _ = phantom
+    bad = os.fsencode(tmp_path) + b"/bad\xffname.mha"
+    with open(bad, "wb") as handle:
+        handle.write(image.read_bytes())
+    proc = run("segment", bad, *points, "--out", str(tmp_path / "o"), *FAST)
+    assert proc.returncode == 2, proc.stderr
+    assert "bad\\xffname.mha: the path is not UTF-8" in one_error_line(proc.stderr)
+    folder = os.fsencode(tmp_path) + b"/seq"
+    os.mkdir(folder)
+    os.link(bad, folder + b"/frame_\xfe1.mha")
+    proc = run("track", folder, *points, "--out", str(tmp_path / "o2"), *FAST)
+    assert proc.returncode == 2 and "frame_\\xfe1.mha" in one_error_line(proc.stderr)
+    assert sorted(os.listdir(os.fsencode(tmp_path))) == [b"bad\xffname.mha", b"seq"]
+
+
+def test_an_out_folder_that_is_not_utf8_is_written(phantom, tmp_path):
+    """Round 4: ``--out $'o\\xfe'`` aborted and left ``.o\\xfe.partial-*``."""
+    image, points, _ = phantom
+    out = os.fsencode(tmp_path) + b"/o\xfe"
+    proc = run("segment", str(image), *points, "--out", out, *FAST)
+    assert proc.returncode in (0, 3), proc.stderr
+    assert b"results.json" in os.listdir(out) and b"mask.mha" in os.listdir(out)
+    assert os.listdir(os.fsencode(tmp_path)) == [b"o\xfe"]
+
+
+# 4. a points file without apex/base labels ------------------------------------
+
+
+@pytest.mark.parametrize("labels", [["F-1", "F-2"], ["apex1", "base"], []])
+def test_a_points_file_without_apex_and_base_is_refused(capfd, phantom, tmp_path, labels):
+    """Round 4: Slicer's default labels F-1/F-2 were ignored and the
+    ventricle located instead (exit 0); batch refused the same file."""
+    image, _, ph = phantom
+    points = tmp_path / "p.mrk.json"
+    control = [{"label": label, "position": list(map(float, p)), "positionStatus": "defined"}
+               for label, p in zip(labels, [ph.apex, ph.base])]
+    points.write_text(json.dumps({"markups": [{"type": "Fiducial", "controlPoints": control}]}))
+    proc = cli(capfd, "segment", image, "--points", points, "--out", tmp_path / "o", *FAST)
+    line = one_error_line(proc.stderr)
+    assert proc.returncode == 2 and "no control points labelled apex and base" in line
+    assert ("'F-1', 'F-2'" in line) if labels == ["F-1", "F-2"] else True
+    assert not (tmp_path / "o").exists()
+
+
+# 9. two runs on one --out ------------------------------------------------------
+
+
+def test_a_second_run_on_the_same_out_is_refused_and_a_stale_lock_taken_over(capfd, phantom, tmp_path):
+    """Round 4: two batches deleted each other's folders; two segments into
+    a missing folder both exited 0, the second replacing the first."""
+    from spheroseg.lock import hold_output
+
+    image, points, _ = phantom
+    out = tmp_path / "o"
+    holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
+        import sys, time
+        from spheroseg.lock import hold_output
+        with hold_output({str(out)!r}, "spheroseg segment"):
+            print("held", flush=True)
+            time.sleep(60)
+    """)], stdout=subprocess.PIPE, env={**os.environ, "PYTHONPATH": SRC})
+    try:
+        assert holder.stdout.readline().strip() == b"held"
+        proc = cli(capfd, "segment", image, *points, "--out", out, *FAST)
+        line = one_error_line(proc.stderr)
+        assert proc.returncode == 2 and f"is in use by process {holder.pid}" in line and "spheroseg segment" in line
+        assert not out.exists()
+        holder.kill()  # as kill -9: its lock file stays, the lock does not
+        holder.wait()
+        assert (tmp_path / ".o.lock").exists()
+        proc = cli(capfd, "segment", image, *points, "--out", out, *FAST)
+        assert proc.returncode in (0, 3), proc.stderr
+        assert (out / "results.json").exists() and not (tmp_path / ".o.lock").exists()
+    finally:
+        holder.kill()
+    with hold_output(out, "test"):  # and held, it refuses this process too
+        with pytest.raises(OSError, match="is in use by process"):
+            with hold_output(out, "test"):
+                pass
+
+
+# 11. --force all or nothing under kill -9 ------------------------------------
+
+
+KILLER = """
+import os, signal, sys
+from pathlib import Path
+import spheroseg.atomic as atomic
+
+out, k = Path(sys.argv[1]), int(sys.argv[2])
+calls = [0]
+
+def counted(function):
+    def call(*args, **kwargs):
+        calls[0] += 1
+        if calls[0] == k:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return function(*args, **kwargs)
+    return call
+
+for name in ("replace", "link", "symlink", "mkdir"):
+    setattr(atomic.os, name, counted(getattr(os, name)))
+atomic._exchange = counted(atomic._exchange)
+atomic.shutil.rmtree = counted(atomic.shutil.rmtree)
+
+def write(folder):
+    (folder / "masks").mkdir()
+    for t in range(3):
+        (folder / "masks" / f"frame_{t}.mha").write_text("new")
+    (folder / "mask.mha").write_text("new")
+    (folder / "results.json").write_text("new")
+
+atomic.write_folder_atomically(out, write, replaces=["results.json", "mask.mha", "masks", "report.png"])
+print(calls[0])
+"""
+
+
+def test_force_replaces_a_set_all_or_nothing_under_kill_at_every_step(tmp_path):
+    """Round 4: SIGKILL at 15 of 28 points of the swap left --out partial.
+    Killed at each file-system step of the replacement, --out holds the old
+    set or the new one, whole, and the user's own file."""
+    script = tmp_path / "killer.py"
+    script.write_text(KILLER)
+
+    def old_set(out):
+        (out / "masks").mkdir(parents=True)
+        for t in range(5):  # a longer earlier sequence: its stale frames go with it
+            (out / "masks" / f"frame_{t}.mha").write_text("old")
+        for name in ("mask.mha", "results.json", "report.png"):
+            (out / name).write_text("old")
+        (out / "mine.txt").write_text("the user's")
+
+    def state(out):
+        return {str(p.relative_to(out)): p.read_text() for p in sorted(out.rglob("*")) if p.is_file()}
+
+    old_out = tmp_path / "reference-old"
+    old_set(old_out)
+    old = state(old_out)
+    new = {"mask.mha": "new", "masks/frame_0.mha": "new", "masks/frame_1.mha": "new", "masks/frame_2.mha": "new",
+           "mine.txt": "the user's", "results.json": "new"}
+    env = {**os.environ, "PYTHONPATH": SRC}
+    full = subprocess.run([sys.executable, str(script), str(tmp_path / "dry"), "0"], env=env, capture_output=True,
+                          text=True, check=True)
+    seen = set()
+    for k in range(1, 40):
+        out = tmp_path / f"run{k}" / "o"
+        old_set(out)
+        proc = subprocess.run([sys.executable, str(script), str(out), str(k)], env=env, capture_output=True,
+                              text=True, cwd=tmp_path)
+        found = state(out)
+        assert found in (old, new), (k, found)
+        seen.add("new" if found == new else "old")
+        if proc.returncode == 0:
+            break
+    assert proc.returncode == 0 and seen == {"old", "new"} and int(full.stdout) > 0
+
+
+# 8. batch --timeout -----------------------------------------------------------
+
+
+DEADLINE = """
+import sys, time
+sys.path.insert(0, sys.argv[1])
+from spheroseg.batch import StudyTimeout, _Deadline
+
+# a module whose import outlasts the deadline: the timeout waits for it
+open(sys.argv[1] + "/slow_module.py", "w").write("import time\\ntime.sleep(0.4)\\nDONE = True\\n")
+deadline = _Deadline(0.05)
+try:
+    try:
+        deadline.start()
+        import slow_module
+        time.sleep(5)
+    finally:
+        deadline.stop()
+except StudyTimeout:
+    print("timed out", slow_module.DONE)
+# a deadline of a microsecond, at any line: always stopped, never kills the process
+for _ in range(200):
+    deadline = _Deadline(1e-6)
+    try:
+        try:
+            deadline.start()
+            sum(range(1000))
+        finally:
+            deadline.stop()
+    except StudyTimeout:
+        pass
+time.sleep(0.2)
+print("alive")
+"""
+
+
+def test_a_timeout_never_lands_in_an_import_nor_outlives_its_study(tmp_path):
+    """Round 4: --timeout 0.3 poisoned a worker mid-import (later studies:
+    module 'matplotlib' has no attribute '_docstring'), 0.001 hung."""
+    script = tmp_path / "deadline.py"
+    script.write_text(DEADLINE)
+    proc = subprocess.run([sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "PYTHONPATH": SRC})
+    assert proc.stdout.split("\n")[:2] == ["timed out True", "alive"], proc.stderr
+
+
+def test_an_infinite_timeout_is_no_limit(capfd, tmp_path):
+    """Round 4: --timeout inf printed thread tracebacks (OverflowError)."""
+    from spheroseg.batch import segment_many
+
+    with pytest.raises(ValueError, match="timeout must be at most"):
+        segment_many([], out=tmp_path, timeout=1e300)
+    assert list(segment_many([], out=tmp_path, timeout=float("inf"))) == []
+
+
+# 10. orphan workers -------------------------------------------------------------
+
+
+PARENT = """
+import sys, time
+from spheroseg.batch import _local_pool
+from spheroseg.report_worker import ReportWorker
+import os
+
+if __name__ == "__main__":  # the pool's workers are spawned: they import this file
+    report = ReportWorker(parallel=True)
+    pool = _local_pool(1)
+    print(report._process.pid, pool.submit(os.getpid).result(), flush=True)
+    time.sleep(120)
+"""
+
+
+def _alive(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    state = Path(f"/proc/{pid}/stat").read_text().split()[2] if Path(f"/proc/{pid}/stat").exists() else "?"
+    return state != "Z"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the kernel's parent-death signal")
+def test_workers_die_with_their_parent_under_kill_9(tmp_path):
+    """Round 4: kill -9 of the batch left its workers (~300 MB each) under
+    PID 1 for minutes."""
+    script = tmp_path / "parent.py"
+    script.write_text(PARENT)
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": SRC})
+    children = []
+    try:
+        children = [int(p) for p in parent.stdout.readline().split()]
+        assert len(children) == 2 and all(_alive(p) for p in children)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait()
+        end = time.monotonic() + 10
+        while any(_alive(p) for p in children) and time.monotonic() < end:
+            time.sleep(0.1)
+        assert not any(_alive(p) for p in children)
+    finally:
+        parent.kill()
+        for pid in children:  # without the rule they outlive the test: end them
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+# 6. memory -------------------------------------------------------------------------
+
+
+def test_a_scan_conversion_grid_over_the_budget_is_refused_before_it_is_made(tmp_path):
+    """Round 4: --voxel-size 0.2 grew to 7.8 GB; the grid was never checked."""
+    from spheroseg.io import save_volume
+
+    from spheroseg.beamspace import BeamGeometry, BeamVolume
+
+    geometry = BeamGeometry((60, 21, 21), 1.5, 10.0, 0.05, 0.05)
+    save_volume(tmp_path / "beam.mha", BeamVolume(np.ones(geometry.shape), geometry))
+    proc = run("scan-convert", str(tmp_path / "beam.mha"), str(tmp_path / "o.mha"), "--voxel-size", "0.2",
+               env={"SPHEROSEG_MAX_IMAGE_GB": "0.5"})
+    line = one_error_line(proc.stderr)
+    assert proc.returncode == 2 and "a scan conversion of 1 frame(s) onto" in line and "over the memory budget" in line
+    assert not (tmp_path / "o.mha").exists()
+
+
+def test_the_coarse_copy_of_locate_is_the_same_read_in_slabs(monkeypatch):
+    """The coarse copy locate searches, read slab by slab (its temporaries
+    of a slab, not of the image: round 4, an 800^3 image peaked at 7.6 GB
+    in locate), is the whole image's block means exactly."""
+    import importlib
+
+    locate = importlib.import_module("spheroseg.locate")
+    from spheroseg.raster import block_means
+    from spheroseg.volume import Volume
+
+    rng = np.random.default_rng(0)
+    array = rng.random((31, 20, 17)).astype(np.float32)
+    mask = rng.random(array.shape) < 0.2
+    volume = Volume(array, no_data_mask=mask)
+    whole = block_means(array, mask, (3, 2, 2))
+    monkeypatch.setattr(locate, "_SLAB_VOXELS", 3 * 20 * 17)  # one block row a slab
+    sliced = locate._block_mean(array, locate._missing(volume), np.array([3, 2, 2]))
+    np.testing.assert_array_equal(sliced, whole)
+
+
+# 7. the hang of locate's waist ----------------------------------------------------------
+
+
+def test_waist_is_the_scan_of_every_section():
+    from spheroseg.locate import _waist
+
+    rng = np.random.default_rng(2)
+
+    def scan(area, first, last, allowed):  # the definition, section by section
+        waist, dip = last, 0.0
+        for k in range(first + 1, last):
+            if allowed[k]:
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    here = 1 - area[k] / min(area[first:k].max(), area[k:last + 1].max())
+                if here > dip:
+                    waist, dip = k, here
+        return waist, dip
+
+    for _ in range(200):
+        n = int(rng.integers(2, 40))
+        area = rng.random(n) * (rng.random(n) > 0.2)
+        first, last = sorted(rng.integers(0, n, 2))
+        allowed = rng.random(n) > 0.3
+        assert _waist(area, first, last, allowed) == pytest.approx(scan(area, first, last, allowed))
+
+
+def test_a_huge_spacing_is_no_ventricle_not_a_hang(tmp_path):
+    """Round 4: ElementSpacing 1e6 hung in locate._waist (O(n^2) over 5e7 sections)."""
+    ph = make_phantom(seed=1, spacing=3.0)
+    image = sitk.GetImageFromArray(ph.volume.array.astype(np.uint8))
+    image.SetSpacing((1e6, 1e6, 1e6))
+    sitk.WriteImage(image, str(tmp_path / "huge.mha"))
+    proc = run("segment", str(tmp_path / "huge.mha"), "--out", str(tmp_path / "o"), *FAST, timeout=90)
+    assert proc.returncode == 2 and "no left ventricle found" in one_error_line(proc.stderr)
