@@ -428,3 +428,134 @@ def test_a_huge_spacing_is_no_ventricle_not_a_hang(tmp_path):
     sitk.WriteImage(image, str(tmp_path / "huge.mha"))
     proc = run("segment", str(tmp_path / "huge.mha"), "--out", str(tmp_path / "o"), *FAST, timeout=90)
     assert proc.returncode == 2 and "no left ventricle found" in one_error_line(proc.stderr)
+
+
+# the minor list ---------------------------------------------------------------------
+
+
+def _markups(path, control, **markup):
+    path.write_text(json.dumps({"markups": [{"type": "Fiducial", "controlPoints": control, **markup}]}))
+    return path
+
+
+@pytest.mark.parametrize("system, status, error", [
+    ("IJK", "defined", "coordinateSystem must be LPS or RAS, got 'IJK'"),
+    (0, "defined", "coordinateSystem must be LPS or RAS, got 0"),
+    ("LPS", "preview", "positionStatus 'preview', not 'defined'"),
+    ("LPS", "missing", "positionStatus 'missing', not 'defined'"),
+])
+def test_markups_read_as_what_they_say_or_refused(tmp_path, system, status, error):
+    """Round 4: "IJK" or 0 read as LPS, "preview" points used."""
+    from spheroseg.io import read_markups
+
+    path = _markups(tmp_path / "p.mrk.json", [{"label": "apex", "position": [1, 2, 3], "positionStatus": status}],
+                    coordinateSystem=system)
+    with pytest.raises(ValueError, match=error):
+        read_markups(path)
+
+
+def test_markups_with_a_byte_order_mark_and_a_padded_system(tmp_path):
+    from spheroseg.io import read_markups
+
+    path = tmp_path / "p.mrk.json"
+    doc = {"markups": [{"coordinateSystem": "RAS ", "controlPoints": [{"label": "apex", "position": [1, 2, 3]}]}]}
+    path.write_bytes(b"\xef\xbb\xbf" + json.dumps(doc).encode())
+    np.testing.assert_array_equal(read_markups(path)["apex"], [-1, -2, 3])  # "RAS " is RAS, not LPS
+
+
+def test_a_csv_manifest_with_a_column_twice_is_refused(tmp_path):
+    from spheroseg.batch import ManifestError, read_manifest
+
+    path = tmp_path / "m.csv"
+    path.write_text("id,image,apex,base,apex\ns1,a.mha,1 2 3,4 5 6,7 8 9\n")
+    with pytest.raises(ManifestError, match="column\\(s\\) apex appear twice"):
+        read_manifest(path)
+
+
+def test_metaimage_headers_that_itk_reads_wrongly_are_refused(tmp_path):
+    """Round 4: CompressedData = True on raw data gave "Uncompress failed"
+    then "every voxel is 0"; Offset nan was read as 0."""
+    from spheroseg.io import ImageFileError, load
+
+    sitk.WriteImage(sitk.GetImageFromArray(np.ones((4, 5, 6), np.float32)), str(tmp_path / "a.mhd"))
+    header = (tmp_path / "a.mhd").read_text()
+    (tmp_path / "c.mhd").write_text(header.replace("CompressedData = False", "CompressedData = True"))
+    (tmp_path / "n.mhd").write_text(header.replace("Offset = 0 0 0", "Offset = nan 0 0"))
+    with pytest.raises(ImageFileError, match=r"c.mhd: cannot read image \(Uncompress failed"):
+        load(tmp_path / "c.mhd")
+    with pytest.raises(ImageFileError, match=r"n.mhd: header key Offset must be finite numbers, got 'nan 0 0'"):
+        load(tmp_path / "n.mhd")
+
+
+@pytest.mark.parametrize("args, error", [
+    (["--out", ""], "--out must name a folder, got ''"),
+    (["--rv-insertion", "1", "2", "3", "--out", "o"], "--rv-insertion numbers the myocardium's segments"),
+    (["--smoothness", "1e308", "--out", "o"], "--smoothness must be at most 1e+06"),
+])
+def test_options_the_method_cannot_use_are_one_line_errors(capfd, monkeypatch, phantom, tmp_path, args, error):
+    image, points, _ = phantom
+    monkeypatch.chdir(tmp_path)
+    proc = cli(capfd, "segment", image, *points, *args, *FAST)
+    assert proc.returncode == 2 and error in one_error_line(proc.stderr)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_point_given_twice_is_refused(capfd, phantom, tmp_path):
+    image, points, _ = phantom
+    proc = cli(capfd, "segment", image, *points, "--apex", "1", "2", "3", "--out", tmp_path / "o", *FAST)
+    assert proc.returncode == 2 and "--apex given twice" in proc.stderr
+
+
+def test_api_misuse_is_a_clear_error():
+    """Round 4: segment(ndarray) raised AttributeError, order 1 or 2
+    LinAlgError, a NaN origin "negative dimensions are not allowed"."""
+    from spheroseg import SegmentOptions, segment, track
+
+    with pytest.raises(TypeError, match="volume must be a spheroseg.Volume, got ndarray"):
+        segment(np.zeros((10, 10, 10)), [1, 1, 1], [5, 5, 5])
+    with pytest.raises(TypeError, match="got ndarray"):
+        track([np.zeros((10, 10, 10))] * 2, [1, 1, 1], [5, 5, 5])
+    for order in (1, 2):
+        with pytest.raises(ValueError, match="order must be from 3 to 16"):
+            SegmentOptions(order=order)
+
+
+def test_a_black_frame_is_named(phantom):
+    """Round 4: one black frame failed the whole track without naming it."""
+    from spheroseg.raster import outside_sector
+    from spheroseg.segment import track
+    from spheroseg.synthetic.phantom import make_sequence
+    from spheroseg.volume import Volume
+
+    seq = make_sequence(seed=2, n_frames=3, spacing=3.0)
+    volumes = list(seq.volumes)
+    black = np.zeros_like(volumes[2].array)
+    volumes[2] = Volume(black, spacing=volumes[2].spacing, no_data_mask=outside_sector(black))
+    with pytest.raises(ValueError, match=r"^frame 2: no image data around the surface"):
+        track(volumes, seq.frames[0].apex, seq.frames[0].base)
+
+
+def test_batch_track_false_on_a_sequence_says_the_manifest_key(tmp_path):
+    """Round 4: the advice was "use spheroseg track", in a batch."""
+    from spheroseg.batch import Study, run_study
+    from spheroseg.synthetic.phantom import make_sequence
+
+    seq = make_sequence(seed=2, n_frames=2, spacing=3.0)
+    image = sitk.JoinSeries([sitk.GetImageFromArray(v.array) for v in seq.volumes])
+    sitk.WriteImage(image, str(tmp_path / "s.mha"))
+    study = Study(id="s", image=str(tmp_path / "s.mha"), apex=tuple(seq.frames[0].apex),
+                  base=tuple(seq.frames[0].base), track=False)
+    row = run_study(study, tmp_path / "out", options={"report": False})
+    assert row["status"] == "failed" and "the manifest says track: false; set track to true" in row["error"]
+
+
+def test_out_folders_get_the_mode_mkdir_gives(capfd, phantom, tmp_path):
+    """Round 4: --out was made 0700 (mkdtemp's), batch study folders 0755."""
+    image, points, _ = phantom
+    umask = os.umask(0o022)
+    try:
+        proc = cli(capfd, "segment", image, *points, "--out", tmp_path / "o", *FAST)
+    finally:
+        os.umask(umask)
+    assert proc.returncode in (0, 3), proc.stderr
+    assert (tmp_path / "o").stat().st_mode & 0o777 == 0o755

@@ -23,7 +23,7 @@ def test_defaults_round_trip_through_json():
     (dict(coarse_tol=0.0), "coarse_tol must be a positive number"),
     (dict(smoothness_reference="initial"), "smoothness_reference must be one of .*'start', 'fitted'.*, got 'initial'"),
     (dict(max_iterations=True), "max_iterations must be an integer"),
-    (dict(order=0), "order must be from 1 to 16"),
+    (dict(order=0), "order must be from 3 to 16"),
     (dict(patches=(200, 200)), "patches must be at most 32 in each direction"),
     (dict(patches=(32, 32), order=16), "at most 65536"),
     (dict(step=1e9), "step must be at most 10 mm, got 1e[+]09"),

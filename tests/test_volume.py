@@ -100,7 +100,7 @@ def test_a_direction_that_is_not_orthonormal_is_refused_with_the_matrix(directio
     with pytest.raises(ValueError, match=r"direction matrix \[.*\] is not orthonormal"):
         Volume(np.zeros((4, 4, 4)), direction=direction)
     Volume(np.zeros((4, 4, 4)), direction=np.diag([1.0, -1.0, 1.0]))
-    with pytest.raises(ValueError, match=r"origin must be 3 finite numbers"):
+    with pytest.raises(ValueError, match=r"origin must be 3 finite numbers within"):
         Volume(np.zeros((4, 4, 4)), origin=(0.0, np.nan, 0.0))
 
 

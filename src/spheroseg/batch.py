@@ -264,7 +264,13 @@ def run_study(study: Study, out: str | os.PathLike, *, options: dict | None = No
                                iterations_per_frame=per_frame, **options)
                 written = write_tracking_outputs(tmp, volumes, result, seconds={"load": t_load}, **common)
             else:
-                volume = load(study.image, spacing=study.spacing, no_data_value=no_data)
+                try:
+                    volume = load(study.image, spacing=study.spacing, no_data_value=no_data)
+                except ValueError as exc:
+                    if study.track is False and "3D+t" in str(exc):  # not the CLI's advice: the manifest's key
+                        raise ValueError(f"{study.image}: a 3D+t image, and the manifest says track: false; set "
+                                         "track to true (or leave it out)") from None
+                    raise
                 t_load = time.perf_counter() - t0
                 result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, **options)
                 written = write_segmentation_outputs(tmp, volume, result, seconds={"load": t_load}, **common)

@@ -12,6 +12,7 @@ import contextlib
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -51,10 +52,20 @@ def _no_data(text: str):
         raise argparse.ArgumentTypeError(f"expected auto, none or a number, got {text!r}") from None
 
 
+class _Once(argparse.Action):
+    """An option given at most once (a second ``--apex`` would silently win)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if getattr(namespace, self.dest, None) is not None:
+            parser.error(f"{option_string} given twice; give it once")
+        setattr(namespace, self.dest, values)
+
+
 def _add_common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--apex", nargs=3, type=float, metavar=("X", "Y", "Z"),
+    p.add_argument("--apex", nargs=3, type=float, action=_Once, metavar=("X", "Y", "Z"),
                    help="apex point, world mm (LPS); with no points the ventricle is located")
-    p.add_argument("--base", nargs=3, type=float, metavar=("X", "Y", "Z"), help="centre of the mitral plane, world mm")
+    p.add_argument("--base", nargs=3, type=float, action=_Once, metavar=("X", "Y", "Z"),
+                   help="centre of the mitral plane, world mm")
     p.add_argument("--annulus", nargs=3, type=float, action="append", default=[], metavar=("X", "Y", "Z"),
                    help="a point of the mitral annulus, world mm (repeatable, 3 or more): the cavity is closed at "
                         "their plane, whose normal is the long axis; --base may then be omitted")
@@ -132,7 +143,7 @@ def _positive(kind):
 
 def _add_myocardium(parser, outputs: str) -> None:
     parser.add_argument("--myocardium", action="store_true", help=f"also segment the epicardium: {outputs}")
-    parser.add_argument("--rv-insertion", nargs=3, type=float, metavar=("X", "Y", "Z"),
+    parser.add_argument("--rv-insertion", nargs=3, type=float, action=_Once, metavar=("X", "Y", "Z"),
                         help="with --myocardium: the anterior insertion of the right ventricle, world mm, where "
                              "segment 1 starts (default: the model frame's first axis; docs/segments.png)")
 
@@ -287,6 +298,8 @@ def _check_options(args) -> None:
     """Bad options: one line naming the command-line option, before any input is read."""
     from .options import LIMITS
 
+    if getattr(args, "rv_insertion", None) is not None and not args.myocardium:
+        raise CliError("--rv-insertion numbers the myocardium's segments: give --myocardium too")
     per_frame = getattr(args, "iterations_per_frame", 1)
     if not 1 <= per_frame <= LIMITS["max_iterations"]:
         raise CliError(f"--iterations-per-frame must be from 1 to {LIMITS['max_iterations']}, got {per_frame}")
@@ -697,7 +710,10 @@ def main(argv: list[str] | None = None) -> int:
     handlers = {"segment": cmd_segment, "track": cmd_track, "batch": cmd_batch, "scan-convert": cmd_scan_convert,
                 "demo": cmd_demo, "view": cmd_view}
     try:
-        with _owning(args):
+        # numpy's warnings on extreme input (an overflow of 1e300) would be
+        # lines before the error: the checks say what is wrong, in one
+        with _owning(args), np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
             return handlers[args.command](args)
     except KeyboardInterrupt:
         print("spheroseg: interrupted", file=sys.stderr)
@@ -717,6 +733,8 @@ def error_line(exc: BaseException) -> str:
 def _owning(args):
     """The run's hold on its output folder (:mod:`spheroseg.lock`): a second
     run on the same ``--out`` is refused while this one runs."""
+    if getattr(args, "out", None) is not None and not str(args.out).strip():
+        raise CliError("--out must name a folder, got ''")  # '' would be the working folder, unasked
     if args.command not in ("segment", "track", "batch", "demo") or not getattr(args, "out", None):
         return contextlib.nullcontext()
     from .lock import hold_output

@@ -157,7 +157,11 @@ def check_image_size(path, shape, components: int = 1) -> None:
                              f"budget of {budget / 1e9:.3g} GB (set {BUDGET_VARIABLE} to raise it)")
 
 
-def _quietly(call, *, succeeded=lambda returned: True):
+#: what ITK prints when a read failed though it returned an image (of zeros)
+_FAILED_READS = ("Uncompress failed",)
+
+
+def _quietly(call, *, succeeded=lambda returned: True, path=None):
     """``call()`` with the process's stderr (file descriptor 2) captured:
     what the C++ readers (MetaIO, GDCM, ITK) print there themselves.  On
     success their lines are passed on to ``sys.stderr``; on failure (an
@@ -178,6 +182,9 @@ def _quietly(call, *, succeeded=lambda returned: True):
             os.close(saved)
         noise.seek(0)
         text = noise.read().decode(errors="replace")
+    failed = next((line.strip() for line in text.splitlines() if any(m in line for m in _FAILED_READS)), None)
+    if path is not None and failed is not None:
+        raise ImageFileError(f"{path}: cannot read image ({failed[:200]}: is CompressedData right?)")
     if text.strip() and succeeded(returned):
         sys.stderr.write(text)
     return returned
@@ -204,7 +211,7 @@ def _read_image(path: Path):
         check_image_size(path, reader.GetSize(), reader.GetNumberOfComponents())
         _check_data_file(path)
     try:
-        return _quietly(lambda: sitk.ReadImage(_itk_path(path)))
+        return _quietly(lambda: sitk.ReadImage(_itk_path(path)), path=path)
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()
         detail = next((line for line in first if "ERROR" in line or "Unable" in line), first[-1] if first else "")
@@ -217,19 +224,49 @@ _META_BYTES = {"MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "
                "MET_LONG_LONG": 8, "MET_ULONG_LONG": 8, "MET_FLOAT": 4, "MET_DOUBLE": 8}
 
 
+#: MetaImage keys of numbers that ITK reads as 0 when they are not numbers
+_META_NUMBERS = ("Offset", "Origin", "Position", "ElementSpacing", "TransformMatrix", "Rotation", "Orientation",
+                 "CenterOfRotation")
+
+
+def _meta_keys(path: Path) -> dict | None:
+    """The header keys of a MetaImage file (.mhd; the text head of a .mha),
+    None for other formats."""
+    if image_format(path) not in (".mhd", ".mha"):
+        return None
+    with open(path, "rb") as handle:
+        head = handle.read(1 << 16)
+    keys = {}
+    for line in head.decode("latin-1").splitlines():
+        key, sep, value = line.partition("=")
+        if not sep:
+            continue
+        keys[key.strip()] = value.strip()
+        if key.strip() == "ElementDataFile":  # the voxels follow in a .mha
+            break
+    return keys
+
+
 def _check_data_file(path: Path) -> None:
-    """Refuse a MetaImage header (``.mhd``) whose raw data file holds more
-    bytes than it declares: ITK reads the first ones silently, and a wrong
-    ``DimSize`` or ``ElementType`` scrambles the image (a data file that is
-    too short, ITK refuses itself).  Compressed, listed and embedded data
-    are left to ITK."""
+    """Refuse a MetaImage header whose numbers of geometry are not numbers
+    (ITK reads ``Offset = nan`` as 0, silently), or (``.mhd``) whose raw
+    data file holds more bytes than it declares: ITK reads the first ones
+    silently, and a wrong ``DimSize`` or ``ElementType`` scrambles the
+    image (a data file that is too short, ITK refuses itself).  Compressed,
+    listed and embedded data are left to ITK."""
+    keys = _meta_keys(path)
+    if keys is None:
+        return
+    for key in _META_NUMBERS:
+        if key in keys:
+            try:
+                values = [float(v) for v in keys[key].split()]
+            except ValueError:
+                values = [math.nan]
+            if not all(math.isfinite(v) for v in values):
+                raise ImageFileError(f"{path}: header key {key} must be finite numbers, got {keys[key]!r}")
     if image_format(path) != ".mhd":
         return
-    keys = {}
-    for line in path.read_text(errors="replace").splitlines():
-        key, sep, value = line.partition("=")
-        if sep:
-            keys[key.strip()] = value.strip()
     name = keys.get("ElementDataFile", "")
     try:
         dims = [int(n) for n in keys.get("DimSize", "").split()]
@@ -606,7 +643,26 @@ def save_mask(path: str | os.PathLike, mask: np.ndarray, like: Volume | BeamVolu
         return
     image = sitk.GetImageFromArray(mask)
     _set_grid(image, grid)
-    write_atomically(path, lambda tmp: sitk.WriteImage(image, _itk_path(tmp), True))
+    write_atomically(path, lambda tmp: _write_image(image, tmp, path))
+
+
+def _write_image(image, tmp: Path, path: Path) -> None:
+    """SimpleITK's write of ``image`` to ``tmp``; a full disk said so (ITK
+    says "4097 requested and 1000 written"), other failures in one line."""
+    try:
+        _sitk().WriteImage(image, _itk_path(tmp), True)
+    except RuntimeError as exc:
+        size = image.GetNumberOfPixels() * image.GetNumberOfComponentsPerPixel() * image.GetSizeOfPixelComponent()
+        try:
+            stats = os.statvfs(Path(tmp).parent)
+            full = stats.f_bavail * stats.f_frsize < size
+        except (OSError, AttributeError):
+            full = False
+        if full:
+            raise OSError(28, f"{path}: no space left on the device for its {size / 1e6:.3g} MB") from None
+        lines = str(exc).strip().splitlines()
+        detail = next((line for line in lines if "ERROR" in line or "rror" in line), lines[-1] if lines else "")
+        raise ImageFileError(f"{path}: cannot write image ({detail.strip()[:200]})") from None
 
 
 def _set_grid(image, grid: ImageGrid) -> None:
@@ -665,4 +721,4 @@ def save_volume(path: str | os.PathLike, volume, *, dtype=np.float32) -> None:
     if beam:
         for key, value in beam_header(first.geometry, no_data_value=no_data).items():
             image.SetMetaData(key, value)
-    write_atomically(path, lambda tmp: sitk.WriteImage(image, _itk_path(tmp), True))
+    write_atomically(path, lambda tmp: _write_image(image, tmp, path))

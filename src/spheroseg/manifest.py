@@ -177,6 +177,10 @@ def read_manifest(path: str | os.PathLike) -> list[Study]:
         reader = csv.DictReader(StringIO(text))
         if reader.fieldnames is None:
             raise ManifestError(f"{path}: empty CSV manifest (expected a header: {','.join(MANIFEST_KEYS)})")
+        names = [name.strip() for name in reader.fieldnames]
+        twice = sorted({name for name in names if names.count(name) > 1})
+        if twice:  # the last would win silently
+            raise ManifestError(f"{path}: column(s) {', '.join(twice)} appear twice in the header")
         entries = [{k.strip(): (v or "").strip() for k, v in row.items() if k is not None and (v or "").strip()}
                    for row in reader]
         where = lambda k: f"row {k + 2}"  # noqa: E731

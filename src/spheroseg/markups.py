@@ -35,7 +35,8 @@ def read_markups(path: str | os.PathLike) -> dict:
     (three or more define the mitral plane), every label starting with
     ``landmark`` a landmark.  RAS files are converted to LPS, and
     ``coordinateUnits`` (``um``, ``mm``, ``cm``, ``m``; mm when absent) to
-    millimetres.
+    millimetres; another ``coordinateSystem`` (``IJK``) is refused, as is
+    a used point whose ``positionStatus`` is not ``defined``.
 
     Returns
     -------
@@ -57,10 +58,14 @@ def read_markups(path: str | os.PathLike) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(path.read_text(encoding="utf-8-sig"))  # a byte-order mark, as manifests
         out = {"apex": None, "base": None, "annulus": [], "landmarks": [], "labels": []}
         for markup in doc["markups"]:
-            ras = str(markup.get("coordinateSystem", "LPS")).upper() == "RAS"
+            system = str(markup.get("coordinateSystem", "LPS")).strip().upper()
+            if system not in ("LPS", "RAS"):
+                raise ImageFileError(f"{path}: coordinateSystem must be LPS or RAS, got "
+                                     f"{markup.get('coordinateSystem')!r}")
+            ras = system == "RAS"
             scale = _markups_scale(markup, path)
             for point in markup.get("controlPoints", []):
                 label = str(point.get("label", "")).strip().lower()
@@ -68,9 +73,13 @@ def read_markups(path: str | os.PathLike) -> dict:
                 used = label in ("apex", "base") or label.startswith(("annulus", "landmark"))
                 if not used:
                     continue
-                if str(point.get("positionStatus", "defined")).strip().lower() == "undefined":
+                status = str(point.get("positionStatus", "defined")).strip().lower()
+                if status == "undefined":
                     raise ImageFileError(f"{path}: control point {label!r} has positionStatus 'undefined' (never "
                                          "placed); place it in Slicer or delete it")
+                if status != "defined":  # "preview": being placed, not placed
+                    raise ImageFileError(f"{path}: control point {label!r} has positionStatus "
+                                         f"{point.get('positionStatus')!r}, not 'defined'; place it in Slicer")
                 position = scale * np.asarray(point["position"], dtype=float).reshape(3)
                 if ras:
                     position = position * [-1.0, -1.0, 1.0]

@@ -31,7 +31,7 @@ SMOOTHNESS_REFERENCES = ("start", "fitted")
 #: a wider band or a longer step measures or moves past the heart)
 #: and iterations per level
 LIMITS = {"patches": 32, "order": 16, "sample_points": 32 * 32 * 8 * 8, "band": 50.0, "band_out": 50.0,
-          "step": 10.0, "max_iterations": 10000}
+          "step": 10.0, "max_iterations": 10000, "smoothness": 1e6}
 
 
 def format_point(point) -> str:
@@ -212,8 +212,9 @@ class SegmentOptions:
             object.__setattr__(self, "threads", int(self.threads))  # JSON-ready
         if self.max_iterations < 1 or self.max_iterations > LIMITS["max_iterations"]:
             raise ValueError(f"max_iterations must be from 1 to {LIMITS['max_iterations']}, got {self.max_iterations!r}")
-        if self.order < 1 or self.order > LIMITS["order"]:
-            raise ValueError(f"order must be from 1 to {LIMITS['order']}, got {self.order!r}")
+        if self.order < 3 or self.order > LIMITS["order"]:  # 1 or 2 points leave the Hermite coefficients undetermined
+            raise ValueError(f"order must be from 3 to {LIMITS['order']} sample points per patch and direction, "
+                             f"got {self.order!r}")
         points = patches[0] * patches[1] * self.order ** 2
         if points > LIMITS["sample_points"]:
             raise ValueError(f"patches {patches[0]} x {patches[1]} at order {self.order} make {points} sample points; "
@@ -222,6 +223,9 @@ class SegmentOptions:
             value = getattr(self, name)
             if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a number >= 0, got {value!r}")
+        if self.smoothness > LIMITS["smoothness"]:  # far past rigid: the implicit step's matrix overflows
+            raise ValueError(f"smoothness must be at most {LIMITS['smoothness']:g} (already the start's shape held "
+                             f"rigid), got {self.smoothness:g}")
         if self.smoothness_reference not in SMOOTHNESS_REFERENCES:
             raise ValueError(f"smoothness_reference must be one of {SMOOTHNESS_REFERENCES}, "
                              f"got {self.smoothness_reference!r}")

@@ -11,10 +11,13 @@ The parts of an iteration live in modules named for them:
 
 from __future__ import annotations
 
+import contextlib
+
 from typing import Callable, Sequence
 
 import numpy as np
 
+from .initial import check_volume
 from .locate import annotate, initialise
 from .epicardium import PRIOR_THICKNESS_MM, add_epicardium, check_wall_polarity
 from .options import MODES
@@ -163,6 +166,7 @@ def segment(volume, apex=None, base=None, *, annulus=None, landmarks=None, init:
     >>> bool(abs(res.volume_ml - ph.truth_volume_ml) < 0.15 * ph.truth_volume_ml)
     True
     """
+    check_volume(volume)  # a bare array: a TypeError here, not an AttributeError from deep inside
     apex, base, initialisation, located = initialise(volume, apex, base, annulus=annulus, init=init, check=check)
     result = Tracker(volume, apex, base, annulus=annulus, landmarks=landmarks, init=init, **options).run(iter_callback)
     epicardium_options = dict(epicardium_options or {})
@@ -238,19 +242,37 @@ def track(
         raise ValueError(f"a sequence needs at least 2 frames, got {len(volumes)}")
     if not (isinstance(iterations_per_frame, (int, np.integer)) and iterations_per_frame >= 1):
         raise ValueError(f"iterations_per_frame must be a positive integer, got {iterations_per_frame!r}")
+    for volume in volumes:
+        check_volume(volume)
     apex, base, initialisation, located = initialise(volumes[0], apex, base, annulus=annulus, init=init, check=check)
     tracker = Tracker(volumes[0], apex, base, annulus=annulus, landmarks=landmarks, init=init, **options)
     frames = []
-    for volume in volumes:
-        if frames:
-            frames.append(tracker.next_frame(volume, max_iterations=iterations_per_frame, iter_callback=iter_callback,
-                                       follow_base=follow_base))
-        else:
-            frames.append(tracker.run(iter_callback))
-            add_checks(frames[0], volume, initialisation, located)
-        if myocardium:
-            add_epicardium(frames[-1], volume, rv_insertion=rv_insertion, previous=frames[-2] if len(frames) > 1
-                           else None, **(epicardium_options or {}))
+    for t, volume in enumerate(volumes):
+        with _naming_frame(t):
+            if frames:
+                frames.append(tracker.next_frame(volume, max_iterations=iterations_per_frame,
+                                                 iter_callback=iter_callback, follow_base=follow_base))
+            else:
+                frames.append(tracker.run(iter_callback))
+                add_checks(frames[0], volume, initialisation, located)
+            if myocardium:
+                add_epicardium(frames[-1], volume, rv_insertion=rv_insertion, previous=frames[-2] if len(frames) > 1
+                               else None, **(epicardium_options or {}))
         if progress is not None:
             progress(len(frames), len(volumes))
     return TrackingResult(frames)
+
+
+@contextlib.contextmanager
+def _naming_frame(t: int):
+    """A frame's error names the frame (one dark frame of sixty)."""
+    try:
+        yield
+    except (ValueError, RuntimeError) as exc:
+        if str(exc).startswith("frame "):
+            raise
+        try:
+            named = type(exc)(f"frame {t}: {exc}")
+        except Exception:  # an exception class of other arguments
+            named = ValueError(f"frame {t}: {exc}")
+        raise named from exc

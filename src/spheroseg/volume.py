@@ -17,6 +17,9 @@ INDEX_TOLERANCE = 1e-6
 #: D^T D - I): headers store directions to 6 decimals, NIfTI in float32; a
 #: scaled or sheared matrix is far beyond it
 DIRECTION_TOLERANCE = 1e-4
+#: the largest coordinate an image's origin may have, mm (a kilometre): beyond
+#: it the world -> index arithmetic loses the voxel (float64 keeps 16 digits)
+MAX_COORDINATE_MM = 1e6
 
 
 @dataclass(frozen=True)
@@ -42,8 +45,9 @@ class ImageGrid:
             raise ValueError(f"an image grid must be 3D, got shape {self.shape}")
         if not np.all(self.spacing > 0):
             raise ValueError(f"spacing must be positive, got {self.spacing}")
-        if not np.all(np.isfinite(self.origin)):
-            raise ValueError(f"origin must be 3 finite numbers (x, y, z mm), got {self.origin.tolist()}")
+        if not np.all(np.abs(self.origin) <= MAX_COORDINATE_MM):  # NaN too
+            raise ValueError(f"origin must be 3 finite numbers within +-{MAX_COORDINATE_MM:g} mm (x, y, z), got "
+                             f"{self.origin.tolist()}")
         check_direction(self.direction)
 
     def index_to_world(self, index_xyz) -> np.ndarray:
