@@ -559,3 +559,16 @@ def test_out_folders_get_the_mode_mkdir_gives(capfd, phantom, tmp_path):
         os.umask(umask)
     assert proc.returncode in (0, 3), proc.stderr
     assert (tmp_path / "o").stat().st_mode & 0o777 == 0o755
+
+
+def test_a_detached_nrrd_header_smaller_than_its_data_is_refused(tmp_path):
+    """Round 4: accepted silently (ITK reads the first bytes: a scrambled image)."""
+    from spheroseg.io import ImageFileError, load
+
+    sitk.WriteImage(sitk.GetImageFromArray(np.ones((4, 5, 6), np.float32)), str(tmp_path / "x.nhdr"))
+    assert load(tmp_path / "x.nhdr", no_data_value=None).shape == (4, 5, 6)
+    text = (tmp_path / "x.nhdr").read_text()
+    assert "sizes: 6 5 4" in text
+    (tmp_path / "y.nhdr").write_text(text.replace("sizes: 6 5 4", "sizes: 6 5 3"))
+    with pytest.raises(ImageFileError, match=r"y.nhdr: its data file x.raw holds 480 bytes, 120 more than"):
+        load(tmp_path / "y.nhdr")

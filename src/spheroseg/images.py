@@ -254,6 +254,9 @@ def _check_data_file(path: Path) -> None:
     silently, and a wrong ``DimSize`` or ``ElementType`` scrambles the
     image (a data file that is too short, ITK refuses itself).  Compressed,
     listed and embedded data are left to ITK."""
+    if image_format(path) == ".nhdr":
+        _check_nrrd_data_file(path)
+        return
     keys = _meta_keys(path)
     if keys is None:
         return
@@ -286,6 +289,44 @@ def _check_data_file(path: Path) -> None:
         raise ImageFileError(f"{path}: its data file {name} holds {size} bytes, {size - declared} more than the "
                              f"header declares (DimSize {' '.join(map(str, dims))}, {keys['ElementType']}): "
                              "a wrong size or type would scramble the image")
+
+
+#: bytes per value of NRRD types (their common spellings)
+_NRRD_BYTES = {**dict.fromkeys(("int8", "uint8", "char", "uchar", "signed char", "unsigned char", "int8_t",
+                                "uint8_t"), 1),
+               **dict.fromkeys(("int16", "uint16", "short", "ushort", "unsigned short", "int16_t", "uint16_t"), 2),
+               **dict.fromkeys(("int32", "uint32", "int", "uint", "unsigned int", "int32_t", "uint32_t", "float"), 4),
+               **dict.fromkeys(("int64", "uint64", "longlong", "ulonglong", "int64_t", "uint64_t", "double"), 8)}
+
+
+def _check_nrrd_data_file(path: Path) -> None:
+    """Refuse a detached NRRD header (``.nhdr``) of raw data whose data file
+    holds more bytes than its ``sizes`` declare (read silently by ITK, as a
+    MetaImage's: a scrambled image)."""
+    keys = {}
+    for line in path.read_text(errors="replace").splitlines()[1:]:
+        if not line.strip():
+            break
+        key, sep, value = line.partition(":")
+        if sep and not line.startswith("#"):
+            keys[key.strip().lower()] = value.lstrip("=").strip()
+    name, kind = keys.get("data file", keys.get("datafile", "")), keys.get("type", "").lower()
+    try:
+        sizes = [int(n) for n in keys.get("sizes", "").split()]
+        skip = int(keys.get("byte skip", "0"))
+    except ValueError:
+        return  # ITK says what is wrong with the header
+    if (keys.get("encoding", "raw").lower() != "raw" or kind not in _NRRD_BYTES or not sizes or not name
+            or name.upper().startswith("LIST") or "%" in name or skip < 0 or "line skip" in keys):
+        return
+    data = path.parent / name
+    if not data.is_file():
+        return
+    declared, size = skip + math.prod(sizes) * _NRRD_BYTES[kind], data.stat().st_size
+    if size > declared:
+        raise ImageFileError(f"{path}: its data file {name} holds {size} bytes, {size - declared} more than the "
+                             f"header declares (sizes {' '.join(map(str, sizes))}, {kind}): a wrong size or type "
+                             "would scramble the image")
 
 
 def _load_npy(path: Path) -> np.ndarray:

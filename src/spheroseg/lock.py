@@ -3,7 +3,8 @@ whole run, so that a second run on the same folder is refused, naming the
 run that holds it, instead of the two deleting each other's files.
 
 The lock is ``fcntl.flock`` on ``.<out>.lock`` in ``--out``'s parent (the
-nearest existing folder above a missing one): the system drops it when its
+nearest existing folder above a missing one; ``--out/.spheroseg.lock``
+when only ``--out`` is writable): the system drops it when its
 process ends, however it ends, so a lock left by a killed run is simply
 taken over.  The file names the holder (process id, host, command, start
 time) for the message.  Without ``fcntl`` (Windows) runs are not locked.
@@ -25,12 +26,19 @@ class OutputInUse(OSError):
     """Another running process holds the output folder."""
 
 
-def _lock_path(out: Path) -> Path:
+def _lock_path(out: Path) -> Path | None:
+    """Beside ``out`` (in the nearest existing folder above it); inside it
+    when only it is writable (a cohort folder in a read-only share); None
+    when neither is (the run fails on its own writes)."""
     out = Path(os.path.abspath(out))
     parent = out.parent
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
-    return parent / f".{out.name}.lock"
+    if os.access(parent, os.W_OK):
+        return parent / f".{out.name}.lock"
+    if out.is_dir() and os.access(out, os.W_OK):
+        return out / ".spheroseg.lock"
+    return None
 
 
 def _holder(path: Path) -> str:
@@ -52,6 +60,9 @@ def hold_output(out: str | os.PathLike, command: str):
         yield
         return
     path = _lock_path(Path(out))
+    if path is None:
+        yield
+        return
     while True:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
