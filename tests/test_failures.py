@@ -374,50 +374,26 @@ def test_a_scan_conversion_grid_over_the_budget_is_refused_before_it_is_made(tmp
     assert not (tmp_path / "o.mha").exists()
 
 
-def test_the_coarse_copy_of_locate_is_the_same_read_in_slabs(monkeypatch):
-    """The coarse copy locate searches, read slab by slab (its temporaries
-    of a slab, not of the image: round 4, an 800^3 image peaked at 7.6 GB
-    in locate), is the whole image's block means exactly."""
+def test_locate_reads_the_image_in_slabs_to_the_same_result(monkeypatch):
+    """locate's coarse copy is read slab by slab, its temporaries those of a
+    slab, not of the image (round 4: an 800^3 image peaked at 7.6 GB in
+    locate): one block row a slab finds what the whole image at once does."""
     import importlib
 
-    locate = importlib.import_module("spheroseg.locate")
-    from spheroseg.raster import block_means
-    from spheroseg.volume import Volume
+    from spheroseg.locate import locate
 
-    rng = np.random.default_rng(0)
-    array = rng.random((31, 20, 17)).astype(np.float32)
-    mask = rng.random(array.shape) < 0.2
-    volume = Volume(array, no_data_mask=mask)
-    whole = block_means(array, mask, (3, 2, 2))
-    monkeypatch.setattr(locate, "_SLAB_VOXELS", 3 * 20 * 17)  # one block row a slab
-    sliced = locate._block_mean(array, locate._missing(volume), np.array([3, 2, 2]))
-    np.testing.assert_array_equal(sliced, whole)
+    module = importlib.import_module("spheroseg.locate")
+    ph = make_phantom(seed=1, spacing=1.5)
+    monkeypatch.setattr(module, "_SLAB_VOXELS", 1 << 40)  # all at once
+    whole = locate(ph.volume)
+    monkeypatch.setattr(module, "_SLAB_VOXELS", 1)  # a row of blocks at a time
+    sliced = locate(ph.volume)
+    np.testing.assert_array_equal(sliced.apex, whole.apex)
+    np.testing.assert_array_equal(sliced.base, whole.base)
+    assert sliced.confidence == whole.confidence
 
 
 # 7. the hang of locate's waist ----------------------------------------------------------
-
-
-def test_waist_is_the_scan_of_every_section():
-    from spheroseg.locate import _waist
-
-    rng = np.random.default_rng(2)
-
-    def scan(area, first, last, allowed):  # the definition, section by section
-        waist, dip = last, 0.0
-        for k in range(first + 1, last):
-            if allowed[k]:
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    here = 1 - area[k] / min(area[first:k].max(), area[k:last + 1].max())
-                if here > dip:
-                    waist, dip = k, here
-        return waist, dip
-
-    for _ in range(200):
-        n = int(rng.integers(2, 40))
-        area = rng.random(n) * (rng.random(n) > 0.2)
-        first, last = sorted(rng.integers(0, n, 2))
-        allowed = rng.random(n) > 0.3
-        assert _waist(area, first, last, allowed) == pytest.approx(scan(area, first, last, allowed))
 
 
 def test_a_huge_spacing_is_no_ventricle_not_a_hang(tmp_path):
