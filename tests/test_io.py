@@ -371,18 +371,19 @@ def _huge_header(path, n=2000):
 
 def test_declared_size_over_the_budget_is_refused_before_reading(tmp_path, monkeypatch):
     monkeypatch.delenv("SPHEROSEG_MAX_IMAGE_GB", raising=False)
-    huge = _huge_header(tmp_path / "huge.mhd")  # 2000^3 floats: 32 GB declared, 64 bytes of data
+    huge = _huge_header(tmp_path / "huge.mhd")  # 2000^3 floats: 72 GB once loaded, 64 bytes of data
     for reader in (load, load_sequence):
-        with pytest.raises(ImageFileError, match=r"2000 x 2000 x 2000 voxels, 32 GB as float32, over the memory "
-                                                 r"budget of 4 GB \(set SPHEROSEG_MAX_IMAGE_GB"):
+        with pytest.raises(ImageFileError, match=r"2000 x 2000 x 2000 voxels, 72 GB once loaded \(9 bytes a voxel: "
+                                                 r"float32 voxels, their no-data mask, the copy sampling reads\), "
+                                                 r"over the memory budget of 4 GB \(set SPHEROSEG_MAX_IMAGE_GB"):
             reader(huge)
     # the budget is the user's: a small one refuses a small image, .npy included
     small = np.zeros((10, 20, 30), np.float32)
     np.save(tmp_path / "small.npy", small)
-    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", str(4 * small.size / 1e9 * 0.99))
+    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", str(9 * small.size / 1e9 * 0.99))
     with pytest.raises(ImageFileError, match="over the memory budget"):
         load(tmp_path / "small.npy", spacing=(1, 1, 1))
-    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", str(4 * small.size / 1e9 * 1.01))
+    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", str(9 * small.size / 1e9 * 1.01))
     assert load(tmp_path / "small.npy", spacing=(1, 1, 1), no_data_value=None).shape == small.shape
     monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", "lots")
     with pytest.raises(ValueError, match="SPHEROSEG_MAX_IMAGE_GB must be a positive number of GB, got 'lots'"):

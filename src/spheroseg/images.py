@@ -135,10 +135,16 @@ def _sitk():
     return sitk
 
 
+#: bytes a voxel of a loaded image holds at the peak: its float32 voxels,
+#: the mask of its voxels without data and the copy the sampling reads
+#: (NaN on those voxels)
+VOXEL_BYTES = 4 + 1 + 4
+
+
 def check_image_size(path, shape, components: int = 1) -> None:
-    """Refuse an image whose declared voxels, as the float32 working copy,
-    exceed the memory budget (``SPHEROSEG_MAX_IMAGE_GB``, default 4 GB),
-    before its pixels are read.
+    """Refuse an image whose declared voxels, as a loaded volume holds them
+    (:data:`VOXEL_BYTES` a voxel), exceed the memory budget
+    (``SPHEROSEG_MAX_IMAGE_GB``, default 4 GB), before its pixels are read.
 
     Parameters
     ----------
@@ -150,10 +156,11 @@ def check_image_size(path, shape, components: int = 1) -> None:
         Values per voxel (frames of a ``.seq.nrrd``).
     """
     voxels = math.prod(int(n) for n in shape) * int(components)
-    need, budget = 4.0 * voxels, _budget_bytes()
+    need, budget = float(VOXEL_BYTES) * voxels, _budget_bytes()
     if need > budget:
         size = " x ".join(str(int(n)) for n in shape) + (f" x {components} components" if components > 1 else "")
-        raise ImageFileError(f"{path}: declares {size} voxels, {need / 1e9:.3g} GB as float32, over the memory "
+        raise ImageFileError(f"{path}: declares {size} voxels, {need / 1e9:.3g} GB once loaded ({VOXEL_BYTES} bytes "
+                             "a voxel: float32 voxels, their no-data mask, the copy sampling reads), over the memory "
                              f"budget of {budget / 1e9:.3g} GB (set {BUDGET_VARIABLE} to raise it)")
 
 
