@@ -569,3 +569,12 @@ def test_a_detached_nrrd_header_smaller_than_its_data_is_refused(tmp_path):
     (tmp_path / "y.nhdr").write_text(text.replace("sizes: 6 5 4", "sizes: 6 5 3"))
     with pytest.raises(ImageFileError, match=r"y.nhdr: its data file x.raw holds 480 bytes, 120 more than"):
         load(tmp_path / "y.nhdr")
+
+
+def test_a_bad_nrrd_says_why(tmp_path):
+    """Round 4: NRRD errors ended with ITK's "Error reading ...:", no reason."""
+    from spheroseg.io import ImageFileError, load
+
+    (tmp_path / "bad.nrrd").write_bytes(b"NRRD0004\ntype: flot\ndimension: 3\nsizes: 6 5 4\nencoding: raw\n\n" + bytes(480))
+    with pytest.raises(ImageFileError, match=r"bad.nrrd: cannot read image \(.*: couldn't parse type \"flot\"\)"):
+        load(tmp_path / "bad.nrrd")

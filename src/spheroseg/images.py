@@ -222,7 +222,10 @@ def _read_image(path: Path):
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()
         detail = next((line for line in first if "ERROR" in line or "Unable" in line), first[-1] if first else "")
-        raise ImageFileError(f"{path}: cannot read image ({detail.strip()[:200]})") from None
+        teem = [line.split(":", 1)[-1].strip() for line in first if line.startswith("[nrrd]")]
+        if teem:  # NRRD's reader gives its reason last, below ITK's "Error reading ...:"
+            detail = f"{detail.strip().rstrip(':')}: {teem[-1]}"
+        raise ImageFileError(f"{path}: cannot read image ({detail.strip()[:300]})") from None
 
 
 #: bytes per value of MetaImage element types (MET_LONG's size is the
