@@ -578,3 +578,14 @@ def test_a_bad_nrrd_says_why(tmp_path):
     (tmp_path / "bad.nrrd").write_bytes(b"NRRD0004\ntype: flot\ndimension: 3\nsizes: 6 5 4\nencoding: raw\n\n" + bytes(480))
     with pytest.raises(ImageFileError, match=r"bad.nrrd: cannot read image \(.*: couldn't parse type \"flot\"\)"):
         load(tmp_path / "bad.nrrd")
+
+
+def test_track_reads_a_pattern_only_with_glob(capfd, phantom, tmp_path):
+    """Round 4: ``track 'cine[12].mha'`` tracked cine1 and cine2 (EF 1.4 %)
+    while results.json named cine[12].mha."""
+    image, points, _ = phantom
+    for t in (1, 2):
+        (tmp_path / f"cine{t}.mha").write_bytes(image.read_bytes())
+    proc = cli(capfd, "track", tmp_path / "cine[12].mha", *points, "--out", tmp_path / "o", *FAST)
+    assert proc.returncode == 2 and "cine[12].mha: no such file (a pattern? give --glob)" in one_error_line(proc.stderr)
+    assert not (tmp_path / "o").exists()
