@@ -61,7 +61,8 @@ def test_batch_never_replaces_an_input_with_a_study_folder(capfd, phantom, tmp_p
     (folder / "p2.mha").write_bytes(image.read_bytes())
     entry = {"apex": list(map(float, ph.apex)), "base": list(map(float, ph.base))}
     manifest = folder / "m.json"
-    manifest.write_text(json.dumps([{"id": ident, "image": "p1.mha", **entry}, {"id": "s2", "image": "p2.mha", **entry}]))
+    studies = [{"id": ident, "image": "p1.mha", **entry}, {"id": "s2", "image": "p2.mha", **entry}]
+    manifest.write_text(json.dumps(studies))
     before = {p.name: p.read_bytes() for p in folder.iterdir()}
     if ident == "P1.MHA" and (folder / "P1.MHA").exists():
         pytest.skip("a case-insensitive file system: the id is the input's name")
@@ -575,7 +576,8 @@ def test_a_bad_nrrd_says_why(tmp_path):
     """Round 4: NRRD errors ended with ITK's "Error reading ...:", no reason."""
     from spheroseg.io import ImageFileError, load
 
-    (tmp_path / "bad.nrrd").write_bytes(b"NRRD0004\ntype: flot\ndimension: 3\nsizes: 6 5 4\nencoding: raw\n\n" + bytes(480))
+    header = b"NRRD0004\ntype: flot\ndimension: 3\nsizes: 6 5 4\nencoding: raw\n\n"
+    (tmp_path / "bad.nrrd").write_bytes(header + bytes(480))
     with pytest.raises(ImageFileError, match=r"bad.nrrd: cannot read image \(.*: couldn't parse type \"flot\"\)"):
         load(tmp_path / "bad.nrrd")
 
