@@ -33,8 +33,8 @@ from .volume import ImageGrid, Volume
 
 __all__ = ["load", "load_sequence", "load_frames", "save_mask", "save_volume", "image_format", "image_files",
            "frame_order", "shown_path", "is_sequence_file", "check_image_size", "beam_header",
-           "beam_geometry_from_header", "ImageFileError", "IMAGE_SUFFIXES", "MASK_SUFFIXES", "BEAM_SUFFIXES", "BEAM_KEYS",
-           "BEAM_OPTIONAL_KEYS", "BUDGET_VARIABLE", "VOXEL_BYTES"]
+           "beam_geometry_from_header", "ImageFileError", "IMAGE_SUFFIXES", "MASK_SUFFIXES", "BEAM_SUFFIXES",
+           "BEAM_KEYS", "BEAM_OPTIONAL_KEYS", "BUDGET_VARIABLE", "VOXEL_BYTES"]
 
 IMAGE_SUFFIXES = (".mhd", ".mha", ".nii", ".nii.gz", ".nrrd", ".nhdr", ".npy")
 #: what a mask can be written as
