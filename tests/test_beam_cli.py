@@ -1,6 +1,6 @@
 """The command line on beam-space files: scan-convert, segment, track.  One
 scan-convert of each kind runs in a subprocess (the verb's whole run), the
-rest through :func:`spheroseg.cli.main` in this process (``conftest.cli``)."""
+rest through :func:`spheroseg.apps.cli.main` in this process (``conftest.cli``)."""
 
 import json
 import os
@@ -52,7 +52,7 @@ def test_scan_convert_verb(capfd, case, tmp_path):
     # never over an existing output without --force, never over the input
     assert_one_line_error(cli(capfd, "scan-convert", folder / "beam.mha", tmp_path / "cart.nii.gz"), "exists")
     assert_one_line_error(cli(capfd, "scan-convert", folder / "beam.mha", folder / "beam.mha", "--force"),
-                          "overwrite the input")
+                          "would overwrite an input")
     assert cli(capfd, "scan-convert", folder / "beam.mha", tmp_path / "cart.nii.gz", "--force", "--nearest",
                "--quiet").returncode == 0
 

@@ -7,7 +7,8 @@ import SimpleITK as sitk
 
 import spheroseg
 
-from spheroseg.io import (ImageFileError, image_format, load, load_sequence, read_markups, save_mask,
+from spheroseg.io import (ImageFileError, frame_order, image_files, image_format, load, load_frames, load_sequence,
+                         read_markups, save_mask,
                          write_folder_atomically, write_markups)
 from spheroseg.volumes.volume import Volume
 
@@ -64,10 +65,49 @@ def test_folder_and_glob_of_frames(tmp_path, rng):
     arrays = [rng.integers(0, 9, size=(4, 5, 6)).astype(np.int16) for _ in range(3)]
     for t, a in enumerate(arrays):
         write_3d(tmp_path / f"frame_{t:02d}.nii.gz", a)
-    for source in (tmp_path, str(tmp_path / "frame_*.nii.gz")):
-        seq = load_sequence(source)
+    for source, glob in ((tmp_path, False), (str(tmp_path / "frame_*.nii.gz"), True)):
+        seq = load_sequence(source, glob=glob)
         assert len(seq) == 3
         np.testing.assert_array_equal(seq[1].array, arrays[1])
+    # a pattern only when asked for: without glob=True it is a file name
+    with pytest.raises(FileNotFoundError, match=r"frame_\*.nii.gz: no such file \(a pattern\? give --glob\)"):
+        load_sequence(str(tmp_path / "frame_*.nii.gz"))
+
+
+def test_a_file_name_with_glob_characters_is_that_file(tmp_path, rng):
+    """``cine[12].mha`` is the sequence of that name, not cine1 and cine2
+    (round 4: tracked as the two frames the pattern matches)."""
+    arrays = [rng.integers(0, 9, size=(4, 5, 6)).astype(np.int16) for _ in range(4)]
+    image = sitk.JoinSeries([sitk.GetImageFromArray(a) for a in arrays])
+    sitk.WriteImage(image, str(tmp_path / "cine[12].mha"))
+    for k in (1, 2):
+        write_3d(tmp_path / f"cine{k}.mha", arrays[0] + 100)
+    for reader in (load_sequence, load_frames):
+        seq = reader(tmp_path / "cine[12].mha")
+        assert len(seq) == 4
+        np.testing.assert_array_equal(seq[3].array, arrays[3])
+    assert image_files(str(tmp_path / "cine[12].mha")) == [tmp_path / "cine[12].mha"]
+    assert len(load_sequence(str(tmp_path / "cine[12].mha"), glob=True)) == 2  # asked for: the pattern
+
+
+def test_frames_of_a_folder_in_the_order_of_their_numbers(tmp_path, rng):
+    """frame_2 before frame_10 (round 4: tracked 0, 1, 10, 2, ... silently);
+    a gap or a repeated number is an error naming the frames."""
+    arrays = [np.full((4, 5, 6), t, np.int16) for t in range(12)]
+    for t, a in enumerate(arrays):
+        write_3d(tmp_path / f"frame_{t}.mha", a)
+    seq = load_sequence(tmp_path)
+    assert [int(v.array[0, 0, 0]) for v in seq] == list(range(12))
+    assert [p.name for p in frame_order([tmp_path / "b_10.mha", tmp_path / "a_9.mha"])] == ["a_9.mha", "b_10.mha"]
+    write_3d(tmp_path / "frame_05.mha", arrays[5])
+    with pytest.raises(ValueError, match=r"frame_05.mha and frame_5.mha: two frames numbered 5"):
+        load_sequence(tmp_path)
+    (tmp_path / "frame_05.mha").unlink()
+    (tmp_path / "frame_7.mha").unlink()
+    with pytest.raises(ValueError, match=r"frame 7 missing between frame_6.mha and frame_8.mha"):
+        load_sequence(tmp_path)
+    with pytest.raises(ValueError, match=r"no frame number in the name"):
+        frame_order([tmp_path / "ed.mha", tmp_path / "es.mha"])
 
 
 def test_dicom_series(tmp_path, rng, request):
@@ -331,18 +371,19 @@ def _huge_header(path, n=2000):
 
 def test_declared_size_over_the_budget_is_refused_before_reading(tmp_path, monkeypatch):
     monkeypatch.delenv("SPHEROSEG_MAX_IMAGE_GB", raising=False)
-    huge = _huge_header(tmp_path / "huge.mhd")  # 2000^3 floats: 32 GB declared, 64 bytes of data
+    huge = _huge_header(tmp_path / "huge.mhd")  # 2000^3 floats: 72 GB once loaded, 64 bytes of data
     for reader in (load, load_sequence):
-        with pytest.raises(ImageFileError, match=r"2000 x 2000 x 2000 voxels, 32 GB as float32, over the memory "
-                                                 r"budget of 4 GB \(set SPHEROSEG_MAX_IMAGE_GB"):
+        with pytest.raises(ImageFileError, match=r"2000 x 2000 x 2000 voxels, 72 GB once loaded \(9 bytes a voxel: "
+                                                 r"float32 voxels, their no-data mask, the copy sampling reads\), "
+                                                 r"over the memory budget of 4 GB \(set SPHEROSEG_MAX_IMAGE_GB"):
             reader(huge)
     # the budget is the user's: a small one refuses a small image, .npy included
     small = np.zeros((10, 20, 30), np.float32)
     np.save(tmp_path / "small.npy", small)
-    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", str(4 * small.size / 1e9 * 0.99))
+    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", str(9 * small.size / 1e9 * 0.99))
     with pytest.raises(ImageFileError, match="over the memory budget"):
         load(tmp_path / "small.npy", spacing=(1, 1, 1))
-    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", str(4 * small.size / 1e9 * 1.01))
+    monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", str(9 * small.size / 1e9 * 1.01))
     assert load(tmp_path / "small.npy", spacing=(1, 1, 1), no_data_value=None).shape == small.shape
     monkeypatch.setenv("SPHEROSEG_MAX_IMAGE_GB", "lots")
     with pytest.raises(ValueError, match="SPHEROSEG_MAX_IMAGE_GB must be a positive number of GB, got 'lots'"):

@@ -23,7 +23,7 @@ def test_defaults_round_trip_through_json():
     (dict(coarse_tol=0.0), "coarse_tol must be a positive number"),
     (dict(smoothness_reference="initial"), "smoothness_reference must be one of .*'start', 'fitted'.*, got 'initial'"),
     (dict(max_iterations=True), "max_iterations must be an integer"),
-    (dict(order=0), "order must be from 1 to 16"),
+    (dict(order=0), "order must be from 3 to 16"),
     (dict(patches=(200, 200)), "patches must be at most 32 in each direction"),
     (dict(patches=(32, 32), order=16), "at most 65536"),
     (dict(step=1e9), "step must be at most 10 mm, got 1e[+]09"),
@@ -70,3 +70,17 @@ def test_parameters_are_the_dataclass_fields():
     first = opts.as_parameters()
     first["patches"].append(3)
     assert opts.as_parameters()["patches"] == [6, 4]
+
+
+@pytest.mark.parametrize("step", [1e-9, 0.001, 0.05, 0.1])
+def test_a_step_the_tolerance_cannot_see_is_refused(step):
+    """A level stops when an iteration's RMS motion is below its tolerance
+    (tol, the coarse levels twice it) and no iteration moves the wall more
+    than the step: at or below it every level stopped at once and returned
+    the start as converged (round 4: --step 0.001 gave the initial shape)."""
+    with pytest.raises(ValueError, match=r"step must be more than .*0\.1 mm, got"):
+        SegmentOptions(step=step)
+    SegmentOptions(step=step, tol=step / 4, coarse_tol=step / 2)  # a smaller tol sees it
+    SegmentOptions(step=0.11)
+    with pytest.raises(ValueError, match=r"step must be more than tol, 0\.05 mm"):
+        SegmentOptions(step=0.05, coarse_to_fine=False)

@@ -8,8 +8,8 @@ import pytest
 from spheroseg import segment
 from spheroseg.surfaces.metrics import dice
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom
-from spheroseg.descent.quality import FrameQuality, landmark_residuals, quality_report
-from spheroseg.surfaces.surface import Surface
+from spheroseg.descent.quality import FrameQuality, axis_distances, landmark_residuals, quality_report
+from spheroseg.surfaces.surface import DEFAULT_RADIUS_RATIO, Surface
 
 
 @cache
@@ -226,15 +226,38 @@ def test_frame_quality_reports_what_the_interface_took_off():
     """What the intensity interface took off the myocardium's level, and
     the fraction of its outer band's rise that is, are reported as they
     are: no warning of their own (a dark wall's is
-    :func:`spheroseg.epicardium.check_wall_polarity`'s)."""
+    :func:`spheroseg.tracking.epicardium.check_wall_polarity`'s)."""
     apex, base = np.array([0.0, 10.0, 90.0]), np.array([0.0, 0.0, 10.0])
     initial = Surface.from_apex_base(apex, base)
 
     class Force:
         c_in, c_out = np.array([10.0, 10.0]), np.array([50.0, 50.0])
 
-    report = FrameQuality(initial, apex).report(initial, observed=(np.array([30.0, 30.0]), Force, 20.0),
+    wider = Surface.from_apex_base(apex, base, radius_ratio=1.1 * DEFAULT_RADIUS_RATIO)  # a wall that moved
+    report = FrameQuality(initial, apex).report(wider, observed=(np.array([30.0, 30.0]), Force, 20.0),
                                                 converged=True, landmarks=np.empty((0, 3)), no_speckle=False,
                                                 beyond_wall=(1.5, 0.5))
     assert (report["beyond_wall"], report["beyond_wall_fraction"]) == (1.5, 0.5)
     assert not report["poor"] and report["warnings"] == []
+
+
+def test_a_result_still_at_its_start_is_poor():
+    """The wall's mean distance from its start, along the initial axis's
+    normals (what :func:`axis_distances` measures); a result that is its
+    start (round 4: a tiny step returned it as converged) is flagged."""
+    apex, base = np.array([0.0, 10.0, 90.0]), np.array([0.0, 0.0, 10.0])
+    initial = Surface.from_apex_base(apex, base)
+    wider = Surface.from_apex_base(apex, base, radius_ratio=1.1 * DEFAULT_RADIUS_RATIO)
+
+    class Force:
+        c_in, c_out = np.array([10.0, 10.0]), np.array([50.0, 50.0])
+
+    frames = FrameQuality(initial, apex)
+    observed = (np.array([30.0, 30.0]), Force, 20.0)
+    moved = frames.report(wider, observed=observed, converged=True, landmarks=np.empty((0, 3)), no_speckle=False)
+    change = axis_distances(wider, initial) - axis_distances(initial, initial)
+    assert np.all(change > 0) and moved["moved_mm"] == pytest.approx(change.mean(), rel=1e-12)
+    assert moved["moved_mm"] > 1.0 and not moved["poor"]
+    still = frames.report(initial, observed=observed, converged=True, landmarks=np.empty((0, 3)), no_speckle=False)
+    assert still["moved_mm"] == pytest.approx(0.0, abs=1e-9) and still["poor"]
+    assert still["warnings"] == [still["warnings"][0]] and "did not move from its start" in still["warnings"][0]

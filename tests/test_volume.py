@@ -90,3 +90,27 @@ def test_integer_volumes_are_their_values_in_float32():
     a = np.array([0, 255, 2**31 - 1, -(2**31)], np.int64).repeat(16).reshape(4, 4, 4)
     v = Volume(a)
     assert v.array.dtype == np.float32 and np.array_equal(v.array, a.astype(np.float32))
+
+
+@pytest.mark.parametrize("direction", [2 * np.eye(3), [[1, 0.3, 0], [0, 1, 0], [0, 0, 1]], np.diag([1, 1, np.nan])])
+def test_a_direction_that_is_not_orthonormal_is_refused_with_the_matrix(direction):
+    """A scaled direction (round 4: TransformMatrix = 2 0 0 0 2 0 0 0 2 gave
+    1331 mL, 8 times the volume) or a sheared one scales the volumes
+    silently; a reflection is a direction."""
+    with pytest.raises(ValueError, match=r"direction matrix \[.*\] is not orthonormal"):
+        Volume(np.zeros((4, 4, 4)), direction=direction)
+    Volume(np.zeros((4, 4, 4)), direction=np.diag([1.0, -1.0, 1.0]))
+    with pytest.raises(ValueError, match=r"origin must be 3 finite numbers within"):
+        Volume(np.zeros((4, 4, 4)), origin=(0.0, np.nan, 0.0))
+
+
+def test_a_scaled_direction_in_a_file_is_refused(tmp_path):
+    import SimpleITK as sitk
+
+    from spheroseg.io import load
+
+    image = sitk.GetImageFromArray(np.zeros((4, 5, 6), np.float32))
+    image.SetDirection((2.0, 0, 0, 0, 2.0, 0, 0, 0, 2.0))
+    sitk.WriteImage(image, str(tmp_path / "scaled.mha"))
+    with pytest.raises(ValueError, match=r"\[2 0 0; 0 2 0; 0 0 2\] is not orthonormal"):
+        load(tmp_path / "scaled.mha", no_data_value=None)

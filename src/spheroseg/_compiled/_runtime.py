@@ -15,7 +15,7 @@ from typing import Iterator
 
 import numpy as np
 
-__all__ = ["PARALLEL_LOCK", "compiled_available", "compilations", "usable_cores", "idle_cores",
+__all__ = ["die_with_parent", "PARALLEL_LOCK", "compiled_available", "compilations", "usable_cores", "idle_cores",
            "kernel_thread_count", "kernel_threads", "LOAD_MAX_AGE"]
 
 #: held by a caller of a parallel kernel (the iteration's and the
@@ -150,3 +150,40 @@ def kernel_threads(threads: int | None) -> Iterator[None]:
         yield
     finally:
         numba.set_num_threads(previous)
+
+
+#: Linux's prctl option that sends the calling process a signal when its
+#: parent ends
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """End this process (SIGKILL) when its parent ends, however it ends
+    (``kill -9`` included): for the command's helper processes (batch
+    workers, the report worker), which otherwise run on under PID 1.
+
+    On Linux the kernel does it (``prctl(PR_SET_PDEATHSIG)``); if the parent
+    is already gone when this runs, the process exits now.  Elsewhere a
+    daemon thread polls the parent's id.
+    """
+    import signal
+    import sys
+
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            if libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0:
+                if os.getppid() != parent_pid:  # it ended before the call
+                    os._exit(1)
+                return
+        except (OSError, AttributeError):
+            pass
+
+    def watch():
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="spheroseg-parent-watch").start()

@@ -25,9 +25,11 @@ from __future__ import annotations
 
 import ctypes
 import json
+import math
 import os
 import re
 import shutil
+import sys
 import threading
 import time
 import uuid
@@ -50,6 +52,8 @@ __all__ = ["Study", "StudyOutcome", "StudyTimeout", "ManifestError", "read_manif
 RUN_OPTIONS = ("iterations_per_frame", "no_data_value", "mask_suffix", "stl", "report")
 #: a worker stuck past its timeout exits after this many more seconds (or half the timeout, if longer)
 HARD_TIMEOUT_GRACE = 10.0
+#: the longest finite timeout, s (a year; the system's timers take no more than ~292 years)
+MAX_TIMEOUT = 365 * 86400.0
 
 
 class StudyTimeout(Exception):
@@ -90,42 +94,72 @@ def _die() -> None:
     os.kill(os.getpid(), signal.SIGKILL)
 
 
+def _importing(frame) -> bool:
+    """Whether a thread whose innermost frame is ``frame`` is importing a module."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
 class _Deadline:
     """Raise :class:`StudyTimeout` in this thread after ``seconds``; if the
     thread is still busy ``grace`` seconds later (stuck in compiled code),
-    end the process so that the pool or the cluster replaces the worker."""
+    end the process so that the pool or the cluster replaces the worker.
+
+    Use ``start()`` inside a ``try`` whose ``finally`` calls ``stop()``:
+    the exception may arrive at any line, even within ``start`` (a timeout
+    of a millisecond), and ``stop`` always ends the watch.  It is held back
+    while the thread imports a module: raised there, it would leave a
+    half-imported module (``matplotlib`` without its attributes) that fails
+    every later study of the worker.
+    """
 
     def __init__(self, seconds: float | None):
         self.seconds = seconds
         self.thread_id = threading.get_ident()
         self.done = threading.Event()
-        self.timers: list[threading.Timer] = []
+        self.lock = threading.Lock()
+        self.watcher: threading.Thread | None = None
 
-    def _raise(self):
-        if not self.done.is_set():
+    def _watch(self):
+        if self.done.wait(self.seconds):
+            return
+        while not self.done.is_set() and _importing(sys._current_frames().get(self.thread_id)):
+            self.done.wait(0.01)
+        with self.lock:
+            if self.done.is_set():
+                return
             ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(self.thread_id), ctypes.py_object(StudyTimeout))
-
-    def _exit(self):
-        if not self.done.is_set():
+        if not self.done.wait(max(HARD_TIMEOUT_GRACE, 0.5 * self.seconds)):
             _die()
 
-    def __enter__(self):
+    def start(self) -> None:
         if self.seconds is not None:
-            grace = max(HARD_TIMEOUT_GRACE, 0.5 * self.seconds)
-            self.timers = [threading.Timer(self.seconds, self._raise), threading.Timer(self.seconds + grace, self._exit)]
-            for timer in self.timers:
-                timer.daemon = True
-                timer.start()
-        return self
+            self.watcher = threading.Thread(target=self._watch, daemon=True, name="spheroseg-deadline")
+            self.watcher.start()
 
-    def __exit__(self, *exc):
-        self.done.set()
-        for timer in self.timers:
-            timer.cancel()
-            timer.join()
-        if self.timers:  # a StudyTimeout sent just as the study ended must not land after it
-            ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(self.thread_id), None)
-        return False
+    def stop(self) -> None:
+        """End the watch; no StudyTimeout arrives after this returns (one
+        that arrives while it runs is raised once it is done)."""
+        late = False
+        while True:
+            try:
+                with self.lock:
+                    self.done.set()
+                break
+            except StudyTimeout:
+                late = True
+        if self.watcher is not None:
+            try:
+                ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(self.thread_id), None)
+                self.watcher.join()
+            except StudyTimeout:  # sent just before the lock was taken
+                late = True
+                self.watcher.join()
+        if late:
+            raise StudyTimeout
 
 
 def _one_line(exc: BaseException) -> str:
@@ -134,57 +168,41 @@ def _one_line(exc: BaseException) -> str:
     return text if text and expected else f"{type(exc).__name__}: {text}".rstrip(": ")
 
 
-def _is_sequence(image: str) -> bool:
-    """Whether an input is 3D+t (folder of frames, glob, 4D or multi-component image, 4D .npy)."""
-    from ..io import IMAGE_SUFFIXES, image_format
+def _is_sequence(study: Study) -> bool:
+    """Whether a study's input is 3D+t (a pattern, a folder of frames, a 4D
+    or multi-component image, a 4D .npy)."""
+    from ..io import IMAGE_SUFFIXES, image_format, is_sequence_file
 
-    path = Path(image)
-    if any(ch in image for ch in "*?["):
+    path = Path(study.image)
+    if study.glob:
         return True
     if path.is_dir():
         return any(image_format(p) in IMAGE_SUFFIXES for p in path.iterdir())
-    try:
-        if image_format(path) == ".npy":
-            return np.load(path, mmap_mode="r", allow_pickle=False).ndim == 4
-        import SimpleITK as sitk
-
-        reader = sitk.ImageFileReader()
-        reader.SetFileName(str(path))
-        reader.ReadImageInformation()
-        return reader.GetDimension() == 4 or reader.GetNumberOfComponents() > 1
-    except (OSError, ValueError, RuntimeError):
-        return False  # the loader reports why
+    return is_sequence_file(path)
 
 
 def _points(study: Study):
     """apex, base (or None), landmarks (or None), annulus (or None), as the CLI reads them."""
-    apex, base, landmarks, annulus = study.apex, study.base, list(study.landmarks), list(study.annulus)
-    if study.points:
-        from ..io import read_markups
+    from ..io.markups import points_with_markups
 
-        marks = read_markups(study.points)
-        apex = marks["apex"] if apex is None else apex
-        base = marks["base"] if base is None else base
-        landmarks += [tuple(p) for p in marks["landmarks"]]
-        annulus = annulus or [tuple(p) for p in marks.get("annulus", [])]
-    as_array = lambda points: np.array(points, dtype=float) if points else None  # noqa: E731
-    if apex is None and base is None and not annulus and not study.points:
+    apex, base, landmarks, annulus = points_with_markups(
+        study.points, apex=study.apex, base=study.base, landmarks=[np.asarray(p, float) for p in study.landmarks],
+        annulus=[np.asarray(p, float) for p in study.annulus])
+    as_array = lambda points: np.array(points, dtype=float) if len(points) else None  # noqa: E731
+    if apex is None and base is None and not annulus:
         return None, None, as_array(landmarks), None  # the ventricle is located
     if apex is None or (base is None and not annulus):
-        raise ValueError(f"{study.points}: no points labelled apex and base (or annulus)")
+        raise ValueError("give the apex and the base (or the annulus)")
     return (np.asarray(apex, float), None if base is None else np.asarray(base, float), as_array(landmarks),
             as_array(annulus))
 
 
 def _install(tmp: Path, final: Path) -> None:
-    """Rename the complete folder ``tmp`` to ``final`` (replacing an older one)."""
-    old = None
-    if final.exists():
-        old = final.parent / f".{final.name}.old-{uuid.uuid4().hex[:8]}"
-        os.replace(final, old)
-    os.replace(tmp, final)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+    """Rename the complete folder ``tmp`` to ``final`` (replacing an older
+    one all or nothing: :func:`spheroseg.atomic.replace_folder`)."""
+    from ..io.atomic import replace_folder
+
+    replace_folder(tmp, final)
 
 
 def _failed_row(study_id: str, error: str, seconds: float | None = None) -> dict:
@@ -228,26 +246,36 @@ def run_study(study: Study, out: str | os.PathLike, *, options: dict | None = No
     out = Path(out)
     started = time.perf_counter()
     tmp = out / f".{study.id}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    deadline = _Deadline(timeout)
     try:
-        with _Deadline(timeout):
+        try:
+            deadline.start()
             apex, base, landmarks, annulus = _points(study)
-            sequence = _is_sequence(study.image) if study.track is None else study.track
+            sequence = _is_sequence(study) if study.track is None else study.track
             common = dict(source=study.image, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
                           mask_suffix=suffix, extra={"id": study.id, "checksum": checksum, "study": study.as_entry(),
                                  "options": {**options, "iterations_per_frame": per_frame, "no_data_value": no_data,
                                              "mask_suffix": suffix, **writer}}, **writer)
             t0 = time.perf_counter()
             if sequence:
-                volumes = load_sequence(study.image, spacing=study.spacing, no_data_value=no_data)
+                volumes = load_sequence(study.image, spacing=study.spacing, no_data_value=no_data, glob=study.glob)
                 t_load = time.perf_counter() - t0
                 result = track(volumes, apex, base, annulus=annulus, landmarks=landmarks,
                                iterations_per_frame=per_frame, **options)
                 written = write_tracking_outputs(tmp, volumes, result, seconds={"load": t_load}, **common)
             else:
-                volume = load(study.image, spacing=study.spacing, no_data_value=no_data)
+                try:
+                    volume = load(study.image, spacing=study.spacing, no_data_value=no_data)
+                except ValueError as exc:
+                    if study.track is False and "3D+t" in str(exc):  # not the CLI's advice: the manifest's key
+                        raise ValueError(f"{study.image}: a 3D+t image, and the manifest says track: false; set "
+                                         "track to true (or leave it out)") from None
+                    raise
                 t_load = time.perf_counter() - t0
                 result = segment(volume, apex, base, annulus=annulus, landmarks=landmarks, **options)
                 written = write_segmentation_outputs(tmp, volume, result, seconds={"load": t_load}, **common)
+        finally:
+            deadline.stop()
         _install(tmp, out / study.id)
         return summary_row(written)
     except StudyTimeout:
@@ -287,9 +315,13 @@ def _complete(out: Path, study: Study, checksum: str) -> dict | None:
     return results if isinstance(results, dict) and results.get("checksum") == checksum else None
 
 
-def _pool_worker_init(threads: int | None) -> None:
+def _pool_worker_init(threads: int | None, parent: int | None = None) -> None:
     import signal
 
+    from .._compiled._runtime import die_with_parent
+
+    if parent is not None:  # a worker dies with the command (kill -9 of it included), not under PID 1
+        die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: running studies finish, then it stops
     if threads is not None:
         try:
@@ -307,7 +339,7 @@ def _local_pool(workers: int) -> ProcessPoolExecutor:
     # spawn: the parent holds threads (progress bar, timers), which fork must not copy;
     # several workers share the cores: one kernel thread each, or they only contend
     return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_pool_worker_init, initargs=(1 if workers > 1 else None,))
+                               initializer=_pool_worker_init, initargs=(1 if workers > 1 else None, os.getpid()))
 
 
 def _crash_message(exc: BaseException) -> str:
@@ -384,7 +416,7 @@ def _run_executor(jobs: list, executor: Executor, call: Callable) -> Iterator[tu
 
 def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executor | None = None,
                  workers: int | None = None, timeout: float | None = None,
-                 options: dict | None = None) -> Iterator[StudyOutcome]:
+                 options: dict | None = None, protect=()) -> Iterator[StudyOutcome]:
     """Segment or track many studies; yield each one's outcome as it finishes.
 
     Parameters
@@ -412,6 +444,9 @@ def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executo
         Seconds a study may take; over it the study fails.
     options : dict, optional
         As :func:`run_study`.
+    protect : paths, optional
+        Files besides the studies' inputs that no study folder may replace
+        (``spheroseg batch`` gives its manifest).
 
     Returns
     -------
@@ -433,6 +468,10 @@ def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executo
         raise ValueError("study ids must be unique")
     if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0):
         raise ValueError(f"timeout must be positive seconds, got {timeout!r}")
+    if timeout is not None and math.isinf(timeout):
+        timeout = None  # no limit
+    if timeout is not None and timeout > MAX_TIMEOUT:
+        raise ValueError(f"timeout must be at most {MAX_TIMEOUT:g} s (or inf: no limit), got {timeout:g}")
     if workers is not None and not (isinstance(workers, int) and workers >= 1):
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
     options = dict(options or {})
@@ -440,7 +479,26 @@ def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executo
     if unknown:
         raise ValueError(f"unknown option(s) {', '.join(unknown)}")
     SegmentOptions(**{k: v for k, v in options.items() if k not in RUN_OPTIONS})  # raises on a bad value
+    check_study_folders(studies, Path(out), protect)
     return _outcomes(studies, Path(out), executor, workers, timeout, options)
+
+
+def check_study_folders(studies, out: Path, protect=()) -> None:
+    """Refuse a cohort where a study's folder ``out/<id>`` (replaced whole
+    when it runs) is or holds an input of any study, or one of ``protect``
+    (an id ``p1.mha`` with ``--out`` the images' folder)."""
+    from ..io.atomic import refuse_overwriting_inputs
+    from ..io import image_files
+
+    inputs = [Path(p) for p in protect]
+    for study in studies:
+        inputs += [Path(study.image), *image_files(study.image, glob=study.glob)]
+        inputs += [Path(study.points)] if study.points else []
+    for study in studies:
+        try:
+            refuse_overwriting_inputs([out / study.id], inputs, hint="choose another id or --out")
+        except ValueError as exc:
+            raise ValueError(f"study {study.id}: {exc}") from None
 
 
 def _outcomes(studies, out: Path, executor, workers, timeout, options) -> Iterator[StudyOutcome]:

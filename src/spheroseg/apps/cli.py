@@ -12,6 +12,7 @@ import contextlib
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -51,10 +52,20 @@ def _no_data(text: str):
         raise argparse.ArgumentTypeError(f"expected auto, none or a number, got {text!r}") from None
 
 
+class _Once(argparse.Action):
+    """An option given at most once (a second ``--apex`` would silently win)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if getattr(namespace, self.dest, None) is not None:
+            parser.error(f"{option_string} given twice; give it once")
+        setattr(namespace, self.dest, values)
+
+
 def _add_common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--apex", nargs=3, type=float, metavar=("X", "Y", "Z"),
+    p.add_argument("--apex", nargs=3, type=float, action=_Once, metavar=("X", "Y", "Z"),
                    help="apex point, world mm (LPS); with no points the ventricle is located")
-    p.add_argument("--base", nargs=3, type=float, metavar=("X", "Y", "Z"), help="centre of the mitral plane, world mm")
+    p.add_argument("--base", nargs=3, type=float, action=_Once, metavar=("X", "Y", "Z"),
+                   help="centre of the mitral plane, world mm")
     p.add_argument("--annulus", nargs=3, type=float, action="append", default=[], metavar=("X", "Y", "Z"),
                    help="a point of the mitral annulus, world mm (repeatable, 3 or more): the cavity is closed at "
                         "their plane, whose normal is the long axis; --base may then be omitted")
@@ -132,7 +143,7 @@ def _positive(kind):
 
 def _add_myocardium(parser, outputs: str) -> None:
     parser.add_argument("--myocardium", action="store_true", help=f"also segment the epicardium: {outputs}")
-    parser.add_argument("--rv-insertion", nargs=3, type=float, metavar=("X", "Y", "Z"),
+    parser.add_argument("--rv-insertion", nargs=3, type=float, action=_Once, metavar=("X", "Y", "Z"),
                         help="with --myocardium: the anterior insertion of the right ventricle, world mm, where "
                              "segment 1 starts (default: the model frame's first axis; docs/segments.png)")
 
@@ -151,7 +162,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "epicardial mesh and the heart as CMISS volume elements")
     tr = sub.add_parser("track", help="segment every frame of a 3D+t sequence; EDV, ESV, EF",
                         description="Segment every frame of a 3D+t sequence; EDV, ESV, EF. " + _EXIT_HELP)
-    tr.add_argument("sequence", help="4D image, .seq.nrrd, folder or glob of 3D frames, DICOM folder")
+    tr.add_argument("sequence", help="4D image, .seq.nrrd, folder of 3D frames (ordered by the numbers in their "
+                                     "names), DICOM folder, or with --glob a pattern")
+    tr.add_argument("--glob", action="store_true",
+                    help="SEQUENCE is a pattern ('frame_*.mha', quoted) whose matches are the frames; without it a "
+                         "name is a name, *?[ included")
     _add_common(tr)
     tr.add_argument("--iterations-per-frame", type=int, default=20)
     tr.add_argument("--start-frame", type=int, default=0, metavar="K",
@@ -231,10 +246,21 @@ def _output_set() -> list[str]:
             + ["mask" + s for s in MASK_SUFFIXES] + ["myocardium" + s for s in MASK_SUFFIXES])
 
 
+def _inputs(args) -> list[Path]:
+    """Every path a command reads: the image (a folder, a pattern's matches,
+    a header's data file) and the points file."""
+    from ..io import image_files
+
+    image = getattr(args, "image", None) or args.sequence
+    glob = getattr(args, "glob", False)
+    paths = ([] if glob else [Path(image)]) + image_files(image, glob=glob)
+    return paths + ([Path(args.points)] if getattr(args, "points", None) else [])
+
+
 def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -> None:
     """Refuse an output folder the outputs ``names`` cannot go to (before any
     input is read); nothing is created."""
-    from ..io import image_files
+    from ..io.atomic import refuse_overwriting_inputs
 
     out = Path(os.path.abspath(out))
     if out.exists() and not out.is_dir():
@@ -247,11 +273,9 @@ def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -
                        f"cannot create output folder {out}: {anchor} is not a writable folder")
     if anchor == out and not os.access(out.parent, os.W_OK):
         raise CliError(f"cannot write beside output folder {out}: {out.parent} is not writable")
-    resolved_inputs = {f.resolve() for p in inputs for f in image_files(str(p)) if f.exists()}
+    refuse_overwriting_inputs([out / name for name in names], inputs)
     for name in names:
         target = (out / name).resolve()
-        if any(f == target or target in f.parents for f in resolved_inputs):
-            raise CliError(f"output {target} would overwrite an input; choose another --out")
         if target.exists() and not force:
             raise CliError(f"{target} exists; use --force to overwrite")
 
@@ -259,16 +283,11 @@ def _prepare_out(out: Path, names: list[str], force: bool, inputs: list[Path]) -
 def _points(args):
     apex = None if args.apex is None else _point(args.apex)
     base = None if args.base is None else _point(args.base)
-    landmarks = [_point(p) for p in args.landmark]
-    annulus = [_point(p) for p in args.annulus]
-    if args.points:
-        from ..io import read_markups
+    from ..io.markups import points_with_markups
 
-        marks = read_markups(args.points)
-        apex = marks["apex"] if apex is None else apex
-        base = marks["base"] if base is None else base
-        landmarks += list(marks["landmarks"])
-        annulus = annulus or list(marks["annulus"])
+    apex, base, landmarks, annulus = points_with_markups(
+        args.points, apex=apex, base=base, landmarks=[_point(p) for p in args.landmark],
+        annulus=[_point(p) for p in args.annulus])
     if apex is None and base is None and not annulus:
         apex = base = annulus = None  # none: the ventricle is located
     elif apex is None or (base is None and not annulus):
@@ -282,6 +301,8 @@ def _check_options(args) -> None:
     """Bad options: one line naming the command-line option, before any input is read."""
     from ..descent.options import LIMITS
 
+    if getattr(args, "rv_insertion", None) is not None and not args.myocardium:
+        raise CliError("--rv-insertion numbers the myocardium's segments: give --myocardium too")
     per_frame = getattr(args, "iterations_per_frame", 1)
     if not 1 <= per_frame <= LIMITS["max_iterations"]:
         raise CliError(f"--iterations-per-frame must be from 1 to {LIMITS['max_iterations']}, got {per_frame}")
@@ -401,7 +422,7 @@ def cmd_segment(args) -> int:
     suffix = _mask_suffix(args, source)
     apex, base, landmarks, annulus = _points(args)
     out = Path(args.out)
-    _prepare_out(out, _output_set(), args.force, [source])
+    _prepare_out(out, _output_set(), args.force, _inputs(args))
     with _report_worker(args) as worker:
         volume = _load_timed(source, args, seconds)
         t0 = time.perf_counter()
@@ -460,10 +481,10 @@ def cmd_track(args) -> int:
     suffix = _mask_suffix(args, source)
     apex, base, landmarks, annulus = _points(args)
     out = Path(args.out)
-    _prepare_out(out, _output_set(), args.force, [source])
+    _prepare_out(out, _output_set(), args.force, _inputs(args))
     with _report_worker(args) as worker:
         t0 = time.perf_counter()
-        volumes = load_sequence(args.sequence, spacing=args.spacing, no_data_value=args.no_data)
+        volumes = load_sequence(args.sequence, spacing=args.spacing, no_data_value=args.no_data, glob=args.glob)
         t_load = time.perf_counter() - t0
         timings = {"load": t_load}
         _kernels_loaded(timings)
@@ -496,14 +517,17 @@ def cmd_track(args) -> int:
 
 
 def cmd_scan_convert(args) -> int:
-    from ..volumes.beamspace import BeamVolume, scan_convert
+    from ..volumes.beamspace import BeamVolume, check_scan_conversion, scan_convert
     from ..io import MASK_SUFFIXES, image_format, load, load_sequence, save_volume
 
     source, target = Path(args.image), Path(args.output)
     if image_format(target) not in MASK_SUFFIXES or image_format(target) == ".npy":
         raise CliError(f"output {target} must be one of {', '.join(s for s in MASK_SUFFIXES if s != '.npy')}")
-    if source.exists() and target.exists() and source.resolve() == target.resolve():
-        raise CliError(f"output {target} would overwrite the input")
+    from ..io.atomic import refuse_overwriting_inputs
+    from ..io import image_files
+
+    refuse_overwriting_inputs([target] + ([target.with_suffix(".raw")] if image_format(target) == ".mhd" else []),
+                              [source] + image_files(source), hint="choose another output")
     if target.exists() and not args.force:
         raise CliError(f"{target} exists; use --force to overwrite")
     if not target.parent.is_dir():
@@ -521,6 +545,7 @@ def cmd_scan_convert(args) -> int:
         raise CliError(f"{source} is not a beam-space file (no AzimuthAngularSeparation, ElevationAngularSeparation, "
                        "RadiusSampleSize, FirstSampleDistance keys)")
     grid = volumes[0].geometry.cartesian_grid(args.voxel_size)
+    check_scan_conversion(grid, len(volumes))
     converted = [scan_convert(v, grid, order=0 if args.nearest else 1) for v in volumes]
     save_volume(target, converted if len(converted) > 1 else converted[0])
     nz, ny, nx = grid.shape
@@ -540,6 +565,14 @@ def cmd_batch(args) -> int:
                "no_data_value": args.no_data, "mask_suffix": _mask_suffix(args, Path("")) if args.mask_format else None,
                "stl": args.stl, "report": not args.no_report}
     out = Path(args.out)
+    name = "summary" if args.shard is None else "summary-{}-of-{}".format(*args.shard)
+    from ..io.atomic import refuse_overwriting_inputs
+    from .batch import check_study_folders
+
+    check_study_folders(studies, out, [args.manifest])
+    refuse_overwriting_inputs([out / f"{name}.json", out / f"{name}.csv"],
+                              [Path(args.manifest)] + [Path(s.image) for s in studies]
+                              + [Path(s.points) for s in studies if s.points], hint="choose another --out")
     _make_folder(out)
     for variable in BLAS_THREADS:  # one worker per core: single-threaded BLAS in each (as Dask's workers)
         os.environ.setdefault(variable, "1")
@@ -558,7 +591,7 @@ def cmd_batch(args) -> int:
     rows = {}
     bar = tqdm(total=len(studies), unit="study", desc="batch", file=sys.stderr, disable=args.quiet)
     outcomes = segment_many(studies, out=out, executor=executor, workers=args.workers, timeout=args.timeout,
-                            options=options)
+                            options=options, protect=[args.manifest])
     try:
         for outcome in outcomes:
             rows[outcome.id] = outcome.row
@@ -574,7 +607,6 @@ def cmd_batch(args) -> int:
         bar.close()
         if client is not None:
             client.close()
-    name = "summary" if args.shard is None else "summary-{}-of-{}".format(*args.shard)
     write_summary(out, [rows[s.id] for s in studies], name=name)
     failed = sum(row["status"] != "ok" for row in rows.values())
     poor = sum(bool(row.get("poor")) for row in rows.values())
@@ -682,14 +714,36 @@ def main(argv: list[str] | None = None) -> int:
     handlers = {"segment": cmd_segment, "track": cmd_track, "batch": cmd_batch, "scan-convert": cmd_scan_convert,
                 "demo": cmd_demo, "view": cmd_view}
     try:
-        return handlers[args.command](args)
+        # numpy's warnings on extreme input (an overflow of 1e300) would be
+        # lines before the error: the checks say what is wrong, in one
+        with _owning(args), np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return handlers[args.command](args)
     except KeyboardInterrupt:
         print("spheroseg: interrupted", file=sys.stderr)
         return 130
     except (CliError, ValueError, TypeError, OSError, RuntimeError, MemoryError) as exc:
-        message = " ".join(str(exc).split()) or type(exc).__name__
-        print(f"spheroseg: error: {message}", file=sys.stderr)
+        print(f"spheroseg: error: {error_line(exc)}", file=sys.stderr)
         return EXIT_ERROR
+
+
+def error_line(exc: BaseException) -> str:
+    """An error as one line of text, a path's bytes that are not UTF-8
+    shown as ``\\xff`` (never an encoding error, whatever the path)."""
+    message = " ".join(str(exc).split()) or type(exc).__name__
+    return message.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
+def _owning(args):
+    """The run's hold on its output folder (:mod:`spheroseg.io.lock`): a second
+    run on the same ``--out`` is refused while this one runs."""
+    if getattr(args, "out", None) is not None and not str(args.out).strip():
+        raise CliError("--out must name a folder, got ''")  # '' would be the working folder, unasked
+    if args.command not in ("segment", "track", "batch", "demo") or not getattr(args, "out", None):
+        return contextlib.nullcontext()
+    from ..io.lock import hold_output
+
+    return hold_output(args.out, f"spheroseg {args.command}")
 
 
 #: commands that leave nothing running when they return (no server, no

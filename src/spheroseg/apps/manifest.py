@@ -16,7 +16,7 @@ import numpy as np
 __all__ = ["Study", "ManifestError", "read_manifest", "select_shard", "as_study", "MANIFEST_KEYS"]
 
 #: keys a manifest entry may have
-MANIFEST_KEYS = ("id", "image", "apex", "base", "annulus", "landmarks", "points", "spacing", "track")
+MANIFEST_KEYS = ("id", "image", "apex", "base", "annulus", "landmarks", "points", "spacing", "track", "glob")
 _SAFE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 #: names the cohort folder keeps for itself (write_summary's files), any case
 _RESERVED_ID = re.compile(r"summary(-\d+-of-\d+)?\.(json|csv)", re.IGNORECASE)
@@ -48,6 +48,9 @@ class Study:
     track : bool, optional
         Track a sequence (True) or segment one volume (False); None: track a
         4D input.
+    glob : bool
+        ``image`` is a pattern whose matches are the frames (otherwise a
+        name is a name, ``*?[`` included).
     """
 
     id: str
@@ -59,11 +62,13 @@ class Study:
     points: str | None = None
     spacing: tuple | None = None
     track: bool | None = None
+    glob: bool = False
 
     def as_entry(self) -> dict:
-        """The study as a manifest entry (JSON values)."""
+        """The study as a manifest entry (JSON values; ``glob`` only when
+        true, so that the checksums of earlier cohorts stay)."""
         return {k: (list(map(list, v)) if k in ("landmarks", "annulus") else list(v) if isinstance(v, tuple) else v)
-                for k, v in asdict(self).items()}
+                for k, v in asdict(self).items() if k != "glob" or v}
 
 
 def _numbers(value, count: int | None, what: str) -> tuple:
@@ -89,7 +94,7 @@ def _point_list(value, what: str) -> tuple:
     return tuple(_numbers(p, 3, f"each point of {what}") for p in value)
 
 
-def _flag(value) -> bool | None:
+def _flag(value, name: str = "track") -> bool | None:
     if value is None or isinstance(value, bool):
         return value
     text = str(value).strip().lower()
@@ -99,7 +104,7 @@ def _flag(value) -> bool | None:
         return True
     if text in ("false", "no", "0"):
         return False
-    raise ValueError(f"track must be true or false, got {value!r}")
+    raise ValueError(f"{name} must be true or false, got {value!r}")
 
 
 def _study(entry, folder: Path) -> Study:
@@ -133,7 +138,8 @@ def _study(entry, folder: Path) -> Study:
     resolve = lambda p: str(p if Path(p).is_absolute() else folder / p)  # noqa: E731
     return Study(id=ident, image=resolve(image), apex=apex, base=base, annulus=annulus,
                  landmarks=_point_list(entry.get("landmarks"), "landmarks"),
-                 points=None if points is None else resolve(points), spacing=spacing, track=_flag(entry.get("track")))
+                 points=None if points is None else resolve(points), spacing=spacing, track=_flag(entry.get("track")),
+                 glob=bool(_flag(entry.get("glob"), "glob")))
 
 
 def read_manifest(path: str | os.PathLike) -> list[Study]:
@@ -143,8 +149,8 @@ def read_manifest(path: str | os.PathLike) -> list[Study]:
     written ``x y z``, landmarks ``x y z; x y z``.  Keys: ``id`` (unique, a
     safe folder name), ``image``, ``apex`` and ``base`` (mm, LPS), optional
     ``landmarks``, ``points`` (a markups file instead of apex/base),
-    ``spacing``, ``track`` and ``annulus`` (3 or more points of the mitral
-    annulus instead of ``base``).  Relative paths are relative to the manifest's
+    ``spacing``, ``track``, ``glob`` (``image`` is a pattern) and
+    ``annulus`` (3 or more points of the mitral annulus instead of ``base``).  Relative paths are relative to the manifest's
     folder.  Input files are not opened here (a missing image fails its
     study, not the manifest).
 
@@ -172,6 +178,10 @@ def read_manifest(path: str | os.PathLike) -> list[Study]:
         reader = csv.DictReader(StringIO(text))
         if reader.fieldnames is None:
             raise ManifestError(f"{path}: empty CSV manifest (expected a header: {','.join(MANIFEST_KEYS)})")
+        names = [name.strip() for name in reader.fieldnames]
+        twice = sorted({name for name in names if names.count(name) > 1})
+        if twice:  # the last would win silently
+            raise ManifestError(f"{path}: column(s) {', '.join(twice)} appear twice in the header")
         entries = [{k.strip(): (v or "").strip() for k, v in row.items() if k is not None and (v or "").strip()}
                    for row in reader]
         where = lambda k: f"row {k + 2}"  # noqa: E731

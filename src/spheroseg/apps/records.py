@@ -30,7 +30,7 @@ def study_checksum(study: Study, options: dict) -> str:
     digest = hashlib.sha256()
     options = {k: v for k, v in options.items() if k != "threads"}
     digest.update(json.dumps({"study": study.as_entry(), "options": options}, sort_keys=True).encode())
-    for path in image_files(study.image) + ([Path(study.points)] if study.points else []):
+    for path in image_files(study.image, glob=study.glob) + ([Path(study.points)] if study.points else []):
         digest.update(f"\0{path.name}\0".encode())
         try:
             with open(path, "rb") as handle:

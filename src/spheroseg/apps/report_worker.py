@@ -14,18 +14,21 @@ process cannot start or dies, the report is drawn in this process.
 from __future__ import annotations
 
 import multiprocessing
+import os
 import pickle
 import signal
 import sys
 
-from .._compiled._runtime import idle_cores
+from .._compiled._runtime import die_with_parent, idle_cores
 from ..io.report import save_parts
 
 __all__ = ["ReportWorker"]
 
 
-def _serve(connection) -> None:
+def _serve(connection, parent: int | None = None) -> None:
     """The worker: import what drawing needs, then draw what is sent."""
+    if parent is not None:  # it dies with the command, kill -9 included
+        die_with_parent(parent)
     # Ctrl-C reaches the whole process group: the command stops this process
     # itself, without a traceback from it
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -80,7 +83,7 @@ class ReportWorker:
             context = multiprocessing.get_context("fork" if sys.platform == "linux" else "spawn")
             self._connection, child = context.Pipe()
             try:
-                self._process = context.Process(target=_serve, args=(child,), daemon=True,
+                self._process = context.Process(target=_serve, args=(child, os.getpid()), daemon=True,
                                                 name="spheroseg-report")
                 self._process.start()
             except OSError:  # pragma: no cover - no processes here

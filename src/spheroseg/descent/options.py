@@ -33,7 +33,7 @@ SMOOTHNESS_REFERENCES = ("start", "fitted")
 #: a wider band or a longer step measures or moves past the heart)
 #: and iterations per level
 LIMITS = {"patches": 32, "order": 16, "sample_points": 32 * 32 * 8 * 8, "band": 50.0, "band_out": 50.0,
-          "step": 10.0, "max_iterations": 10000}
+          "step": 10.0, "max_iterations": 10000, "smoothness": 1e6}
 
 
 def format_point(point) -> str:
@@ -196,6 +196,16 @@ class SegmentOptions:
         if self.coarse_tol is not None and not (isinstance(self.coarse_tol, (int, float, np.number))
                                                 and np.isfinite(self.coarse_tol) and self.coarse_tol > 0):
             raise ValueError(f"coarse_tol must be a positive number (or None: twice tol), got {self.coarse_tol!r}")
+        # a level stops when the RMS motion of an iteration is below its
+        # tolerance, and no iteration moves the wall more than the step: a
+        # step at or below the tolerance stops every level at its first
+        # iteration, returning the start as "converged"
+        stops = max(self.tol, (self.coarse_tol or 2 * self.tol) if self.coarse_to_fine else 0.0)
+        if not self.step > stops:
+            which = "tol" if stops == self.tol else "the coarse levels' tolerance (coarse_tol, default 2 x tol)"
+            raise ValueError(f"step must be more than {which}, {stops:g} mm, got {self.step:g}: no iteration could "
+                             "move the wall by more than the motion that counts as settled (a smaller step needs a "
+                             "smaller tol)")
         if not isinstance(self.adaptive_step, (bool, np.bool_)):
             raise ValueError(f"adaptive_step must be True or False, got {self.adaptive_step!r}")
         for name in ("max_iterations", "order"):
@@ -209,8 +219,9 @@ class SegmentOptions:
             object.__setattr__(self, "threads", int(self.threads))  # JSON-ready
         if self.max_iterations < 1 or self.max_iterations > LIMITS["max_iterations"]:
             raise ValueError(f"max_iterations must be from 1 to {LIMITS['max_iterations']}, got {self.max_iterations!r}")
-        if self.order < 1 or self.order > LIMITS["order"]:
-            raise ValueError(f"order must be from 1 to {LIMITS['order']}, got {self.order!r}")
+        if self.order < 3 or self.order > LIMITS["order"]:  # 1 or 2 points leave the Hermite coefficients undetermined
+            raise ValueError(f"order must be from 3 to {LIMITS['order']} sample points per patch and direction, "
+                             f"got {self.order!r}")
         points = patches[0] * patches[1] * self.order ** 2
         if points > LIMITS["sample_points"]:
             raise ValueError(f"patches {patches[0]} x {patches[1]} at order {self.order} make {points} sample points; "
@@ -219,6 +230,9 @@ class SegmentOptions:
             value = getattr(self, name)
             if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a number >= 0, got {value!r}")
+        if self.smoothness > LIMITS["smoothness"]:  # far past rigid: the implicit step's matrix overflows
+            raise ValueError(f"smoothness must be at most {LIMITS['smoothness']:g} (already the start's shape held "
+                             f"rigid), got {self.smoothness:g}")
         if self.smoothness_reference not in SMOOTHNESS_REFERENCES:
             raise ValueError(f"smoothness_reference must be one of {SMOOTHNESS_REFERENCES}, "
                              f"got {self.smoothness_reference!r}")

@@ -67,7 +67,7 @@ __all__ = ["quality_report", "quality_warning", "wall_bulge", "axis_distances", 
 
 #: the bounds of a plausible result
 LIMITS = {"contrast": 0.5, "low_contrast_fraction": 0.3, "no_data_fraction": 0.1, "apex_shift_mm": 10.0,
-          "volume_ratio": (1 / 3, 3.0), "bulge": 1.6, "landmark_residual_mm": 2.0}
+          "volume_ratio": (1 / 3, 3.0), "bulge": 1.6, "landmark_residual_mm": 2.0, "moved_mm": 0.25}
 
 
 def wall_bulge(surface, initial, *, reference: np.ndarray | None = None) -> float:
@@ -116,7 +116,7 @@ def axis_distances(surface, initial) -> np.ndarray:
 
 def quality_report(*, contrast: float, low_contrast_fraction: float, no_data_fraction: float, converged: bool,
                    apex_shift_mm: float, volume_ratio: float, bulge: float = math.nan,
-                   landmark_residuals_mm=()) -> dict:
+                   landmark_residuals_mm=(), moved_mm: float = math.nan) -> dict:
     """The report of :mod:`spheroseg.quality` from its measurements (plain
     floats and bools, ready for JSON), with ``warnings`` and ``poor``."""
     warnings = []
@@ -136,6 +136,9 @@ def quality_report(*, contrast: float, low_contrast_fraction: float, no_data_fra
     if bulge > LIMITS["bulge"]:
         warnings.append(f"the wall bulges out {bulge:.1f} times as far in one region as elsewhere (a leak? a landmark "
                         "on the wall there stops it)")
+    if moved_mm < LIMITS["moved_mm"]:  # NaN (not measured): no warning
+        warnings.append(f"the surface did not move from its start (its wall {moved_mm:.2f} mm from it on average): "
+                        "the descent saw no motion (a step too small for tol?)")
     residuals = [float(r) for r in np.ravel(landmark_residuals_mm)]
     far = [(k + 1, r) for k, r in enumerate(residuals) if not r <= LIMITS["landmark_residual_mm"]]
     if far:
@@ -144,7 +147,8 @@ def quality_report(*, contrast: float, low_contrast_fraction: float, no_data_fra
     return {"contrast": float(contrast), "low_contrast_fraction": float(low_contrast_fraction),
             "no_data_fraction": float(no_data_fraction), "converged": bool(converged),
             "apex_shift_mm": float(apex_shift_mm), "volume_ratio": float(volume_ratio), "bulge": float(bulge),
-            "landmark_residuals_mm": residuals, "warnings": warnings, "poor": bool(warnings)}
+            "landmark_residuals_mm": residuals, "moved_mm": float(moved_mm), "warnings": warnings,
+            "poor": bool(warnings)}
 
 
 class FrameQuality:
@@ -189,14 +193,16 @@ class FrameQuality:
             no_data, contrast, spread = np.nan, np.full(1, np.nan), np.nan
         if self._axis_distances is None:
             self._axis_distances = axis_distances(self.initial, self.initial)
+        distances = axis_distances(surface, self.initial)
         with np.errstate(invalid="ignore", divide="ignore"):
             report = quality_report(
                 contrast=float(nanmedian(contrast) / spread), no_data_fraction=no_data,
                 low_contrast_fraction=float(np.mean(np.broadcast_to(contrast, (1,) + np.shape(contrast)) < 0.1 * spread)),
                 converged=converged, apex_shift_mm=float(np.linalg.norm(surface.tip() - self.apex)),
                 volume_ratio=surface.volume_ml() / self.initial_volume_ml,
-                bulge=wall_bulge(surface, self.initial, reference=self._axis_distances),
-                landmark_residuals_mm=landmark_residuals(surface, landmarks))
+                bulge=float((distances / self._axis_distances).max() / nanmedian(distances / self._axis_distances)),
+                landmark_residuals_mm=landmark_residuals(surface, landmarks),
+                moved_mm=float(np.mean(np.abs(distances - self._axis_distances))))
         report["beyond_wall"], report["beyond_wall_fraction"] = (float(v) for v in beyond_wall)
         if no_speckle:
             report["warnings"].append("no speckle around the surface to undo the log compression with (a noise-free "

@@ -16,9 +16,10 @@ image type.
 
 from __future__ import annotations
 
-import glob
+import glob as _glob
 import math
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -26,12 +27,14 @@ import numpy as np
 
 from .atomic import write_atomically
 from ..volumes.beamspace import CONVENTIONS, BeamGeometry, BeamVolume
+from ..volumes.budget import BUDGET_VARIABLE, DEFAULT_BUDGET_GB, budget_bytes  # noqa: F401 (their old home)
 from .._compiled.raster import outside_sector
 from ..volumes.volume import ImageGrid, Volume
 
 __all__ = ["load", "load_sequence", "load_frames", "save_mask", "save_volume", "image_format", "image_files",
-           "check_image_size", "beam_header", "beam_geometry_from_header", "ImageFileError", "IMAGE_SUFFIXES",
-           "MASK_SUFFIXES", "BEAM_SUFFIXES", "BEAM_KEYS", "BEAM_OPTIONAL_KEYS", "BUDGET_VARIABLE"]
+           "frame_order", "shown_path", "is_sequence_file", "check_image_size", "beam_header",
+           "beam_geometry_from_header", "ImageFileError", "IMAGE_SUFFIXES", "MASK_SUFFIXES", "BEAM_SUFFIXES",
+           "BEAM_KEYS", "BEAM_OPTIONAL_KEYS", "BUDGET_VARIABLE", "VOXEL_BYTES"]
 
 IMAGE_SUFFIXES = (".mhd", ".mha", ".nii", ".nii.gz", ".nrrd", ".nhdr", ".npy")
 #: what a mask can be written as
@@ -47,20 +50,75 @@ BEAM_OPTIONAL_KEYS = ("BeamSpaceConvention", "AzimuthCenterIndex", "ElevationCen
                       "NoDataValue")
 
 
-#: the environment variable that sets the memory budget of one image file,
-#: GB of float32 voxels (all its frames), and its default: a 3D+t file of
-#: 60 frames of 250^3 voxels is within it, a 1000^3 volume is not
-BUDGET_VARIABLE = "SPHEROSEG_MAX_IMAGE_GB"
-DEFAULT_BUDGET_GB = 4.0
-
-
 class ImageFileError(ValueError):
     """A file that exists but cannot be read as an image (as nibabel's
     ``ImageFileError``; a ``ValueError``, so ``except ValueError`` catches it)."""
 
 
+def shown_path(path) -> str:
+    """A path as text for a message, whatever its bytes: those that are not
+    UTF-8 written ``\\xff``."""
+    return os.fsencode(os.fspath(path)).decode("utf-8", "backslashreplace")
+
+
+def _itk_path(path) -> str:
+    """``path`` as the text SimpleITK takes.  SimpleITK aborts the process
+    (in C++, no exception) on a path that is not UTF-8: every path given to
+    it passes here first and such a one is refused with its bytes shown."""
+    text = os.fspath(path)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ImageFileError(f"{shown_path(path)}: the path is not UTF-8 text, which the image library cannot open; "
+                             "rename it (or a folder above it)") from None
+    return text
+
+
 def _missing(path) -> FileNotFoundError:
-    return FileNotFoundError(f"{path}: no such file")
+    path = Path(path)
+    if path.exists() or path.is_symlink():  # there, but this user may not read it (or a dangling link)
+        if path.is_symlink() and not path.exists():
+            return FileNotFoundError(f"{shown_path(path)}: a link to a missing file")
+        return PermissionError(f"{shown_path(path)}: cannot read (permission denied)")
+    hint = " (a pattern? give --glob)" if any(ch in str(path) for ch in "*?[") else ""
+    return FileNotFoundError(f"{shown_path(path)}: no such file{hint}")
+
+
+#: the frame number of a frame's file: the last run of digits in its name
+_FRAME_NUMBER = re.compile(r"(\d+)(?!.*\d)")
+
+
+def frame_order(files) -> list[Path]:
+    """The frames of a folder (or of a pattern) in the order of the numbers
+    in their names (``frame_2`` before ``frame_10``: natural order, not the
+    text's), each name's last number its frame's.
+
+    Raises
+    ------
+    ValueError
+        A frame without a number in its name (of two or more), two frames of
+        one number (``frame_1`` and ``frame_01``) or a number missing between
+        the first and the last: the sequence would be out of time order.
+    """
+    files = [Path(f) for f in files]
+    if len(files) < 2:
+        return files
+    numbered = []
+    for f in files:
+        stem = f.name[:len(f.name) - len(image_format(f))]
+        found = _FRAME_NUMBER.search(stem)
+        if found is None:
+            raise ValueError(f"{shown_path(f)}: no frame number in the name; the frames of a sequence are ordered by "
+                             "the numbers in their names (frame_0, frame_1, ...)")
+        numbered.append((int(found.group(1)), f))
+    numbered.sort(key=lambda item: (item[0], item[1].name))
+    for (a, fa), (b, fb) in zip(numbered, numbered[1:]):
+        if a == b:
+            raise ValueError(f"{shown_path(fa)} and {fb.name}: two frames numbered {a}")
+        if b != a + 1:
+            missing = f"frame {a + 1}" if b == a + 2 else f"frames {a + 1} to {b - 1}"
+            raise ValueError(f"{shown_path(fa.parent)}: {missing} missing between {fa.name} and {fb.name}")
+    return [f for _, f in numbered]
 
 
 def image_format(path: str | os.PathLike) -> str:
@@ -78,21 +136,16 @@ def _sitk():
     return sitk
 
 
-def _budget_bytes() -> float:
-    text = os.environ.get(BUDGET_VARIABLE, "")
-    try:
-        gb = float(text) if text.strip() else DEFAULT_BUDGET_GB
-    except ValueError:
-        gb = math.nan
-    if not gb > 0 or not math.isfinite(gb):
-        raise ValueError(f"{BUDGET_VARIABLE} must be a positive number of GB, got {text!r}")
-    return gb * 1e9
+#: bytes a voxel of a loaded image holds at the peak: its float32 voxels,
+#: the mask of its voxels without data and the copy the sampling reads
+#: (NaN on those voxels)
+VOXEL_BYTES = 4 + 1 + 4
 
 
 def check_image_size(path, shape, components: int = 1) -> None:
-    """Refuse an image whose declared voxels, as the float32 working copy,
-    exceed the memory budget (``SPHEROSEG_MAX_IMAGE_GB``, default 4 GB),
-    before its pixels are read.
+    """Refuse an image whose declared voxels, as a loaded volume holds them
+    (:data:`VOXEL_BYTES` a voxel), exceed the memory budget
+    (``SPHEROSEG_MAX_IMAGE_GB``, default 4 GB), before its pixels are read.
 
     Parameters
     ----------
@@ -104,14 +157,19 @@ def check_image_size(path, shape, components: int = 1) -> None:
         Values per voxel (frames of a ``.seq.nrrd``).
     """
     voxels = math.prod(int(n) for n in shape) * int(components)
-    need, budget = 4.0 * voxels, _budget_bytes()
+    need, budget = float(VOXEL_BYTES) * voxels, budget_bytes()
     if need > budget:
         size = " x ".join(str(int(n)) for n in shape) + (f" x {components} components" if components > 1 else "")
-        raise ImageFileError(f"{path}: declares {size} voxels, {need / 1e9:.3g} GB as float32, over the memory "
+        raise ImageFileError(f"{path}: declares {size} voxels, {need / 1e9:.3g} GB once loaded ({VOXEL_BYTES} bytes "
+                             "a voxel: float32 voxels, their no-data mask, the copy sampling reads), over the memory "
                              f"budget of {budget / 1e9:.3g} GB (set {BUDGET_VARIABLE} to raise it)")
 
 
-def _quietly(call, *, succeeded=lambda returned: True):
+#: what ITK prints when a read failed though it returned an image (of zeros)
+_FAILED_READS = ("Uncompress failed",)
+
+
+def _quietly(call, *, succeeded=lambda returned: True, path=None):
     """``call()`` with the process's stderr (file descriptor 2) captured:
     what the C++ readers (MetaIO, GDCM, ITK) print there themselves.  On
     success their lines are passed on to ``sys.stderr``; on failure (an
@@ -132,6 +190,9 @@ def _quietly(call, *, succeeded=lambda returned: True):
             os.close(saved)
         noise.seek(0)
         text = noise.read().decode(errors="replace")
+    failed = next((line.strip() for line in text.splitlines() if any(m in line for m in _FAILED_READS)), None)
+    if path is not None and failed is not None:
+        raise ImageFileError(f"{path}: cannot read image ({failed[:200]}: is CompressedData right?)")
     if text.strip() and succeeded(returned):
         sys.stderr.write(text)
     return returned
@@ -141,15 +202,15 @@ def _read_image(path: Path):
     sitk = _sitk()
     if path.is_dir():
         reader = sitk.ImageSeriesReader()
-        series = _quietly(lambda: reader.GetGDCMSeriesIDs(str(path)), succeeded=bool)
+        series = _quietly(lambda: reader.GetGDCMSeriesIDs(_itk_path(path)), succeeded=bool)
         if not series:
             raise ImageFileError(f"{path}: a folder with no DICOM series (for a folder of 3D frames use load_sequence)")
-        reader.SetFileNames(reader.GetGDCMSeriesFileNames(str(path), series[0]))
+        reader.SetFileNames([_itk_path(f) for f in reader.GetGDCMSeriesFileNames(_itk_path(path), series[0])])
         return _quietly(reader.Execute)
-    if not path.is_file():
+    if not path.is_file() or not os.access(path, os.R_OK):
         raise _missing(path)
     reader = sitk.ImageFileReader()
-    reader.SetFileName(str(path))
+    reader.SetFileName(_itk_path(path))
     try:
         _quietly(reader.ReadImageInformation)
     except RuntimeError:
@@ -158,11 +219,14 @@ def _read_image(path: Path):
         check_image_size(path, reader.GetSize(), reader.GetNumberOfComponents())
         _check_data_file(path)
     try:
-        return _quietly(lambda: sitk.ReadImage(str(path)))
+        return _quietly(lambda: sitk.ReadImage(_itk_path(path)), path=path)
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()
         detail = next((line for line in first if "ERROR" in line or "Unable" in line), first[-1] if first else "")
-        raise ImageFileError(f"{path}: cannot read image ({detail.strip()[:200]})") from None
+        teem = [line.split(":", 1)[-1].strip() for line in first if line.startswith("[nrrd]")]
+        if teem:  # NRRD's reader gives its reason last, below ITK's "Error reading ...:"
+            detail = f"{detail.strip().rstrip(':')}: {teem[-1]}"
+        raise ImageFileError(f"{path}: cannot read image ({detail.strip()[:300]})") from None
 
 
 #: bytes per value of MetaImage element types (MET_LONG's size is the
@@ -171,19 +235,52 @@ _META_BYTES = {"MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "
                "MET_LONG_LONG": 8, "MET_ULONG_LONG": 8, "MET_FLOAT": 4, "MET_DOUBLE": 8}
 
 
+#: MetaImage keys of numbers that ITK reads as 0 when they are not numbers
+_META_NUMBERS = ("Offset", "Origin", "Position", "ElementSpacing", "TransformMatrix", "Rotation", "Orientation",
+                 "CenterOfRotation")
+
+
+def _meta_keys(path: Path) -> dict | None:
+    """The header keys of a MetaImage file (.mhd; the text head of a .mha),
+    None for other formats."""
+    if image_format(path) not in (".mhd", ".mha"):
+        return None
+    with open(path, "rb") as handle:
+        head = handle.read(1 << 16)
+    keys = {}
+    for line in head.decode("latin-1").splitlines():
+        key, sep, value = line.partition("=")
+        if not sep:
+            continue
+        keys[key.strip()] = value.strip()
+        if key.strip() == "ElementDataFile":  # the voxels follow in a .mha
+            break
+    return keys
+
+
 def _check_data_file(path: Path) -> None:
-    """Refuse a MetaImage header (``.mhd``) whose raw data file holds more
-    bytes than it declares: ITK reads the first ones silently, and a wrong
-    ``DimSize`` or ``ElementType`` scrambles the image (a data file that is
-    too short, ITK refuses itself).  Compressed, listed and embedded data
-    are left to ITK."""
+    """Refuse a MetaImage header whose numbers of geometry are not numbers
+    (ITK reads ``Offset = nan`` as 0, silently), or (``.mhd``) whose raw
+    data file holds more bytes than it declares: ITK reads the first ones
+    silently, and a wrong ``DimSize`` or ``ElementType`` scrambles the
+    image (a data file that is too short, ITK refuses itself).  Compressed,
+    listed and embedded data are left to ITK."""
+    if image_format(path) == ".nhdr":
+        _check_nrrd_data_file(path)
+        return
+    keys = _meta_keys(path)
+    if keys is None:
+        return
+    for key in _META_NUMBERS:
+        if key in keys:
+            try:
+                values = [float(v) for v in keys[key].split()]
+            except ValueError:
+                values = [math.nan]
+            if not all(math.isfinite(v) for v in values):
+                raise ImageFileError(f"{path}: header key {key} must be finite numbers, got {keys[key]!r}")
     if image_format(path) != ".mhd":
         return
-    keys = {}
-    for line in path.read_text(errors="replace").splitlines():
-        key, sep, value = line.partition("=")
-        if sep:
-            keys[key.strip()] = value.strip()
     name = keys.get("ElementDataFile", "")
     try:
         dims = [int(n) for n in keys.get("DimSize", "").split()]
@@ -203,6 +300,44 @@ def _check_data_file(path: Path) -> None:
         raise ImageFileError(f"{path}: its data file {name} holds {size} bytes, {size - declared} more than the "
                              f"header declares (DimSize {' '.join(map(str, dims))}, {keys['ElementType']}): "
                              "a wrong size or type would scramble the image")
+
+
+#: bytes per value of NRRD types (their common spellings)
+_NRRD_BYTES = {**dict.fromkeys(("int8", "uint8", "char", "uchar", "signed char", "unsigned char", "int8_t",
+                                "uint8_t"), 1),
+               **dict.fromkeys(("int16", "uint16", "short", "ushort", "unsigned short", "int16_t", "uint16_t"), 2),
+               **dict.fromkeys(("int32", "uint32", "int", "uint", "unsigned int", "int32_t", "uint32_t", "float"), 4),
+               **dict.fromkeys(("int64", "uint64", "longlong", "ulonglong", "int64_t", "uint64_t", "double"), 8)}
+
+
+def _check_nrrd_data_file(path: Path) -> None:
+    """Refuse a detached NRRD header (``.nhdr``) of raw data whose data file
+    holds more bytes than its ``sizes`` declare (read silently by ITK, as a
+    MetaImage's: a scrambled image)."""
+    keys = {}
+    for line in path.read_text(errors="replace").splitlines()[1:]:
+        if not line.strip():
+            break
+        key, sep, value = line.partition(":")
+        if sep and not line.startswith("#"):
+            keys[key.strip().lower()] = value.lstrip("=").strip()
+    name, kind = keys.get("data file", keys.get("datafile", "")), keys.get("type", "").lower()
+    try:
+        sizes = [int(n) for n in keys.get("sizes", "").split()]
+        skip = int(keys.get("byte skip", "0"))
+    except ValueError:
+        return  # ITK says what is wrong with the header
+    if (keys.get("encoding", "raw").lower() != "raw" or kind not in _NRRD_BYTES or not sizes or not name
+            or name.upper().startswith("LIST") or "%" in name or skip < 0 or "line skip" in keys):
+        return
+    data = path.parent / name
+    if not data.is_file():
+        return
+    declared, size = skip + math.prod(sizes) * _NRRD_BYTES[kind], data.stat().st_size
+    if size > declared:
+        raise ImageFileError(f"{path}: its data file {name} holds {size} bytes, {size - declared} more than the "
+                             f"header declares (sizes {' '.join(map(str, sizes))}, {kind}): a wrong size or type "
+                             "would scramble the image")
 
 
 def _load_npy(path: Path) -> np.ndarray:
@@ -412,62 +547,77 @@ def load(path: str | os.PathLike, *, spacing=None,
     return volume
 
 
-def load_frames(path: str | os.PathLike, *, spacing=None,
-                no_data_value: float | str | None = "auto") -> list[Volume] | list[BeamVolume]:
-    """Read a 3D image as one frame, or a 3D+t sequence as its frames
-    (whichever the file holds; the keywords are :func:`load`'s).
-
-    A folder or a glob pattern is a sequence (:func:`load_sequence`), as is
-    a 4D image, a 3D image of several components or a 4D ``.npy``.
-    """
-    path_str = str(path)
+def is_sequence_file(path: str | os.PathLike) -> bool:
+    """Whether one file holds a 3D+t sequence (a 4D image, a 3D image of
+    several components, a 4D ``.npy``), from its header; False when it
+    cannot be read (the loader then says why, in one line)."""
     path = Path(path)
-    if any(ch in path_str for ch in "*?[") or path.is_dir():
-        return load_sequence(path_str, spacing=spacing, no_data_value=no_data_value)
-    if image_format(path) == ".npy":
-        if not path.is_file():
-            raise _missing(path)
-        try:
-            sequence = np.load(path, mmap_mode="r", allow_pickle=False).ndim == 4
-        except (ValueError, OSError):
-            sequence = False  # load says why, in one line
-    else:
-        if not path.is_file():
-            raise _missing(path)
+    if not path.is_file():
+        return False
+    try:
+        if image_format(path) == ".npy":
+            return np.load(path, mmap_mode="r", allow_pickle=False).ndim == 4
         reader = _sitk().ImageFileReader()
-        reader.SetFileName(str(path))
-        try:
-            reader.ReadImageInformation()
-        except RuntimeError:
-            return [load(path, spacing=spacing, no_data_value=no_data_value)]  # load says why, in one line
-        sequence = reader.GetDimension() == 4 or reader.GetNumberOfComponents() > 1
-    if sequence:
-        return load_sequence(path, spacing=spacing, no_data_value=no_data_value)
+        reader.SetFileName(_itk_path(path))
+        _quietly(reader.ReadImageInformation)
+    except (ValueError, OSError, RuntimeError):
+        return False
+    return reader.GetDimension() == 4 or reader.GetNumberOfComponents() > 1
+
+
+def _frame_files(path, glob: bool) -> list[Path] | None:
+    """The frame files of a pattern (``glob``) or a folder, in frame order;
+    None for anything else."""
+    if glob:
+        files = [Path(f) for f in _glob.glob(os.fspath(path)) if image_format(f) in IMAGE_SUFFIXES]
+        if not files:
+            raise FileNotFoundError(f"{shown_path(path)}: no image files match the pattern")
+        return frame_order(files)
+    path = Path(path)
+    if path.is_dir():
+        return frame_order(p for p in path.iterdir() if image_format(p) in IMAGE_SUFFIXES and p.is_file()
+                           and not p.name.startswith("."))
+    return None
+
+
+def load_frames(path: str | os.PathLike, *, spacing=None, no_data_value: float | str | None = "auto",
+                glob: bool = False) -> list[Volume] | list[BeamVolume]:
+    """Read a 3D image as one frame, or a 3D+t sequence as its frames
+    (whichever the file holds; the keywords are :func:`load_sequence`'s).
+
+    A folder or (``glob=True``) a pattern is a sequence
+    (:func:`load_sequence`), as is a 4D image, a 3D image of several
+    components or a 4D ``.npy``.
+    """
+    if glob or Path(path).is_dir() or is_sequence_file(path):
+        return load_sequence(path, spacing=spacing, no_data_value=no_data_value, glob=glob)
     return [load(path, spacing=spacing, no_data_value=no_data_value)]
 
 
-def load_sequence(path: str | os.PathLike, *, spacing=None,
-                  no_data_value: float | str | None = "auto") -> list[Volume] | list[BeamVolume]:
+def load_sequence(path: str | os.PathLike, *, spacing=None, no_data_value: float | str | None = "auto",
+                  glob: bool = False) -> list[Volume] | list[BeamVolume]:
     """Read a 3D+t sequence as a list of :class:`Volume` (of
     :class:`~spheroseg.beamspace.BeamVolume` for beam-space files).
 
     Accepts a 4D image (.mha, .nrrd, .nii: the fourth axis is time), a
     vector image whose components are frames (3D Slicer's ``.seq.nrrd``), a
-    folder of 3D frames or a glob pattern (frames in name order), a
-    DICOM series folder holding a 4D image, or a 4D ``.npy`` ``[t, z, y, x]``.
+    folder of 3D frames, a DICOM series folder holding a 4D image, or a 4D
+    ``.npy`` ``[t, z, y, x]``.  The frames of a folder are ordered by the
+    numbers in their names (:func:`frame_order`: a gap or a repeated number
+    is an error).
+
+    Parameters
+    ----------
+    glob : bool
+        ``path`` is a pattern (``frame_*.mha``) whose matches are the frames,
+        in the same order.  Otherwise a name is a name: ``cine[12].mha`` is
+        that file, whatever its characters.
     """
     sitk = _sitk()
-    path_str = str(path)
-    if any(ch in path_str for ch in "*?["):
-        files = sorted(glob.glob(path_str))
-        if not files:
-            raise ValueError(f"{path_str}: no files match")
-        return [load(f, spacing=spacing, no_data_value=no_data_value) for f in files]
+    frames = _frame_files(path, glob)
+    if frames:
+        return [load(f, spacing=spacing, no_data_value=no_data_value) for f in frames]
     path = Path(path)
-    if path.is_dir():
-        frames = sorted(p for p in path.iterdir() if image_format(p) in IMAGE_SUFFIXES and p.suffix != ".raw")
-        if frames:
-            return [load(f, spacing=spacing, no_data_value=no_data_value) for f in frames]
     if image_format(path) == ".npy":
         if not path.is_file():
             raise _missing(path)
@@ -512,11 +662,11 @@ def _header_data_file(path: Path) -> Path | None:
     return None
 
 
-def image_files(image: str) -> list[Path]:
+def image_files(image: str | os.PathLike, *, glob: bool = False) -> list[Path]:
     """The files an image reads: the file and the data file its header names
-    (.mhd, .nhdr), a folder's files, a glob pattern's matches."""
-    if any(ch in image for ch in "*?["):
-        files = [Path(f) for f in sorted(glob.glob(image))]
+    (.mhd, .nhdr), a folder's files, a pattern's matches (``glob=True``)."""
+    if glob:
+        files = [Path(f) for f in sorted(_glob.glob(os.fspath(image)))]
     elif Path(image).is_dir():
         files = sorted(p for p in Path(image).rglob("*") if p.is_file())
     else:
@@ -545,7 +695,26 @@ def save_mask(path: str | os.PathLike, mask: np.ndarray, like: Volume | BeamVolu
         return
     image = sitk.GetImageFromArray(mask)
     _set_grid(image, grid)
-    write_atomically(path, lambda tmp: sitk.WriteImage(image, str(tmp), True))
+    write_atomically(path, lambda tmp: _write_image(image, tmp, path))
+
+
+def _write_image(image, tmp: Path, path: Path) -> None:
+    """SimpleITK's write of ``image`` to ``tmp``; a full disk said so (ITK
+    says "4097 requested and 1000 written"), other failures in one line."""
+    try:
+        _sitk().WriteImage(image, _itk_path(tmp), True)
+    except RuntimeError as exc:
+        size = image.GetNumberOfPixels() * image.GetNumberOfComponentsPerPixel() * image.GetSizeOfPixelComponent()
+        try:
+            stats = os.statvfs(Path(tmp).parent)
+            full = stats.f_bavail * stats.f_frsize < size
+        except (OSError, AttributeError):
+            full = False
+        if full:
+            raise OSError(28, f"{path}: no space left on the device for its {size / 1e6:.3g} MB") from None
+        lines = str(exc).strip().splitlines()
+        detail = next((line for line in lines if "ERROR" in line or "rror" in line), lines[-1] if lines else "")
+        raise ImageFileError(f"{path}: cannot write image ({detail.strip()[:200]})") from None
 
 
 def _set_grid(image, grid: ImageGrid) -> None:
@@ -604,4 +773,4 @@ def save_volume(path: str | os.PathLike, volume, *, dtype=np.float32) -> None:
     if beam:
         for key, value in beam_header(first.geometry, no_data_value=no_data).items():
             image.SetMetaData(key, value)
-    write_atomically(path, lambda tmp: sitk.WriteImage(image, str(tmp), True))
+    write_atomically(path, lambda tmp: _write_image(image, tmp, path))

@@ -11,7 +11,7 @@ import numpy as np
 from .atomic import write_atomically
 from .images import ImageFileError
 
-__all__ = ["read_markups", "write_markups", "MARKUPS_UNITS"]
+__all__ = ["read_markups", "write_markups", "points_with_markups", "MARKUPS_UNITS"]
 
 
 #: millimetres per unit of a markups file's ``coordinateUnits``
@@ -35,13 +35,14 @@ def read_markups(path: str | os.PathLike) -> dict:
     (three or more define the mitral plane), every label starting with
     ``landmark`` a landmark.  RAS files are converted to LPS, and
     ``coordinateUnits`` (``um``, ``mm``, ``cm``, ``m``; mm when absent) to
-    millimetres.
+    millimetres; another ``coordinateSystem`` (``IJK``) is refused, as is
+    a used point whose ``positionStatus`` is not ``defined``.
 
     Returns
     -------
     dict
         ``{"apex": array or None, "base": array or None, "annulus": array (k, 3),
-        "landmarks": array (k, 3)}``
+        "landmarks": array (k, 3), "labels": every control point's label}``
 
     Raises
     ------
@@ -57,19 +58,28 @@ def read_markups(path: str | os.PathLike) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
     try:
-        doc = json.loads(path.read_text())
-        out = {"apex": None, "base": None, "annulus": [], "landmarks": []}
+        doc = json.loads(path.read_text(encoding="utf-8-sig"))  # a byte-order mark, as manifests
+        out = {"apex": None, "base": None, "annulus": [], "landmarks": [], "labels": []}
         for markup in doc["markups"]:
-            ras = str(markup.get("coordinateSystem", "LPS")).upper() == "RAS"
+            system = str(markup.get("coordinateSystem", "LPS")).strip().upper()
+            if system not in ("LPS", "RAS"):
+                raise ImageFileError(f"{path}: coordinateSystem must be LPS or RAS, got "
+                                     f"{markup.get('coordinateSystem')!r}")
+            ras = system == "RAS"
             scale = _markups_scale(markup, path)
             for point in markup.get("controlPoints", []):
                 label = str(point.get("label", "")).strip().lower()
+                out["labels"].append(str(point.get("label", "")))
                 used = label in ("apex", "base") or label.startswith(("annulus", "landmark"))
                 if not used:
                     continue
-                if str(point.get("positionStatus", "defined")).strip().lower() == "undefined":
+                status = str(point.get("positionStatus", "defined")).strip().lower()
+                if status == "undefined":
                     raise ImageFileError(f"{path}: control point {label!r} has positionStatus 'undefined' (never "
                                          "placed); place it in Slicer or delete it")
+                if status != "defined":  # "preview": being placed, not placed
+                    raise ImageFileError(f"{path}: control point {label!r} has positionStatus "
+                                         f"{point.get('positionStatus')!r}, not 'defined'; place it in Slicer")
                 position = scale * np.asarray(point["position"], dtype=float).reshape(3)
                 if ras:
                     position = position * [-1.0, -1.0, 1.0]
@@ -90,6 +100,38 @@ def read_markups(path: str | os.PathLike) -> dict:
     out["landmarks"] = np.array(out["landmarks"]).reshape(-1, 3)
     out["annulus"] = np.array(out["annulus"]).reshape(-1, 3)
     return out
+
+
+def points_with_markups(points_file=None, *, apex=None, base=None, landmarks=(), annulus=()):
+    """The starting points of a segmentation: those given, completed from a
+    markups file (given points win; the file's landmarks are added).
+
+    A markups file is given for its points: one that leaves the apex, or
+    both the base and the annulus, unknown (Slicer's default labels ``F-1``,
+    ``F-2``, a misspelt label, no control points) is refused with the
+    labels it has, never read as "no points" (the ventricle would be
+    located instead, silently).  The one place ``segment``, ``track`` and
+    ``batch`` read their points file.
+
+    Returns
+    -------
+    apex, base : array or None
+    landmarks, annulus : list of arrays
+    """
+    landmarks, annulus = list(landmarks), list(annulus)
+    if points_file is None:
+        return apex, base, landmarks, annulus
+    marks = read_markups(points_file)
+    apex = marks["apex"] if apex is None else apex
+    base = marks["base"] if base is None else base
+    landmarks += list(marks["landmarks"])
+    annulus = annulus or list(marks["annulus"])
+    if apex is None or (base is None and len(annulus) == 0):
+        labels = ", ".join(repr(label) for label in marks["labels"][:6]) + (", ..." if len(marks["labels"]) > 6 else "")
+        has = f"its labels are {labels}" if labels else "it has no control points"
+        raise ImageFileError(f"{points_file}: no control points labelled apex and base (or annulus...); {has}: "
+                             "label the points apex and base in Slicer")
+    return apex, base, landmarks, annulus
 
 
 def write_markups(path: str | os.PathLike, *, apex=None, base=None, annulus=None, landmarks=None) -> None:

@@ -151,18 +151,35 @@ class Located:
                 "scores": {k: float(v) for k, v in self.scores.items()}}
 
 
-def _block_mean(array: np.ndarray, missing: np.ndarray, factor) -> np.ndarray:
-    """:func:`~spheroseg.raster.block_means`, refusing an image too small to hold a ventricle."""
-    shape = np.array(array.shape) // np.asarray(factor, int)
+#: voxels of the full image the coarse copy reads at once: its temporaries
+#: (some 13 bytes a voxel: masks, a float copy, partial sums) are of a slab
+#: of the image, not of all of it, whatever the image's size
+_SLAB_VOXELS = 1 << 23
+
+
+def _block_mean(array: np.ndarray, missing, factor) -> np.ndarray:
+    """:func:`~spheroseg.raster.block_means`, slab by slab of whole blocks
+    along the first axis (the same sums), refusing an image too small to
+    hold a ventricle; ``missing(z0, z1)`` gives the slab's missing voxels."""
+    factor = np.asarray(factor, int)
+    shape = np.array(array.shape) // factor
     if np.any(shape < 4):
         raise NoVentricleError(f"no left ventricle found: the image ({array.shape}) is too small to hold one")
-    return block_means(array, missing, factor)
+    rows = factor[0] * max(1, _SLAB_VOXELS // (factor[0] * array.shape[1] * array.shape[2]))
+    return np.concatenate([block_means(array[z:z + rows], missing(z, z + rows), factor)
+                           for z in range(0, shape[0] * factor[0], rows)])
 
 
-def _missing(volume) -> np.ndarray:
-    array = np.asarray(volume.array)
-    missing = volume.no_data_mask if volume.no_data_mask is not None else np.zeros(array.shape, bool)
-    return missing | ~np.isfinite(array)
+def _missing(volume):
+    """The function giving a slab ``[z0:z1]`` of the volume's missing voxels
+    (no data, or not finite)."""
+    array, mask = np.asarray(volume.array), volume.no_data_mask
+
+    def rows(z0: int, z1: int) -> np.ndarray:
+        missing = ~np.isfinite(array[z0:z1])
+        return missing if mask is None else missing | mask[z0:z1]
+
+    return rows
 
 
 def _coarse(volume, spacing: float):
@@ -391,20 +408,26 @@ def _waist(area, first: int, last: int, allowed) -> tuple[int, float]:
     """The section narrowest against the widest on either side of it: its
     index among ``allowed`` strictly between ``first`` and ``last`` and that
     dip, ``1 - area / min(widest before, widest after)`` (``last`` and 0
-    when no section dips)."""
-    waist, dip = last, 0.0
-    for k in range(first + 1, last):
-        if not allowed[k]:
-            continue
-        here = 1 - area[k] / min(area[first:k].max(), area[k:last + 1].max())
-        if here > dip:
-            waist, dip = k, here
-    return waist, dip
+    when no section dips).  The widest sections on either side are running
+    maxima: linear in the number of sections."""
+    ks = np.arange(first + 1, last)
+    if ks.size == 0:
+        return last, 0.0
+    span = np.asarray(area[first:last + 1], dtype=float)
+    before = np.maximum.accumulate(span)[ks - first - 1]  # widest of area[first:k]
+    after = np.maximum.accumulate(span[::-1])[::-1][ks - first]  # widest of area[k:last + 1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        here = 1 - span[ks - first] / np.minimum(before, after)
+    here = np.where(np.asarray(allowed)[ks] & np.isfinite(here), here, -np.inf)
+    k = int(np.argmax(here))  # the first of the deepest, as a scan keeping strict improvements
+    return (int(ks[k]), float(here[k])) if here[k] > 0 else (last, 0.0)
 
 
 def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict | None:
     """Apex, base and scores of a pool whose apex lies along ``axis``."""
     t = (points - centre) @ axis
+    if np.ptp(t) > 4 * LENGTH_RANGE_MM[1]:  # no ventricle: and its sections would be millions (a wrong spacing)
+        return None
     edges = np.arange(t.min() - bin_mm / 2, t.max() + bin_mm, bin_mm)
     area = np.histogram(t, edges)[0] * voxel_ml * 1000.0 / bin_mm  # mm^2 of section
     heights = (edges[:-1] + edges[1:]) / 2

@@ -11,10 +11,13 @@ The parts of an iteration live in modules named for them:
 
 from __future__ import annotations
 
+import contextlib
+
 from typing import Callable, Sequence
 
 import numpy as np
 
+from .initial import check_volume
 from .locate import annotate, initialise
 from .epicardium import PRIOR_THICKNESS_MM, add_epicardium, check_wall_polarity
 from ..descent.options import MODES
@@ -163,6 +166,7 @@ def segment(volume, apex=None, base=None, *, annulus=None, landmarks=None, init:
     >>> bool(abs(res.volume_ml - ph.truth_volume_ml) < 0.15 * ph.truth_volume_ml)
     True
     """
+    check_volume(volume)  # a bare array: a TypeError here, not an AttributeError from deep inside
     apex, base, initialisation, located = initialise(volume, apex, base, annulus=annulus, init=init, check=check)
     result = Tracker(volume, apex, base, annulus=annulus, landmarks=landmarks, init=init, **options).run(iter_callback)
     epicardium_options = dict(epicardium_options or {})
@@ -244,25 +248,29 @@ def track(
         raise ValueError(f"a sequence needs at least 2 frames, got {len(volumes)}")
     if not (isinstance(iterations_per_frame, (int, np.integer)) and iterations_per_frame >= 1):
         raise ValueError(f"iterations_per_frame must be a positive integer, got {iterations_per_frame!r}")
+    for volume in volumes:
+        check_volume(volume)
     order = tracking_order(len(volumes), start_frame)
     start = order[0]
     apex, base, initialisation, located = initialise(volumes[start], apex, base, annulus=annulus, init=init,
                                                      check=check)
     frames: dict[int, SegmentationResult] = {}
     for t in order:
-        if t == start or t == start - 1:  # each direction starts from the start frame
-            tracker = Tracker(volumes[start], apex, base, annulus=annulus, landmarks=landmarks, init=init, **options)
-            first = tracker.run(iter_callback)
-        if t == start:
-            frames[t] = first
-            add_checks(first, volumes[t], initialisation, located)
-        else:
-            frames[t] = tracker.next_frame(volumes[t], max_iterations=iterations_per_frame, iter_callback=iter_callback,
-                                           follow_base=follow_base)
-        if myocardium:
-            neighbour = t - 1 if t > start else t + 1
-            add_epicardium(frames[t], volumes[t], rv_insertion=rv_insertion, previous=frames.get(neighbour),
-                           **(epicardium_options or {}))
+        with _naming_frame(t):
+            if t == start or t == start - 1:  # each direction starts from the start frame
+                tracker = Tracker(volumes[start], apex, base, annulus=annulus, landmarks=landmarks, init=init,
+                                  **options)
+                first = tracker.run(iter_callback)
+            if t == start:
+                frames[t] = first
+                add_checks(first, volumes[t], initialisation, located)
+            else:
+                frames[t] = tracker.next_frame(volumes[t], max_iterations=iterations_per_frame,
+                                               iter_callback=iter_callback, follow_base=follow_base)
+            if myocardium:
+                neighbour = t - 1 if t > start else t + 1
+                add_epicardium(frames[t], volumes[t], rv_insertion=rv_insertion, previous=frames.get(neighbour),
+                               **(epicardium_options or {}))
         if progress is not None:
             progress(len(frames), len(volumes))
     return TrackingResult([frames[t] for t in range(len(volumes))], start_frame=start)
@@ -279,3 +287,18 @@ def tracking_order(n_frames: int, start_frame: int = 0) -> list[int]:
                          f"negative from the last), got {start_frame!r}")
     start = int(start_frame) % n_frames
     return list(range(start, n_frames)) + list(range(start - 1, -1, -1))
+
+
+@contextlib.contextmanager
+def _naming_frame(t: int):
+    """A frame's error names the frame (one dark frame of sixty)."""
+    try:
+        yield
+    except (ValueError, RuntimeError) as exc:
+        if str(exc).startswith("frame "):
+            raise
+        try:
+            named = type(exc)(f"frame {t}: {exc}")
+        except Exception:  # an exception class of other arguments
+            named = ValueError(f"frame {t}: {exc}")
+        raise named from exc

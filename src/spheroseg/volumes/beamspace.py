@@ -28,6 +28,7 @@ is the probe frame in mm (+z along the central beam); ``probe_to_world``
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -35,7 +36,8 @@ import numpy as np
 
 from .volume import INDEX_TOLERANCE, ImageGrid, Volume, sample_at_index
 
-__all__ = ["BeamGeometry", "BeamVolume", "BeamSamplingView", "CONVENTIONS", "scan_convert", "to_beam_space",
+__all__ = ["BeamGeometry", "BeamVolume", "BeamSamplingView", "CONVENTIONS", "scan_convert", "check_scan_conversion",
+           "to_beam_space",
            "beam_mask", "beam_mask_volume_ml"]
 
 #: the angle conventions :class:`BeamGeometry` knows
@@ -431,6 +433,27 @@ def _sample_points(volume: BeamVolume, points: np.ndarray, order: int) -> np.nda
     return out
 
 
+#: bytes a voxel of a scan conversion's grid holds at the peak, per frame
+#: kept (the Volume's float32 voxels, its no-data mask and its NaN-marked
+#: copy for sampling, the float32 copy a file is written from and
+#: SimpleITK's) and once more for the frame being converted (its float64
+#: samples, their NaN mask, the zero-filled copy)
+SCAN_CONVERT_BYTES = {"per_frame": 4 + 1 + 4 + 4 + 4, "converting": 8 + 1 + 8}
+
+
+def check_scan_conversion(grid: ImageGrid, frames: int = 1) -> None:
+    """Refuse a scan conversion of ``frames`` frames onto ``grid`` whose
+    arrays would exceed the memory budget (:mod:`spheroseg.volumes.budget`), before
+    any is made: a fine voxel size makes a grid of its cube."""
+    from .budget import check_allocation
+
+    voxels = math.prod(grid.shape)
+    need = voxels * (frames * SCAN_CONVERT_BYTES["per_frame"] + SCAN_CONVERT_BYTES["converting"])
+    nz, ny, nx = grid.shape
+    check_allocation(need, f"a scan conversion of {frames} frame(s) onto {nx} x {ny} x {nz} voxels of "
+                           f"{grid.spacing[0]:.3g} mm")
+
+
 def scan_convert(volume: BeamVolume, grid: ImageGrid | None = None, *, order: int = 1) -> Volume:
     """Resample a beam-space volume on a Cartesian grid.
 
@@ -456,6 +479,7 @@ def scan_convert(volume: BeamVolume, grid: ImageGrid | None = None, *, order: in
         raise TypeError(f"grid must be an ImageGrid, got {type(grid).__name__}")
     if order not in (0, 1):
         raise ValueError(f"order must be 0 (nearest sample) or 1 (trilinear), got {order!r}")
+    check_scan_conversion(grid)
     values = np.stack([_sample_points(volume, _grid_slice_points(grid, k), order) for k in range(grid.shape[0])])
     values = values.reshape(grid.shape)
     missing = np.isnan(values)

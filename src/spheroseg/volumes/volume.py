@@ -9,8 +9,16 @@ import numpy as np
 
 from .._compiled import INDEX_TOLERANCE
 
-__all__ = ["Volume", "ImageGrid", "SamplingView", "INDEX_TOLERANCE", "outside_sector", "sample_at_index"]
+__all__ = ["Volume", "ImageGrid", "SamplingView", "INDEX_TOLERANCE", "DIRECTION_TOLERANCE", "outside_sector",
+           "sample_at_index"]
 
+#: how far a direction's columns may be from orthonormal (largest entry of
+#: D^T D - I): headers store directions to 6 decimals, NIfTI in float32; a
+#: scaled or sheared matrix is far beyond it
+DIRECTION_TOLERANCE = 1e-4
+#: the largest coordinate an image's origin may have, mm (a kilometre): beyond
+#: it the world -> index arithmetic loses the voxel (float64 keeps 16 digits)
+MAX_COORDINATE_MM = 1e6
 
 
 @dataclass(frozen=True)
@@ -36,6 +44,10 @@ class ImageGrid:
             raise ValueError(f"an image grid must be 3D, got shape {self.shape}")
         if not np.all(self.spacing > 0):
             raise ValueError(f"spacing must be positive, got {self.spacing}")
+        if not np.all(np.abs(self.origin) <= MAX_COORDINATE_MM):  # NaN too
+            raise ValueError(f"origin must be 3 finite numbers within +-{MAX_COORDINATE_MM:g} mm (x, y, z), got "
+                             f"{self.origin.tolist()}")
+        check_direction(self.direction)
 
     def index_to_world(self, index_xyz) -> np.ndarray:
         return (np.asarray(index_xyz, dtype=float) * self.spacing) @ self.direction.T + self.origin
@@ -43,6 +55,20 @@ class ImageGrid:
     def world_to_index(self, world) -> np.ndarray:
         """Continuous index ``(i, j, k)`` (x, y, z order) of world points."""
         return np.linalg.solve(self.direction, (np.asarray(world, dtype=float) - self.origin).T).T / self.spacing
+
+
+def check_direction(direction: np.ndarray) -> None:
+    """Refuse a direction matrix that is not orthonormal (columns of unit
+    length at right angles; a reflection is fine).  A scaled or sheared
+    matrix would scale or shear every length and volume silently: the
+    voxel size is the spacing's, the direction only turns the axes."""
+    direction = np.asarray(direction, dtype=float)
+    error = np.abs(direction.T @ direction - np.eye(3)).max() if np.all(np.isfinite(direction)) else np.inf
+    if not error <= DIRECTION_TOLERANCE:
+        rows = "; ".join(" ".join(f"{v:.6g}" for v in row) for row in direction)
+        raise ValueError(f"the image's direction matrix [{rows}] is not orthonormal (a rotation, or one with a "
+                         "reflection): its columns must be unit vectors at right angles; the voxel size belongs in "
+                         "the spacing")
 
 
 class SamplingView(NamedTuple):
@@ -99,8 +125,6 @@ class Volume:
         if spacing.shape != (3,) or not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
             raise ValueError(f"spacing must be 3 positive numbers (x, y, z), got {spacing!r}")
         direction = np.eye(3) if direction is None else np.asarray(direction, dtype=float).reshape(3, 3)
-        if abs(np.linalg.det(direction)) < 1e-6:
-            raise ValueError("direction must be an invertible 3x3 matrix")
         self.grid = ImageGrid(self.array.shape, spacing, origin, direction)
         self.no_data_value = None if no_data_value is None else float(no_data_value)
         # world -> continuous index (x, y, z order) as one affine map

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ...io.atomic import shared_mode
 from ...volumes.beamspace import BeamVolume, scan_convert
 from ...io import save_volume, write_markups
 from ...descent.options import SegmentOptions
@@ -372,6 +373,7 @@ class Session:
         keywords = points.keywords()
         staging = Path(tempfile.mkdtemp(prefix=".spheroseg-save-", dir=target.parent))
         try:
+            shared_mode(staging)  # as mkdir makes a folder, not mkdtemp's 0700
             if tracking is not None:
                 written = write_tracking_outputs(staging, self.frames, tracking, source=self.source, report=report,
                                                  mask_suffix=suffix, **keywords)
