@@ -48,17 +48,25 @@ __all__ = ["Located", "NoVentricleError", "locate", "check_points", "initialise"
            "JOINED_POOL"]
 
 #: cavity volumes (mL, the part before the waist) a left ventricle can have
-VOLUME_RANGE_ML = (20.0, 450.0)
+VOLUME_RANGE_ML = (15.0, 450.0)
 #: coarse pool volumes (mL) of the usual ventricles, 40-350 mL: the pool
 #: measures 0.8-0.9 of the cavity (the opening and the blurred wall)
-SIZE_RANGE_ML = (30.0, 380.0)
+SIZE_RANGE_ML = (15.0, 380.0)
+#: the least ratio of a ventricle's length (apex to base) to its widest
+#: section's diameter: 1.4-2.8 on the phantom sweep and the devset (a
+#: dilated, spherical ventricle 1.2-1.4); a cavity under haze 1.0
+ELONGATION_MIN = 1.1
+#: the least narrowing at the mitral orifice (1 - its section over the
+#: widest on either side) that is a waist: twice it scores fully (0.22-0.87
+#: on the phantom sweep and the devset; an atrium taken in, 0.13)
+WAIST_MIN = 0.1
 #: apex-to-base lengths (mm) a left ventricle can have
 LENGTH_RANGE_MM = (35.0, 140.0)
 
 
-#: Otsu's classes of one Gaussian grey-level distribution are 2.7 deviations
-#: apart: an image whose classes are not farther apart has no blood pool
-SEPARATION_MIN = 2.8
+#: the least distance (in the speckle's grey-level spread) between the
+#: means of the dark and the bright classes of an image with a blood pool
+CONTRAST_MIN = 1.4
 #: a dark region whose surroundings are not this much brighter (in the
 #: classes' deviations) is a dark patch of tissue, not a cavity
 WALL_MIN = 1.0
@@ -100,7 +108,7 @@ _REASONS = {
     "size": "the cavity's size is unusual",
     "length": "the long axis has an unusual length",
     "wall": "the cavity's wall is barely brighter than its blood",
-    "taper": "the cavity ends bluntly towards the probe (haze or the sector's edge hides the apex?)",
+    "elongation": "the cavity is hardly longer than it is wide (haze or the sector's edge hides the apex?)",
     "pool": "the cavity is joined to the dark regions around it (a faint wall): found along its ringed sections",
 }
 
@@ -142,13 +150,15 @@ class Located:
     reason: str = ""
     volume_ml: float = float("nan")
     scores: dict = field(default_factory=dict)
+    measures: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         """Plain JSON values."""
         return {"apex": [float(x) for x in self.apex], "base": [float(x) for x in self.base],
                 "normal": [float(x) for x in self.normal], "confidence": float(self.confidence),
                 "reason": self.reason, "volume_ml": float(self.volume_ml),
-                "scores": {k: float(v) for k, v in self.scores.items()}}
+                "scores": {k: float(v) for k, v in self.scores.items()},
+                "measures": {k: float(v) for k, v in self.measures.items()}}
 
 
 def _block_mean(array: np.ndarray, missing: np.ndarray, factor) -> np.ndarray:
@@ -165,11 +175,67 @@ def _missing(volume) -> np.ndarray:
     return missing | ~np.isfinite(array)
 
 
+#: samples per axis of each coarse voxel (:func:`_coarse`): the copy reads
+#: this many cubed voxels per coarse voxel, whatever the image's resolution
+SUBSAMPLES = 3
+#: most coarse voxels along an axis: a larger image is searched on coarser
+#: voxels, so that the search's cost does not grow with the image
+MAX_COARSE = 96
+
+
+def _fixed_size_copy(volume, spacing: float):
+    """Means and standard deviations over coarse voxels of about ``spacing``
+    mm of a Cartesian ``volume``, each from its nearest voxels at
+    :data:`SUBSAMPLES` cubed points evenly spread over it (NaN where half
+    of them or more have no data): ``(means, deviations, coarse step in
+    index units (x, y, z), index (x, y, z) of coarse voxel 0)``.
+
+    The points are fixed in mm, not in voxels, so that an image and the
+    same image resampled finer give the same copy, and their number is
+    fixed, so that its cost does not grow with the image's resolution; a
+    grid over :data:`MAX_COARSE` voxels along an axis is made coarser."""
+    shape_xyz = np.array(volume.shape[::-1])
+    extent = shape_xyz * volume.spacing
+    spacing = max(float(spacing), float(np.max(extent)) / MAX_COARSE)
+    q = spacing / volume.spacing  # coarse step, in voxels (x, y, z)
+    n = np.floor(shape_xyz / q).astype(int)
+    if np.any(n < 4):
+        raise NoVentricleError(f"no left ventricle found: the image ({volume.shape}) is too small to hold one")
+    first = 0.5 * q - 0.5
+    m = SUBSAMPLES
+    offsets = (np.arange(m) - (m - 1) / 2) / m
+    samples = volume.sampling_view().values.reshape(volume.shape)  # NaN off the data
+    # the nearest voxel of each sub-point, along each axis (z, y, x)
+    index = [[np.clip(np.rint(first[d] + q[d] * (np.arange(n[d]) + o)), 0, shape_xyz[d] - 1).astype(np.intp)
+              for o in offsets] for d in (2, 1, 0)]
+    total = np.zeros(tuple(n[::-1]), np.float64)
+    squares = np.zeros_like(total)
+    count = np.zeros(total.shape, np.int32)
+    for kz in index[0]:
+        for jy in index[1]:
+            for ix in index[2]:
+                values = samples[np.ix_(kz, jy, ix)].astype(np.float64)
+                ok = np.isfinite(values)
+                values = np.where(ok, values, 0.0)
+                total += values
+                squares += values * values
+                count += ok
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count > m ** 3 / 2, total / count, np.nan)
+        deviation = np.sqrt(np.maximum(squares / count - mean ** 2, 0.0) * count / np.maximum(count - 1, 1))
+    return mean.astype(np.float32), deviation, q, first
+
+
 def _coarse(volume, spacing: float):
     """The image on a Cartesian grid of about ``spacing`` mm, speckle averaged:
     ``(grey levels [k, j, i] with NaN off the data, index -> world function,
     voxel size (x, y, z) mm, probe point, whether it is known, depth direction,
-    each voxel's distance from the probe in mm)``."""
+    each voxel's distance from the probe in mm, the speckle's spread)``.
+
+    The speckle's spread is the median over the coarse voxels of the grey
+    levels' standard deviation within each (most coarse voxels lie in one
+    tissue, where log-compressed speckle's spread does not depend on the
+    tissue's brightness)."""
     from .beamspace import BeamVolume
 
     if isinstance(volume, BeamVolume):
@@ -177,7 +243,12 @@ def _coarse(volume, spacing: float):
         # coarse grid's points: the beams are already that far apart laterally
         geometry = volume.geometry
         f_r = max(1, int(round(spacing / geometry.radius_sample_size)))
-        beams = _block_mean(np.asarray(volume.array, np.float32), _missing(volume), (f_r, 1, 1))
+        array, missing = np.asarray(volume.array, np.float32), _missing(volume)
+        beams = _block_mean(array, missing, (f_r, 1, 1))
+        with np.errstate(invalid="ignore"):
+            within = np.sqrt(np.maximum(_block_mean(array * array, missing, (f_r, 1, 1)) - beams ** 2, 0)
+                             * f_r / max(f_r - 1, 1))
+        speckle = float(np.nanmedian(within))
         grid = geometry.cartesian_grid(spacing)
         # the grid's axes are the probe's: its points in the probe frame are a product of three ranges
         start = (grid.origin - geometry.apex) @ geometry.rotation
@@ -196,10 +267,11 @@ def _coarse(volume, spacing: float):
         probe_known = True
     else:
         probe_known = True
-        factor = np.maximum(1, np.rint(spacing / volume.spacing[::-1])).astype(int)  # [z, y, x]
-        grey = _block_mean(np.asarray(volume.array, np.float32), _missing(volume), factor)
-        step = volume.spacing * factor[::-1]
-        origin = volume.index_to_world((factor[::-1] - 1) / 2.0)
+        grey, deviation, q, first = _fixed_size_copy(volume, spacing)
+        speckle = float(np.nanmedian(np.where(np.isfinite(grey), deviation, np.nan))) if np.isfinite(grey).any() \
+            else float("nan")
+        step = volume.spacing * q
+        origin = volume.index_to_world(first)
         direction, depth = volume.direction, volume.direction[:, 2]
         # an apical sector (data missing around it) has its probe over the shallowest data
         probe = None
@@ -222,7 +294,7 @@ def _coarse(volume, spacing: float):
         return origin + (np.asarray(index_zyx, float)[..., ::-1] * step) @ np.asarray(direction).T
 
     return (grey, to_world, np.asarray(step, float), np.asarray(probe, float), probe_known,
-            np.asarray(depth, float) / np.linalg.norm(depth), distance)
+            np.asarray(depth, float) / np.linalg.norm(depth), distance, speckle)
 
 
 def _otsu(values: np.ndarray) -> tuple[float, float, float]:
@@ -275,7 +347,7 @@ def locate(volume, *, spacing: float | None = None) -> Located:
         spacing = 4.0 if isinstance(volume, BeamVolume) else 3.0
     if not (np.isfinite(spacing) and spacing > 0):
         raise ValueError(f"spacing must be a positive number of mm, got {spacing!r}")
-    grey, to_world, step, probe, probe_known, depth, distance = _coarse(volume, spacing)
+    grey, to_world, step, probe, probe_known, depth, distance, speckle = _coarse(volume, spacing)
     data = np.isfinite(grey)
     if data.sum() < 64:
         raise NoVentricleError("no left ventricle found: the image has too little data")
@@ -307,10 +379,14 @@ def locate(volume, *, spacing: float | None = None) -> Located:
     if values.size < 64 or not np.ptp(values) > 0:
         raise NoVentricleError("no left ventricle found: the image is constant")
     threshold, separation, spread = _otsu(values)
-    if separation < SEPARATION_MIN:
+    # the classes' distance in speckle spreads: a region of one tissue (a
+    # uniform speckle volume) averaged over coarse voxels has classes far
+    # less than one apart, whatever the image's gain and compression
+    contrast = separation * spread / speckle if speckle > 0 else 0.0
+    if not contrast >= CONTRAST_MIN:
         raise NoVentricleError(f"no left ventricle found: no region of the image is darker than the rest as blood "
-                               f"is (dark and bright classes {separation:.1f} deviations apart, fewer than "
-                               f"{SEPARATION_MIN})")
+                               f"is (dark and bright classes {contrast:.2f} speckle deviations apart, fewer than "
+                               f"{CONTRAST_MIN})")
     dark = inside & (smooth < threshold)
     best, largest = None, 0.0
     # a wider opening cuts wider bridges (a ventricle joined to the atrium
@@ -330,6 +406,7 @@ def locate(volume, *, spacing: float | None = None) -> Located:
             shell = ndimage.binary_dilation(mask, iterations=2) & ~mask & inside
             wall = (smooth[shell].mean() - smooth[mask].mean()) / spread if shell.any() else 0.0
             candidate["scores"]["wall"] = float(np.clip((wall - WALL_MIN) / 1.0, 0, 1))
+            candidate["measures"]["wall"] = float(wall)
             candidate["score"] *= candidate["scores"]["wall"]
             if best is None or candidate["score"] > best["score"]:
                 best = candidate
@@ -349,14 +426,15 @@ def locate(volume, *, spacing: float | None = None) -> Located:
         apex = _endocardial_apex(volume, best["apex"], best["normal"], local)
         base = _mitral_plane(volume, best["base"], best["normal"], BASE_DISC * best["base_radius"],
                              separation * spread)
-    scores = {"separation": float(np.clip(separation - SEPARATION_MIN, 0, 1)), **best["scores"]}
+    scores = {"separation": float(np.clip((contrast - CONTRAST_MIN) / 0.5, 0, 1)), **best["scores"]}
     confidence = float(np.prod(list(scores.values())))
     # the scores that brought it down (the lowest, when each alone is fair)
     low = [name for name, value in scores.items() if value < 0.75] or [min(scores, key=scores.get)]
     reason = "; ".join(_REASONS[name] for name in low) if confidence < 0.5 else ""
     normal = (apex - base) / np.linalg.norm(apex - base)
+    measures = {"contrast": float(contrast), **best["measures"]}
     return Located(apex=apex, base=base, normal=normal, confidence=confidence, reason=reason,
-                   volume_ml=best["volume_ml"], scores=scores)
+                   volume_ml=best["volume_ml"], scores=scores, measures=measures)
 
 
 def _pool(mask: np.ndarray, to_world, probe, probe_known: bool, depth, voxel_ml, slab) -> dict | None:
@@ -376,7 +454,7 @@ def _pool(mask: np.ndarray, to_world, probe, probe_known: bool, depth, voxel_ml,
     if not probe_known:
         found.append(_along(points, centre, -axis, voxel_ml, slab))
         found = [max(found, key=lambda f: (f is not None, f is not None and f["scores"]["waist"] == 1.0,
-                                            f is not None and -f["taper"]))]
+                                            f is not None and f["elongation"]))]
     best = found[0]
     if best is None:
         return None
@@ -440,25 +518,28 @@ def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict
     base = p + axis * (base_t - (p - centre) @ axis)
     p = points[t >= apex_t - 2 * slab].mean(0)
     apex = p + axis * (apex_t - (p - centre) @ axis)
-    # an apex tapers: 10 mm from it the section is a quarter to a third of
-    # the widest (2 x 10 / length for an ellipsoid); a blunt end is a cavity
-    # cut off by haze or the sector's edge
+    # a ventricle is longer than it is wide (apex to base over the widest
+    # section's diameter); a cavity whose apex haze or the sector's edge cuts
+    # off is a squat stump
     widest = area[first:waist + 1].max()
-    taper = float(np.interp(apex_t - 10.0, heights[::-1], area[::-1]) / widest)
+    elongation = float(length / (2 * np.sqrt(widest / np.pi)))
     l_lo, l_hi = LENGTH_RANGE_MM
     scores = {
-        "waist": 0.4 if stepped or waist == last else float(np.clip(depth_of_waist / 0.2, 0, 1)),
+        "waist": 0.4 if stepped or waist == last else float(np.clip((depth_of_waist - WAIST_MIN) / WAIST_MIN, 0, 1)),
         # alone enough to take the confidence under 0.5: a pool of an unusual
         # size is as often the wrong region, or part of the right one
         "size": 1.0 if SIZE_RANGE_ML[0] <= volume_ml <= SIZE_RANGE_ML[1] else 0.4,
         "length": float(l_lo <= length <= l_hi),
-        "taper": float(np.clip((0.65 - taper) / 0.2, 0, 1)),
+        "elongation": float(np.clip((elongation - ELONGATION_MIN) / 0.2, 0, 1)),
     }
     # the cavity's radius within 10 mm of the base, on the ventricle's side
     near = area[max(first, waist - int(round(10.0 / bin_mm))):waist + 1]
     base_radius = float(np.sqrt(near.max() / np.pi))
+    measures = {"waist": float(depth_of_waist), "elongation": elongation, "length_mm": float(length),
+                "width_mm": 2 * float(np.sqrt(widest / np.pi))}
     return {"apex": apex, "base": base, "normal": axis, "volume_ml": volume_ml, "scores": scores,
-            "base_radius": base_radius, "middle": points[lv].mean(0), "taper": taper}
+            "base_radius": base_radius, "middle": points[lv].mean(0), "elongation": elongation,
+            "measures": measures}
 
 
 def _across(axis) -> tuple[np.ndarray, np.ndarray]:
@@ -589,7 +670,7 @@ def _along_ringed_sections(volume, smooth, inside, threshold: float, spread: flo
     # a half-ellipsoid of the widest ringed section's radius
     volume_ml = 2.0 / 3.0 * np.pi * base_radius ** 2 * length / 1000.0
     return {"apex": apex, "base": base, "volume_ml": float(volume_ml), "refined": True,
-            "scores": {"pool": JOINED_POOL}, "score": 1.0}
+            "scores": {"pool": JOINED_POOL}, "score": 1.0, "measures": {"waist": float(dip)}}
 
 
 def _cavity_ends(volume, start, axis, held, rise: float, reach: float) -> tuple[float | None, float | None]:
