@@ -3,13 +3,17 @@
 An apical acquisition looks down the ventricle from the probe: the cavity is
 a dark (blood) pool whose apex is nearest the probe, closed at the far end by
 the mitral annulus, beyond which the atrium is dark again.  :func:`locate`
-finds that pool on a coarse copy of the image (about 3 mm voxels, which also
-averages the speckle out):
+finds that pool on a coarse copy of the image (3 mm voxels, each the mean
+of 27 points fixed in mm, which averages the speckle out and costs the same
+whatever the image's resolution):
 
 1. blood is what is darker than Otsu's threshold of the smoothed grey levels
    inside the sector, once each shell of depth from the probe is brought to
    one level of its brighter quartile (time-gain compensation leaves the
-   grey level drifting with depth);
+   grey level drifting with depth); an image whose two classes lie less
+   than :data:`CONTRAST_MIN` of the speckle's own spread apart (the grey
+   levels' standard deviation within a coarse voxel: log-compressed
+   speckle's does not depend on the tissue) has no blood pool;
 2. its connected pools (after an opening of one coarse voxel, which cuts thin
    bridges) are the candidates; the left ventricle is the one of plausible
    size (the part before its waist, :data:`VOLUME_RANGE_ML`) scored by its
@@ -31,7 +35,11 @@ averages the speckle out):
    is at most :data:`JOINED_POOL`.
 
 ``confidence`` combines how well blood and tissue separate, how clear the
-waist is and how plausible the size and length are.
+waist is, how plausible the size and length are, how much brighter the
+pool's wall is than its blood and how elongated the cavity is (a ventricle
+is longer than wide; a cavity whose apex haze hides is a stump).  Under
+:data:`CHECK_CONFIDENCE` clicks are not checked against the location, and
+a result says so.
 """
 
 from __future__ import annotations
@@ -52,10 +60,11 @@ VOLUME_RANGE_ML = (15.0, 450.0)
 #: coarse pool volumes (mL) of the usual ventricles, 40-350 mL: the pool
 #: measures 0.8-0.9 of the cavity (the opening and the blurred wall)
 SIZE_RANGE_ML = (15.0, 380.0)
-#: the least ratio of a ventricle's length (apex to base) to its widest
-#: section's diameter: 1.4-2.8 on the phantom sweep and the devset (a
-#: dilated, spherical ventricle 1.2-1.4); a cavity under haze 1.0
-ELONGATION_MIN = 1.1
+#: the ratio of a cavity's length (apex to base) to its widest section's
+#: diameter under which it is no ventricle's (it scores fully from 0.2
+#: more): 1.42-2.84 on two phantom sweeps (seeds 29, 30), 1.52-2.29 on the
+#: devset; a cavity whose apex haze hides (``clutter_strong``) 1.01, 1.29
+ELONGATION_MIN = 1.2
 #: the least narrowing at the mitral orifice (1 - its section over the
 #: widest on either side) that is a waist: twice it scores fully (0.22-0.87
 #: on the phantom sweep and the devset; an atrium taken in, 0.13)
@@ -101,6 +110,10 @@ BASE_REACH_MM = 30.0
 #: (CETUS Patient 7's span 27 mm: the PCA's axis put its apex 11 mm off)
 AXIS_SPAN_MM = 40.0
 
+#: the least confidence of a location that clicks are checked against (and
+#: that a segmentation from it is not flagged for)
+CHECK_CONFIDENCE = 0.5
+
 #: what a low score means, for ``Located.reason``
 _REASONS = {
     "separation": "blood and tissue barely differ in grey level",
@@ -138,9 +151,15 @@ class Located:
     scores : dict
         ``separation`` (blood against tissue), ``waist`` (how clearly the
         pool narrows at the base), ``size`` and ``length`` (plausibility),
-        ``wall`` and ``taper``, each in [0, 1]; or, for a cavity found along
-        its ringed sections, ``separation`` and ``pool``
+        ``wall`` and ``elongation``, each in [0, 1]; or, for a cavity found
+        along its ringed sections, ``separation`` and ``pool``
         (:data:`JOINED_POOL`).
+    measures : dict
+        What the scores are read from: ``contrast`` (the classes' distance
+        in speckle spreads), ``waist`` (the orifice's dip in section),
+        ``elongation`` (length over the widest diameter), ``length_mm``,
+        ``width_mm`` and ``wall`` (the wall over the blood, in the classes'
+        pooled spreads), as far as known.
     """
 
     apex: np.ndarray
@@ -325,8 +344,9 @@ def locate(volume, *, spacing: float | None = None) -> Located:
         Apical acquisition (probe at the sector's apex, blood dark).
     spacing : float, optional
         Voxel size (mm) of the coarse copy the search runs on.  Default 3 mm
-        on a Cartesian volume (rounded to a whole number of its voxels: a
-        2 mm image is searched at 4 mm) and 4 mm on a beam-space one, whose
+        on a Cartesian volume (coarser when the image spans more than
+        :data:`MAX_COARSE` such voxels along an axis) and 4 mm on a
+        beam-space one, whose
         copy is interpolated over the whole box around the sector (three
         times the sector's volume): 3 mm there took twice the time for the
         same apex and base.
@@ -430,7 +450,7 @@ def locate(volume, *, spacing: float | None = None) -> Located:
     confidence = float(np.prod(list(scores.values())))
     # the scores that brought it down (the lowest, when each alone is fair)
     low = [name for name, value in scores.items() if value < 0.75] or [min(scores, key=scores.get)]
-    reason = "; ".join(_REASONS[name] for name in low) if confidence < 0.5 else ""
+    reason = "; ".join(_REASONS[name] for name in low) if confidence < CHECK_CONFIDENCE else ""
     normal = (apex - base) / np.linalg.norm(apex - base)
     measures = {"contrast": float(contrast), **best["measures"]}
     return Located(apex=apex, base=base, normal=normal, confidence=confidence, reason=reason,
@@ -827,7 +847,7 @@ def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) ->
     ----------
     located : Located
         What :func:`locate` found; nothing is said when its confidence is
-        under 0.5.
+        under :data:`CHECK_CONFIDENCE`.
     apex, base : (3,) world mm
         The points given.
     tolerance_mm : float
@@ -840,7 +860,7 @@ def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) ->
         One warning per point that looks wrong, naming where the located one
         is; empty when the points agree (or ``located`` is not confident).
     """
-    if not located.confidence >= 0.5:
+    if not located.confidence >= CHECK_CONFIDENCE:
         return []
     apex, base = np.asarray(apex, float), np.asarray(base, float)
     here = lambda p: "(" + ", ".join(f"{x:.1f}" for x in p) + ")"  # noqa: E731
@@ -904,14 +924,24 @@ def initialise(volume, apex, base, *, annulus=None, init=None, check: bool = Tru
 def annotate(result, initialisation: dict, located: Located | None) -> None:
     """Record ``initialisation`` on ``result`` and add to its quality report
     what the location says: a low confidence when the points were located,
-    the click checks when they were given."""
+    the click checks when they were given, and that they could not be
+    checked when the ventricle was not found or not with confidence
+    (:data:`CHECK_CONFIDENCE`)."""
     result.initialisation = initialisation
-    if located is None or result.quality is None:
+    if result.quality is None:
         return
+    checked = initialisation.get("located")
     if initialisation["method"] == "located":
-        warnings = [] if located.confidence >= 0.5 else [
+        warnings = [] if located is None or located.confidence >= CHECK_CONFIDENCE else [
             f"the ventricle was found with low confidence ({located.confidence:.2f}: {located.reason}); "
             "give the apex and base"]
+    elif checked is None:  # not asked to check
+        warnings = []
+    elif located is None:
+        warnings = [f"the clicked points could not be checked: {checked}"]
+    elif not located.confidence >= CHECK_CONFIDENCE:
+        warnings = [f"the clicked points could not be checked: the ventricle was found with low confidence "
+                    f"({located.confidence:.2f}: {located.reason})"]
     else:
         base = result.surface.pose.origin if initialisation["base"] is None else initialisation["base"]
         warnings = check_points(located, initialisation["apex"], base)
