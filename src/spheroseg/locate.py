@@ -222,26 +222,37 @@ def _fixed_size_copy(volume, spacing: float):
         raise NoVentricleError(f"no left ventricle found: the image ({volume.shape}) is too small to hold one")
     first = 0.5 * q - 0.5
     m = SUBSAMPLES
-    offsets = (np.arange(m) - (m - 1) / 2) / m
     samples = volume.sampling_view().values.reshape(volume.shape)  # NaN off the data
-    # the nearest voxel of each sub-point, along each axis (z, y, x)
-    index = [[np.clip(np.rint(first[d] + q[d] * (np.arange(n[d]) + o)), 0, shape_xyz[d] - 1).astype(np.intp)
-              for o in offsets] for d in (2, 1, 0)]
-    total = np.zeros(tuple(n[::-1]), np.float64)
-    squares = np.zeros_like(total)
-    count = np.zeros(total.shape, np.int32)
-    for kz in index[0]:
-        for jy in index[1]:
-            for ix in index[2]:
-                values = samples[np.ix_(kz, jy, ix)].astype(np.float64)
-                ok = np.isfinite(values)
-                values = np.where(ok, values, 0.0)
-                total += values
-                squares += values * values
-                count += ok
+
+    def gather(spread):
+        """Count, sum and sum of squares of the nearest voxels at ``m``
+        points a side, ``spread`` voxels apart (x, y, z), about each
+        coarse voxel's centre."""
+        offsets = [(np.arange(m) - (m - 1) / 2) * spread[d] for d in range(3)]
+        index = [[np.clip(np.rint(first[d] + q[d] * np.arange(n[d]) + o), 0, shape_xyz[d] - 1).astype(np.intp)
+                  for o in offsets[d]] for d in (2, 1, 0)]  # along z, y, x
+        total = np.zeros(tuple(n[::-1]), np.float64)
+        squares = np.zeros_like(total)
+        count = np.zeros(total.shape, np.int32)
+        for kz in index[0]:
+            for jy in index[1]:
+                for ix in index[2]:
+                    values = samples[np.ix_(kz, jy, ix)].astype(np.float64)
+                    ok = np.isfinite(values)
+                    values = np.where(ok, values, 0.0)
+                    total += values
+                    squares += values * values
+                    count += ok
+        return count, total, squares
+
+    count, total, squares = gather(q / m)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(count > m ** 3 / 2, total / count, np.nan)
-        deviation = np.sqrt(np.maximum(squares / count - mean ** 2, 0.0) * count / np.maximum(count - 1, 1))
+    # the speckle's spread from distinct voxels: a voxel apart at least
+    if np.any(q / m < 1):
+        count, total, squares = gather(np.maximum(q / m, 1.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        deviation = np.sqrt(np.maximum(squares - total ** 2 / count, 0.0) / np.maximum(count - 1, 1))
     return mean.astype(np.float32), deviation, q, first
 
 
@@ -474,7 +485,7 @@ def _pool(mask: np.ndarray, to_world, probe, probe_known: bool, depth, voxel_ml,
     if not probe_known:
         found.append(_along(points, centre, -axis, voxel_ml, slab))
         found = [max(found, key=lambda f: (f is not None, f is not None and f["scores"]["waist"] == 1.0,
-                                            f is not None and f["elongation"]))]
+                                            f is not None and -f["taper"]))]
     best = found[0]
     if best is None:
         return None
@@ -543,6 +554,9 @@ def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict
     # off is a squat stump
     widest = area[first:waist + 1].max()
     elongation = float(length / (2 * np.sqrt(widest / np.pi)))
+    # an apex tapers (10 mm from it the section is a quarter to a third of
+    # the widest on an ellipsoid): the end of a pool with no probe known
+    taper = float(np.interp(apex_t - 10.0, heights[::-1], area[::-1]) / widest)
     l_lo, l_hi = LENGTH_RANGE_MM
     scores = {
         "waist": 0.4 if stepped or waist == last else float(np.clip((depth_of_waist - WAIST_MIN) / WAIST_MIN, 0, 1)),
@@ -558,7 +572,7 @@ def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict
     measures = {"waist": float(depth_of_waist), "elongation": elongation, "length_mm": float(length),
                 "width_mm": 2 * float(np.sqrt(widest / np.pi))}
     return {"apex": apex, "base": base, "normal": axis, "volume_ml": volume_ml, "scores": scores,
-            "base_radius": base_radius, "middle": points[lv].mean(0), "elongation": elongation,
+            "base_radius": base_radius, "middle": points[lv].mean(0), "taper": taper,
             "measures": measures}
 
 
