@@ -60,10 +60,10 @@ VOLUME_RANGE_ML = (15.0, 450.0)
 #: coarse pool volumes (mL) of the usual ventricles, 40-350 mL: the pool
 #: measures 0.8-0.9 of the cavity (the opening and the blurred wall)
 SIZE_RANGE_ML = (15.0, 380.0)
-#: the ratio of a cavity's length (apex to base) to its widest section's
-#: diameter under which it is no ventricle's (it scores fully from 0.2
-#: more): 1.42-2.84 on two phantom sweeps (seeds 29, 30), 1.52-2.29 on the
-#: devset; a cavity whose apex haze hides (``clutter_strong``) 1.01, 1.29
+#: the ratio of a cavity's length (apex to base) to its width under which
+#: it is no ventricle's (it scores fully from 0.2 more): 1.43-2.93 on two
+#: phantom sweeps (seeds 29, 30), 1.49-2.33 on the devset; a cavity whose
+#: apex haze hides (``clutter_strong``) 1.00 and 1.25
 ELONGATION_MIN = 1.2
 #: the least narrowing at the mitral orifice (1 - its section over the
 #: widest on either side) that is a waist: twice it scores fully (0.22-0.87
@@ -87,6 +87,11 @@ DEPTH_SHELL_MM = 6.0
 #: of the cavity's coarse radius near its base: 0.5 left the disc inside
 #: the orifice, 1.0 reached the wall (0.9: base 0.6-2.0 mm off on the sweep)
 BASE_DISC = 0.9
+
+#: a pool whose second principal spread is over this fraction of its first
+#: has no one long axis: the direction in their plane nearest the sector's
+#: centre line is taken
+ROUND_POOL = 0.9
 
 #: an apical view looks down the long axis: at most this angle (degrees)
 #: between the long axis and the sector's centre line (25 is a tilted view)
@@ -477,8 +482,14 @@ def _pool(mask: np.ndarray, to_world, probe, probe_known: bool, depth, voxel_ml,
     times its atrium)."""
     points = to_world(np.argwhere(mask))
     centre = points.mean(0)
-    _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
-    axis = vt[0] if vt[0] @ (probe - centre) >= 0 else -vt[0]
+    _, spreads, vt = np.linalg.svd(points - centre, full_matrices=False)
+    axis = vt[0]
+    if probe_known and spreads[1] > ROUND_POOL * spreads[0]:
+        # as long one way as another (a ventricle joined to a neighbour
+        # across): its long axis is the one of them nearest the sector's
+        axis = (depth @ vt[0]) * vt[0] + (depth @ vt[1]) * vt[1]
+        axis /= np.linalg.norm(axis)
+    axis = axis if axis @ (probe - centre) >= 0 else -axis
     if probe_known and abs(axis @ depth) < np.cos(np.radians(AXIS_MAX_DEG)):
         return None  # not an apical view of this pool
     found = [_along(points, centre, axis, voxel_ml, slab)]
@@ -553,7 +564,12 @@ def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict
     # section's diameter); a cavity whose apex haze or the sector's edge cuts
     # off is a squat stump
     widest = area[first:waist + 1].max()
-    elongation = float(length / (2 * np.sqrt(widest / np.pi)))
+    # its width from its narrower spread across the axis (a disc's diameter
+    # is sqrt(20) of it), which a neighbour joined on one side leaves alone
+    across = points[lv] - points[lv].mean(0)
+    across = across - np.outer(across @ axis, axis)
+    narrow = float(np.sqrt(max(np.linalg.eigvalsh(across.T @ across / max(len(across), 1))[1], 0.0)))
+    elongation = float(length / (np.sqrt(20.0) * narrow)) if narrow > 0 else 0.0
     # an apex tapers (10 mm from it the section is a quarter to a third of
     # the widest on an ellipsoid): the end of a pool with no probe known
     taper = float(np.interp(apex_t - 10.0, heights[::-1], area[::-1]) / widest)
@@ -570,7 +586,7 @@ def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict
     near = area[max(first, waist - int(round(10.0 / bin_mm))):waist + 1]
     base_radius = float(np.sqrt(near.max() / np.pi))
     measures = {"waist": float(depth_of_waist), "elongation": elongation, "length_mm": float(length),
-                "width_mm": 2 * float(np.sqrt(widest / np.pi))}
+                "width_mm": float(np.sqrt(20.0) * narrow)}
     return {"apex": apex, "base": base, "normal": axis, "volume_ml": volume_ml, "scores": scores,
             "base_radius": base_radius, "middle": points[lv].mean(0), "taper": taper,
             "measures": measures}
