@@ -1351,7 +1351,8 @@ def _located_summary(rows) -> dict:
             "good_poor": f"{sum(r['poor'] for r in good)} of {len(good)}",
             "bad": f"{sum(r['dice'] < 0.85 and not r['poor'] for r in found)}",
             "volume": f"{np.median(v):+.1f} %", "time": f"{1000 * np.median(t):.0f} ms ({1000 * t.max():.0f})",
-            "clicks": (f"{sum(bool(r['clicks_flagged']) for r in found if 'clicks_flagged' in r)}"
+            "clicks": (f"{sum(bool(r['clicks_flagged']) and not r['clicks_flagged'][0].startswith('not checked') for r in found if 'clicks_flagged' in r)}"
+                       f" ({sum(bool(r.get('clicks_flagged')) and r['clicks_flagged'][0].startswith('not checked') for r in found)} not checked)"
                        if any("clicks_flagged" in r for r in found) else "")}
 
 
@@ -1367,7 +1368,7 @@ def _locate(data) -> list[str]:
               ("good_poor", "Dice >= 0.90 flagged poor", "1 in 10"),
               ("bad", "Dice < 0.85 not flagged poor", "0"),
               ("volume", "volume error, median", "within 5 %"), ("time", "locate time, median (worst)", "300 ms"),
-              ("clicks", "user-like clicks flagged wrong", "0")]
+              ("clicks", "user-like clicks flagged wrong", "0 (the not checked said so)")]
     out = ["## Finding the ventricle without clicks (issues 29, 48)", "",
            f"Command: `{data['command']}`. The phantom sweep: seeded random phantoms (2 mm voxels): tilt 0-25 "
            "degrees, long axis 60-100 mm, radius 0.26-0.38 of it, ED or ES (radius 0.7 as large, wall 13.5 mm), "

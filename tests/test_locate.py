@@ -264,6 +264,13 @@ def _finer(volume):
 def test_the_click_check_is_the_same_on_the_volume_resampled_2x_finer(p157):
     finer = _finer(p157.volume)
     assert finer.shape == tuple(2 * n for n in p157.volume.shape)
+    # the coarse copy reads the same points in mm: the same grey levels on the same grid
+    copy = importlib.import_module("spheroseg.locate")._fixed_size_copy
+    (mean, _, _, first), (fine_mean, _, _, fine_first) = copy(p157.volume, 3.0), copy(finer, 3.0)
+    assert mean.shape == fine_mean.shape
+    assert np.allclose(p157.volume.index_to_world(first), finer.index_to_world(fine_first))
+    both = np.isfinite(mean) & np.isfinite(fine_mean)
+    assert both.mean() > 0.3 and np.median(np.abs(mean[both] - fine_mean[both])) < 1e-3
     coarse_found, fine_found = locate(p157.volume), locate(finer)
     assert np.linalg.norm(coarse_found.apex - fine_found.apex) < 2.0
     assert np.linalg.norm(coarse_found.base - fine_found.base) < 2.0

@@ -227,28 +227,39 @@ def _fixed_size_copy(volume, spacing: float):
         raise NoVentricleError(f"no left ventricle found: the image ({volume.shape}) is too small to hold one")
     first = 0.5 * q - 0.5
     m = SUBSAMPLES
-    samples = volume.sampling_view().values.reshape(volume.shape)  # NaN off the data
+    samples = volume.sampling_view().values  # flat, NaN off the data
+
+    strides = (volume.shape[1] * volume.shape[2], volume.shape[2], 1)
+    shape = tuple(n[::-1])
+
+    def nearest(spread, k):
+        """Flat indices of the nearest voxels at ``k`` points a side,
+        ``spread`` voxels apart (x, y, z), about each coarse voxel's
+        centre, along z, y and x: ``(k, n)`` each."""
+        # (rounded half up, not to even: a voxel split in two halves keeps its points)
+        return [np.clip(np.floor(first[d] + (np.arange(k)[:, None] - (k - 1) / 2) * spread[d]
+                                 + q[d] * np.arange(n[d])[None, :] + 0.5), 0, shape_xyz[d] - 1).astype(np.intp) * st
+                for d, st in zip((2, 1, 0), strides)]
+
+    # the coarse voxels near the data (their centres' voxels, one coarse voxel around): the rest are empty
+    kz, jy, ix = nearest(q, 1)
+    near = np.isfinite(samples.take(kz[0][:, None, None] + jy[0][None, :, None] + ix[0][None, None, :]))
+    where = np.nonzero(ndimage.binary_dilation(near, iterations=1))
 
     def gather(spread):
         """Count, sum and sum of squares of the nearest voxels at ``m``
-        points a side, ``spread`` voxels apart (x, y, z), about each
-        coarse voxel's centre."""
-        offsets = [(np.arange(m) - (m - 1) / 2) * spread[d] for d in range(3)]
-        index = [[np.clip(np.rint(first[d] + q[d] * np.arange(n[d]) + o), 0, shape_xyz[d] - 1).astype(np.intp)
-                  for o in offsets[d]] for d in (2, 1, 0)]  # along z, y, x
-        total = np.zeros(tuple(n[::-1]), np.float64)
-        squares = np.zeros_like(total)
-        count = np.zeros(total.shape, np.int32)
-        for kz in index[0]:
-            for jy in index[1]:
-                for ix in index[2]:
-                    values = samples[np.ix_(kz, jy, ix)].astype(np.float64)
-                    ok = np.isfinite(values)
-                    values = np.where(ok, values, 0.0)
-                    total += values
-                    squares += values * values
-                    count += ok
-        return count, total, squares
+        points a side, ``spread`` voxels apart, over each coarse voxel near
+        the data: one read of the ``m**3`` points of each."""
+        kz, jy, ix = nearest(spread, m)
+        kz, jy, ix = kz[:, where[0]], jy[:, where[1]], ix[:, where[2]]
+        # (sub-point, coarse voxel): each sub-point's values contiguous
+        values = samples.take((kz[:, None, None] + jy[None, :, None] + ix[None, None, :]).reshape(m ** 3, -1))
+        ok = np.isfinite(values)
+        values = np.where(ok, values, np.float32(0))
+        out = [np.zeros(shape, np.int64), np.zeros(shape), np.zeros(shape)]
+        out[0][where], out[1][where] = ok.sum(0), values.sum(0, dtype=np.float64)
+        out[2][where] = np.einsum("ij,ij->j", values, values, dtype=np.float64)
+        return out
 
     count, total, squares = gather(q / m)
     with np.errstate(invalid="ignore", divide="ignore"):
