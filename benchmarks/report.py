@@ -1470,7 +1470,7 @@ def _locate(data) -> list[str]:
             "either side, crosses half-way from the blood's level to its peak (the annulus, the closed leaflets or "
             "the narrower orifice); the apex where the full-resolution axial profile meets the wall. Haze over the "
             "apex (`clutter_strong`) starts the pool 29-38 mm deep: not fixed, but the stump it leaves (its length "
-            "under 1.4 times its widest diameter; scored from 1.2) takes the confidence under 0.5. The confidence is "
+            "under 1.35 times its width; scored from 1.25) takes the confidence under 0.5. The confidence is "
             "the product of the scores (contrast, waist, size, length, wall, elongation); under 0.5 a location is "
             "not trusted: a segmentation from it is flagged, and clicks are not checked against it, which the "
             "result says (`the clicked points could not be checked: ...`) instead of passing them.", "",
@@ -1599,7 +1599,10 @@ def _locate(data) -> list[str]:
          "neighbour across); haze 1.01 (seed 29) and 1.29 (seed 30: apex 36 mm off at confidence 0.93)", "no"),
         ("(48) ... the width from the pool's narrower spread across the axis (a disc's diameter is sqrt(20) of "
          "it), scored from 1.2 to 1.4", "right: 1.43-2.93 (sweeps), 1.49-2.33 (devset); haze 1.00 and 1.25 "
-         "(scores 0 and 0.24)", "kept"),
+         "(scores 0 and 0.24), but `clutter_strong` seed 0 at 1.5 mm 1.30 (confidence 0.51, apex 32 mm off: "
+         "its right clicks called wrong)", "no"),
+        ("(48) ... scored from 1.25 to 1.45 (a half at 1.35)", "haze 0.99-1.30 (seeds 0-5 at 1.5 and 2 mm, and "
+         "the sweeps'): confidence 0-0.25; every right location still trusted", "kept"),
         ("(48) a pool as long one way as another across (second principal spread over 0.9 of the first): the "
          "direction in their plane nearest the sector's centre line as its axis, not the first", "devset "
          "`lowcontrast` (0.97; its axis 57 degrees off the sector's, refused as no apical view, then found along "
