@@ -85,8 +85,9 @@ def _without_points(row: dict, volume, apex, base, truth_mask, truth_ml, *, clic
     row.update(apex_mm=float(np.linalg.norm(found.apex - apex)), base_mm=float(np.linalg.norm(found.base - base)),
                confidence=found.confidence, reason=found.reason, scores=found.scores, measures=found.measures)
     result = segment(volume)
-    row.update(dice=float(dice(result.mask(volume), truth_mask)), volume_error_pct=100 * (result.volume_ml / truth_ml - 1),
-               poor=result.quality["poor"], warnings=result.quality["warnings"])
+    row.update(dice=float(dice(result.mask(volume), truth_mask)),
+               volume_error_pct=100 * (result.volume_ml / truth_ml - 1), poor=result.quality["poor"],
+               warnings=result.quality["warnings"])
     if clicks is not None:
         from spheroseg.locate import check_points
 
@@ -121,7 +122,8 @@ def devset(directory: Path = DEVSET, *, every: int = 3):
                         folder / case["files"]["endocardium"], case))
         else:
             for frame in case["frames"][::every]:
-                phase = {case["ed_frame"]: "ED", case["es_frame"]: "ES"}.get(frame["frame"], f"{frame['cycle_fraction']:.2f}")
+                phase = {case["ed_frame"]: "ED", case["es_frame"]: "ES"}.get(frame["frame"],
+                                                                             f"{frame['cycle_fraction']:.2f}")
                 out.append((f"{folder.name}[{frame['frame']}]", case["family"], phase, folder / frame["files"]["image"],
                             folder / frame["files"]["endocardium"], frame))
     return out

@@ -1343,17 +1343,19 @@ def _located_summary(rows) -> dict:
     d, v = np.array([r["dice"] for r in found]), np.array([r["volume_error_pct"] for r in found])
     good = [r for r in found if r["dice"] >= 0.90]
     t = np.array([r["locate_s"] for r in found])
+    flags = [r["clicks_flagged"] for r in found if "clicks_flagged" in r]
     return {"located": f"{len(found)} / {len(rows) - len(found)}",
-            "apex": f"{np.median(apex):.1f} mm ({apex.max():.1f})", "base": f"{np.median(base):.1f} mm ({base.max():.1f})",
+            "apex": f"{np.median(apex):.1f} mm ({apex.max():.1f})",
+            "base": f"{np.median(base):.1f} mm ({base.max():.1f})",
             "trusted": f"{worst:.1f} mm ({len(confident)} of {len(found)})",
             "untrusted": f"{sum(r['confidence'] < 0.5 and max(r['apex_mm'], r['base_mm']) < 6.0 for r in found)}",
             "dice": f"{np.median(d):.3f} ({d.min():.3f})",
             "good_poor": f"{sum(r['poor'] for r in good)} of {len(good)}",
             "bad": f"{sum(r['dice'] < 0.85 and not r['poor'] for r in found)}",
             "volume": f"{np.median(v):+.1f} %", "time": f"{1000 * np.median(t):.0f} ms ({1000 * t.max():.0f})",
-            "clicks": (f"{sum(bool(r['clicks_flagged']) and not r['clicks_flagged'][0].startswith('not checked') for r in found if 'clicks_flagged' in r)}"
-                       f" ({sum(bool(r.get('clicks_flagged')) and r['clicks_flagged'][0].startswith('not checked') for r in found)} not checked)"
-                       if any("clicks_flagged" in r for r in found) else "")}
+            "clicks": (f"{sum(f and not f[0].startswith('not checked') for f in flags)} "
+                       f"({sum(bool(f) and f[0].startswith('not checked') for f in flags)} not checked)"
+                       if flags else "")}
 
 
 def _locate(data) -> list[str]:
