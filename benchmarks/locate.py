@@ -41,6 +41,7 @@ from spheroseg.surfaces.metrics import dice  # noqa: E402
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom, tilted_mitral_scene  # noqa: E402
 
 CETUS = Path(__file__).resolve().parents[2] / "shared" / "data" / "cetus"
+DEVSET = Path(__file__).resolve().parents[2] / "shared" / "data" / "devset"
 
 
 def _timed(function, *args):
@@ -71,26 +72,79 @@ def scenes(n: int, seed: int, *, every: int = 1):
                                 radius=radius, wall=wall, formation=FORMATIONS[name])
 
 
+def _without_points(row: dict, volume, apex, base, truth_mask, truth_ml, *, clicks=None) -> dict:
+    """``row`` with ``locate(volume)`` against the true ``apex`` and
+    ``base`` (time, errors, confidence, scores) and ``segment(volume)`` with
+    no points against the truth (Dice, volume error, whether flagged poor),
+    and, given ``clicks`` (apex, base), what checking them said; printed."""
+    try:
+        row["locate_s"], found = _timed(locate, volume)
+    except NoVentricleError as error:
+        row.update(refused=str(error))
+        print(row, flush=True)
+        return row
+    row.update(apex_mm=float(np.linalg.norm(found.apex - apex)), base_mm=float(np.linalg.norm(found.base - base)),
+               confidence=found.confidence, reason=found.reason, scores=found.scores, measures=found.measures)
+    result = segment(volume)
+    row.update(dice=float(dice(result.mask(volume), truth_mask)),
+               volume_error_pct=100 * (result.volume_ml / truth_ml - 1), poor=result.quality["poor"],
+               warnings=result.quality["warnings"])
+    if clicks is not None:
+        from spheroseg.locate import check_points
+
+        row["clicks_flagged"] = (check_points(found, *clicks) if found.confidence >= 0.5 else
+                                 ["not checked: low confidence"])
+    print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()
+           if k not in ("scores", "measures", "warnings")}, flush=True)
+    return row
+
+
 def phantom_cases(n: int, seed: int = 29) -> list[dict]:
     rows = []
     for name, phase, scene in scenes(n, seed):
         ph = make_phantom(**scene)
         row = {"formation": name, "phase": phase, "tilt_deg": scene["tilt_deg"], "truth_ml": ph.truth_volume_ml}
-        try:
-            row["locate_s"], found = _timed(locate, ph.volume)
-        except NoVentricleError as error:
-            row.update(refused=str(error))
-            rows.append(row)
-            print(row, flush=True)
-            continue
-        row.update(apex_mm=float(np.linalg.norm(found.apex - ph.apex)),
-                   base_mm=float(np.linalg.norm(found.base - ph.base)), confidence=found.confidence,
-                   reason=found.reason)
-        result = segment(ph.volume)
-        row.update(dice=float(dice(result.mask(ph.volume), ph.truth_mask)),
-                   volume_error_pct=100 * (result.volume_ml / ph.truth_volume_ml - 1), poor=result.quality["poor"])
-        rows.append(row)
-        print({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+        rows.append(_without_points(row, ph.volume, ph.apex, ph.base, ph.truth_mask, ph.truth_volume_ml))
+    return rows
+
+
+def devset(directory: Path = DEVSET, *, every: int = 3):
+    """The development set's volumes: ``(name, family, phase, image path,
+    cavity truth path, case dict of the volume (true_landmarks, clicks,
+    true_volume_ml))``: each single volume, and every ``every``-th frame of
+    the sequence (None when ``directory`` lacks it)."""
+    if not (directory / "index.json").is_file():
+        return None
+    out = []
+    for folder in sorted(p for p in directory.iterdir() if (p / "case.json").is_file()):
+        case = json.loads((folder / "case.json").read_text())
+        if case["kind"] == "single":
+            out.append((folder.name, case["family"], case["phase"], folder / case["files"]["image"],
+                        folder / case["files"]["endocardium"], case))
+        else:
+            for frame in case["frames"][::every]:
+                phase = {case["ed_frame"]: "ED", case["es_frame"]: "ES"}.get(frame["frame"],
+                                                                             f"{frame['cycle_fraction']:.2f}")
+                out.append((f"{folder.name}[{frame['frame']}]", case["family"], phase, folder / frame["files"]["image"],
+                            folder / frame["files"]["endocardium"], frame))
+    return out
+
+
+def devset_cases() -> list[dict] | None:
+    from spheroseg.io import load
+
+    cases = devset()
+    if cases is None:
+        return None
+    rows = []
+    for name, family, phase, image, endocardium, case in cases:
+        volume = load(image)
+        truth = np.asarray(load(endocardium, no_data_value=None).array) > 0.5
+        landmarks, clicks = case["true_landmarks"], case["clicks"]
+        row = {"case": name, "family": family, "phase": phase, "truth_ml": case["true_volume_ml"]}
+        rows.append(_without_points(row, volume, np.array(landmarks["apex_mm"]), np.array(landmarks["base_mm"]), truth,
+                                    case["true_volume_ml"],
+                                    clicks=(np.array(clicks["apex_mm"]), np.array(clicks["base_mm"]))))
     return rows
 
 
@@ -197,8 +251,9 @@ def main() -> None:
     args = ap.parse_args()
     segment(make_phantom(seed=0, spacing=3.0).volume)  # compile the kernels outside the timings
     data = {"command": f"python benchmarks/locate.py --cases {args.cases} --beam-cases {args.beam_cases}",
-            "machine": machine(), "cases": phantom_cases(args.cases), "mitral": mitral_cases(),
-            "beam": beam_cases(args.beam_cases), "ringed": ringed_cases(args.cases), "cetus_patient7": cetus()}
+            "machine": machine(), "cases": phantom_cases(args.cases), "devset": devset_cases(),
+            "mitral": mitral_cases(), "beam": beam_cases(args.beam_cases), "ringed": ringed_cases(args.cases),
+            "cetus_patient7": cetus()}
     write_json("locate.json", data)
     print("wrote", write_markdown())
 

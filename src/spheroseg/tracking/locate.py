@@ -3,13 +3,17 @@
 An apical acquisition looks down the ventricle from the probe: the cavity is
 a dark (blood) pool whose apex is nearest the probe, closed at the far end by
 the mitral annulus, beyond which the atrium is dark again.  :func:`locate`
-finds that pool on a coarse copy of the image (about 3 mm voxels, which also
-averages the speckle out):
+finds that pool on a coarse copy of the image (3 mm voxels, each the mean
+of 27 points fixed in mm, which averages the speckle out and costs the same
+whatever the image's resolution):
 
 1. blood is what is darker than Otsu's threshold of the smoothed grey levels
    inside the sector, once each shell of depth from the probe is brought to
    one level of its brighter quartile (time-gain compensation leaves the
-   grey level drifting with depth);
+   grey level drifting with depth); an image whose two classes lie less
+   than :data:`CONTRAST_MIN` of the speckle's own spread apart (the grey
+   levels' standard deviation within a coarse voxel: log-compressed
+   speckle's does not depend on the tissue) has no blood pool;
 2. its connected pools (after an opening of one coarse voxel, which cuts thin
    bridges) are the candidates; the left ventricle is the one of plausible
    size (the part before its waist, :data:`VOLUME_RANGE_ML`) scored by its
@@ -31,7 +35,11 @@ averages the speckle out):
    is at most :data:`JOINED_POOL`.
 
 ``confidence`` combines how well blood and tissue separate, how clear the
-waist is and how plausible the size and length are.
+waist is, how plausible the size and length are, how much brighter the
+pool's wall is than its blood and how elongated the cavity is (a ventricle
+is longer than wide; a cavity whose apex haze hides is a stump).  Under
+:data:`CHECK_CONFIDENCE` clicks are not checked against the location, and
+a result says so.
 """
 
 from __future__ import annotations
@@ -48,17 +56,27 @@ __all__ = ["Located", "NoVentricleError", "locate", "check_points", "initialise"
            "JOINED_POOL"]
 
 #: cavity volumes (mL, the part before the waist) a left ventricle can have
-VOLUME_RANGE_ML = (20.0, 450.0)
+VOLUME_RANGE_ML = (15.0, 450.0)
 #: coarse pool volumes (mL) of the usual ventricles, 40-350 mL: the pool
 #: measures 0.8-0.9 of the cavity (the opening and the blurred wall)
-SIZE_RANGE_ML = (30.0, 380.0)
+SIZE_RANGE_ML = (15.0, 380.0)
+#: the ratio of a cavity's length (apex to base) to its width under which
+#: it is no ventricle's (it scores fully from 0.2 more, a half at 1.35):
+#: 1.43-2.93 on two phantom sweeps (seeds 29, 30), 1.49-2.33 on the
+#: devset; a cavity whose apex haze hides (``clutter_strong``, seeds 0-5
+#: at 1.5 and 2 mm and the sweeps') 0.99-1.30
+ELONGATION_MIN = 1.25
+#: the least narrowing at the mitral orifice (1 - its section over the
+#: widest on either side) that is a waist: twice it scores fully (0.22-0.87
+#: on the phantom sweep and the devset; an atrium taken in, 0.13)
+WAIST_MIN = 0.1
 #: apex-to-base lengths (mm) a left ventricle can have
 LENGTH_RANGE_MM = (35.0, 140.0)
 
 
-#: Otsu's classes of one Gaussian grey-level distribution are 2.7 deviations
-#: apart: an image whose classes are not farther apart has no blood pool
-SEPARATION_MIN = 2.8
+#: the least distance (in the speckle's grey-level spread) between the
+#: means of the dark and the bright classes of an image with a blood pool
+CONTRAST_MIN = 1.4
 #: a dark region whose surroundings are not this much brighter (in the
 #: classes' deviations) is a dark patch of tissue, not a cavity
 WALL_MIN = 1.0
@@ -70,6 +88,11 @@ DEPTH_SHELL_MM = 6.0
 #: of the cavity's coarse radius near its base: 0.5 left the disc inside
 #: the orifice, 1.0 reached the wall (0.9: base 0.6-2.0 mm off on the sweep)
 BASE_DISC = 0.9
+
+#: a pool whose second principal spread is over this fraction of its first
+#: has no one long axis: the direction in their plane nearest the sector's
+#: centre line is taken
+ROUND_POOL = 0.9
 
 #: an apical view looks down the long axis: at most this angle (degrees)
 #: between the long axis and the sector's centre line (25 is a tilted view)
@@ -93,6 +116,10 @@ BASE_REACH_MM = 30.0
 #: (CETUS Patient 7's span 27 mm: the PCA's axis put its apex 11 mm off)
 AXIS_SPAN_MM = 40.0
 
+#: the least confidence of a location that clicks are checked against (and
+#: that a segmentation from it is not flagged for)
+CHECK_CONFIDENCE = 0.5
+
 #: what a low score means, for ``Located.reason``
 _REASONS = {
     "separation": "blood and tissue barely differ in grey level",
@@ -100,7 +127,7 @@ _REASONS = {
     "size": "the cavity's size is unusual",
     "length": "the long axis has an unusual length",
     "wall": "the cavity's wall is barely brighter than its blood",
-    "taper": "the cavity ends bluntly towards the probe (haze or the sector's edge hides the apex?)",
+    "elongation": "the cavity is hardly longer than it is wide (haze or the sector's edge hides the apex?)",
     "pool": "the cavity is joined to the dark regions around it (a faint wall): found along its ringed sections",
 }
 
@@ -130,9 +157,15 @@ class Located:
     scores : dict
         ``separation`` (blood against tissue), ``waist`` (how clearly the
         pool narrows at the base), ``size`` and ``length`` (plausibility),
-        ``wall`` and ``taper``, each in [0, 1]; or, for a cavity found along
-        its ringed sections, ``separation`` and ``pool``
+        ``wall`` and ``elongation``, each in [0, 1]; or, for a cavity found
+        along its ringed sections, ``separation`` and ``pool``
         (:data:`JOINED_POOL`).
+    measures : dict
+        What the scores are read from: ``contrast`` (the classes' distance
+        in speckle spreads), ``waist`` (the orifice's dip in section),
+        ``elongation`` (length over the widest diameter), ``length_mm``,
+        ``width_mm`` and ``wall`` (the wall over the blood, in the classes'
+        pooled spreads), as far as known.
     """
 
     apex: np.ndarray
@@ -142,13 +175,15 @@ class Located:
     reason: str = ""
     volume_ml: float = float("nan")
     scores: dict = field(default_factory=dict)
+    measures: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         """Plain JSON values."""
         return {"apex": [float(x) for x in self.apex], "base": [float(x) for x in self.base],
                 "normal": [float(x) for x in self.normal], "confidence": float(self.confidence),
                 "reason": self.reason, "volume_ml": float(self.volume_ml),
-                "scores": {k: float(v) for k, v in self.scores.items()}}
+                "scores": {k: float(v) for k, v in self.scores.items()},
+                "measures": {k: float(v) for k, v in self.measures.items()}}
 
 
 #: voxels of the full image the coarse copy reads at once: its temporaries
@@ -182,11 +217,89 @@ def _missing(volume):
     return rows
 
 
+#: samples per axis of each coarse voxel (:func:`_coarse`): the copy reads
+#: this many cubed voxels per coarse voxel, whatever the image's resolution
+SUBSAMPLES = 3
+#: most coarse voxels along an axis: a larger image is searched on coarser
+#: voxels, so that the search's cost does not grow with the image
+MAX_COARSE = 96
+
+
+def _fixed_size_copy(volume, spacing: float):
+    """Means and standard deviations over coarse voxels of about ``spacing``
+    mm of a Cartesian ``volume``, each from its nearest voxels at
+    :data:`SUBSAMPLES` cubed points evenly spread over it (NaN where half
+    of them or more have no data): ``(means, deviations, coarse step in
+    index units (x, y, z), index (x, y, z) of coarse voxel 0)``.
+
+    The points are fixed in mm, not in voxels, so that an image and the
+    same image resampled finer give the same copy, and their number is
+    fixed, so that its cost does not grow with the image's resolution; a
+    grid over :data:`MAX_COARSE` voxels along an axis is made coarser."""
+    shape_xyz = np.array(volume.shape[::-1])
+    extent = shape_xyz * volume.spacing
+    spacing = max(float(spacing), float(np.max(extent)) / MAX_COARSE)
+    q = spacing / volume.spacing  # coarse step, in voxels (x, y, z)
+    n = np.floor(shape_xyz / q).astype(int)
+    if np.any(n < 4):
+        raise NoVentricleError(f"no left ventricle found: the image ({volume.shape}) is too small to hold one")
+    first = 0.5 * q - 0.5
+    m = SUBSAMPLES
+    samples = volume.sampling_view().values  # flat, NaN off the data
+
+    strides = (volume.shape[1] * volume.shape[2], volume.shape[2], 1)
+    shape = tuple(n[::-1])
+
+    def nearest(spread, k):
+        """Flat indices of the nearest voxels at ``k`` points a side,
+        ``spread`` voxels apart (x, y, z), about each coarse voxel's
+        centre, along z, y and x: ``(k, n)`` each."""
+        # (rounded half up, not to even: a voxel split in two halves keeps its points)
+        return [np.clip(np.floor(first[d] + (np.arange(k)[:, None] - (k - 1) / 2) * spread[d]
+                                 + q[d] * np.arange(n[d])[None, :] + 0.5), 0, shape_xyz[d] - 1).astype(np.intp) * st
+                for d, st in zip((2, 1, 0), strides)]
+
+    # the coarse voxels near the data (their centres' voxels, one coarse voxel around): the rest are empty
+    kz, jy, ix = nearest(q, 1)
+    near = np.isfinite(samples.take(kz[0][:, None, None] + jy[0][None, :, None] + ix[0][None, None, :]))
+    where = np.nonzero(ndimage.binary_dilation(near, iterations=1))
+
+    def gather(spread):
+        """Count, sum and sum of squares of the nearest voxels at ``m``
+        points a side, ``spread`` voxels apart, over each coarse voxel near
+        the data: one read of the ``m**3`` points of each."""
+        kz, jy, ix = nearest(spread, m)
+        kz, jy, ix = kz[:, where[0]], jy[:, where[1]], ix[:, where[2]]
+        # (sub-point, coarse voxel): each sub-point's values contiguous
+        values = samples.take((kz[:, None, None] + jy[None, :, None] + ix[None, None, :]).reshape(m ** 3, -1))
+        ok = np.isfinite(values)
+        values = np.where(ok, values, np.float32(0))
+        out = [np.zeros(shape, np.int64), np.zeros(shape), np.zeros(shape)]
+        out[0][where], out[1][where] = ok.sum(0), values.sum(0, dtype=np.float64)
+        out[2][where] = np.einsum("ij,ij->j", values, values, dtype=np.float64)
+        return out
+
+    count, total, squares = gather(q / m)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count > m ** 3 / 2, total / count, np.nan)
+    # the speckle's spread from distinct voxels: a voxel apart at least
+    if np.any(q / m < 1):
+        count, total, squares = gather(np.maximum(q / m, 1.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        deviation = np.sqrt(np.maximum(squares - total ** 2 / count, 0.0) / np.maximum(count - 1, 1))
+    return mean.astype(np.float32), deviation, q, first
+
+
 def _coarse(volume, spacing: float):
     """The image on a Cartesian grid of about ``spacing`` mm, speckle averaged:
     ``(grey levels [k, j, i] with NaN off the data, index -> world function,
     voxel size (x, y, z) mm, probe point, whether it is known, depth direction,
-    each voxel's distance from the probe in mm)``."""
+    each voxel's distance from the probe in mm, the speckle's spread)``.
+
+    The speckle's spread is the median over the coarse voxels of the grey
+    levels' standard deviation within each (most coarse voxels lie in one
+    tissue, where log-compressed speckle's spread does not depend on the
+    tissue's brightness)."""
     from ..volumes.beamspace import BeamVolume
 
     if isinstance(volume, BeamVolume):
@@ -194,7 +307,12 @@ def _coarse(volume, spacing: float):
         # coarse grid's points: the beams are already that far apart laterally
         geometry = volume.geometry
         f_r = max(1, int(round(spacing / geometry.radius_sample_size)))
-        beams = _block_mean(np.asarray(volume.array, np.float32), _missing(volume), (f_r, 1, 1))
+        array, missing = np.asarray(volume.array, np.float32), _missing(volume)
+        beams = _block_mean(array, missing, (f_r, 1, 1))
+        with np.errstate(invalid="ignore"):
+            within = np.sqrt(np.maximum(_block_mean(array * array, missing, (f_r, 1, 1)) - beams ** 2, 0)
+                             * f_r / max(f_r - 1, 1))
+        speckle = float(np.nanmedian(within))
         grid = geometry.cartesian_grid(spacing)
         # the grid's axes are the probe's: its points in the probe frame are a product of three ranges
         start = (grid.origin - geometry.apex) @ geometry.rotation
@@ -213,10 +331,11 @@ def _coarse(volume, spacing: float):
         probe_known = True
     else:
         probe_known = True
-        factor = np.maximum(1, np.rint(spacing / volume.spacing[::-1])).astype(int)  # [z, y, x]
-        grey = _block_mean(np.asarray(volume.array, np.float32), _missing(volume), factor)
-        step = volume.spacing * factor[::-1]
-        origin = volume.index_to_world((factor[::-1] - 1) / 2.0)
+        grey, deviation, q, first = _fixed_size_copy(volume, spacing)
+        speckle = float(np.nanmedian(np.where(np.isfinite(grey), deviation, np.nan))) if np.isfinite(grey).any() \
+            else float("nan")
+        step = volume.spacing * q
+        origin = volume.index_to_world(first)
         direction, depth = volume.direction, volume.direction[:, 2]
         # an apical sector (data missing around it) has its probe over the shallowest data
         probe = None
@@ -239,7 +358,7 @@ def _coarse(volume, spacing: float):
         return origin + (np.asarray(index_zyx, float)[..., ::-1] * step) @ np.asarray(direction).T
 
     return (grey, to_world, np.asarray(step, float), np.asarray(probe, float), probe_known,
-            np.asarray(depth, float) / np.linalg.norm(depth), distance)
+            np.asarray(depth, float) / np.linalg.norm(depth), distance, speckle)
 
 
 def _otsu(values: np.ndarray) -> tuple[float, float, float]:
@@ -270,8 +389,9 @@ def locate(volume, *, spacing: float | None = None) -> Located:
         Apical acquisition (probe at the sector's apex, blood dark).
     spacing : float, optional
         Voxel size (mm) of the coarse copy the search runs on.  Default 3 mm
-        on a Cartesian volume (rounded to a whole number of its voxels: a
-        2 mm image is searched at 4 mm) and 4 mm on a beam-space one, whose
+        on a Cartesian volume (coarser when the image spans more than
+        :data:`MAX_COARSE` such voxels along an axis) and 4 mm on a
+        beam-space one, whose
         copy is interpolated over the whole box around the sector (three
         times the sector's volume): 3 mm there took twice the time for the
         same apex and base.
@@ -292,7 +412,7 @@ def locate(volume, *, spacing: float | None = None) -> Located:
         spacing = 4.0 if isinstance(volume, BeamVolume) else 3.0
     if not (np.isfinite(spacing) and spacing > 0):
         raise ValueError(f"spacing must be a positive number of mm, got {spacing!r}")
-    grey, to_world, step, probe, probe_known, depth, distance = _coarse(volume, spacing)
+    grey, to_world, step, probe, probe_known, depth, distance, speckle = _coarse(volume, spacing)
     data = np.isfinite(grey)
     if data.sum() < 64:
         raise NoVentricleError("no left ventricle found: the image has too little data")
@@ -324,10 +444,14 @@ def locate(volume, *, spacing: float | None = None) -> Located:
     if values.size < 64 or not np.ptp(values) > 0:
         raise NoVentricleError("no left ventricle found: the image is constant")
     threshold, separation, spread = _otsu(values)
-    if separation < SEPARATION_MIN:
+    # the classes' distance in speckle spreads: a region of one tissue (a
+    # uniform speckle volume) averaged over coarse voxels has classes far
+    # less than one apart, whatever the image's gain and compression
+    contrast = separation * spread / speckle if speckle > 0 else 0.0
+    if not contrast >= CONTRAST_MIN:
         raise NoVentricleError(f"no left ventricle found: no region of the image is darker than the rest as blood "
-                               f"is (dark and bright classes {separation:.1f} deviations apart, fewer than "
-                               f"{SEPARATION_MIN})")
+                               f"is (dark and bright classes {contrast:.2f} speckle deviations apart, fewer than "
+                               f"{CONTRAST_MIN})")
     dark = inside & (smooth < threshold)
     best, largest = None, 0.0
     # a wider opening cuts wider bridges (a ventricle joined to the atrium
@@ -347,6 +471,7 @@ def locate(volume, *, spacing: float | None = None) -> Located:
             shell = ndimage.binary_dilation(mask, iterations=2) & ~mask & inside
             wall = (smooth[shell].mean() - smooth[mask].mean()) / spread if shell.any() else 0.0
             candidate["scores"]["wall"] = float(np.clip((wall - WALL_MIN) / 1.0, 0, 1))
+            candidate["measures"]["wall"] = float(wall)
             candidate["score"] *= candidate["scores"]["wall"]
             if best is None or candidate["score"] > best["score"]:
                 best = candidate
@@ -366,14 +491,15 @@ def locate(volume, *, spacing: float | None = None) -> Located:
         apex = _endocardial_apex(volume, best["apex"], best["normal"], local)
         base = _mitral_plane(volume, best["base"], best["normal"], BASE_DISC * best["base_radius"],
                              separation * spread)
-    scores = {"separation": float(np.clip(separation - SEPARATION_MIN, 0, 1)), **best["scores"]}
+    scores = {"separation": float(np.clip((contrast - CONTRAST_MIN) / 0.5, 0, 1)), **best["scores"]}
     confidence = float(np.prod(list(scores.values())))
     # the scores that brought it down (the lowest, when each alone is fair)
     low = [name for name, value in scores.items() if value < 0.75] or [min(scores, key=scores.get)]
-    reason = "; ".join(_REASONS[name] for name in low) if confidence < 0.5 else ""
+    reason = "; ".join(_REASONS[name] for name in low) if confidence < CHECK_CONFIDENCE else ""
     normal = (apex - base) / np.linalg.norm(apex - base)
+    measures = {"contrast": float(contrast), **best["measures"]}
     return Located(apex=apex, base=base, normal=normal, confidence=confidence, reason=reason,
-                   volume_ml=best["volume_ml"], scores=scores)
+                   volume_ml=best["volume_ml"], scores=scores, measures=measures)
 
 
 def _pool(mask: np.ndarray, to_world, probe, probe_known: bool, depth, voxel_ml, slab) -> dict | None:
@@ -385,8 +511,14 @@ def _pool(mask: np.ndarray, to_world, probe, probe_known: bool, depth, voxel_ml,
     times its atrium)."""
     points = to_world(np.argwhere(mask))
     centre = points.mean(0)
-    _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
-    axis = vt[0] if vt[0] @ (probe - centre) >= 0 else -vt[0]
+    _, spreads, vt = np.linalg.svd(points - centre, full_matrices=False)
+    axis = vt[0]
+    if probe_known and spreads[1] > ROUND_POOL * spreads[0]:
+        # as long one way as another (a ventricle joined to a neighbour
+        # across): its long axis is the one of them nearest the sector's
+        axis = (depth @ vt[0]) * vt[0] + (depth @ vt[1]) * vt[1]
+        axis /= np.linalg.norm(axis)
+    axis = axis if axis @ (probe - centre) >= 0 else -axis
     if probe_known and abs(axis @ depth) < np.cos(np.radians(AXIS_MAX_DEG)):
         return None  # not an apical view of this pool
     found = [_along(points, centre, axis, voxel_ml, slab)]
@@ -463,25 +595,36 @@ def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict
     base = p + axis * (base_t - (p - centre) @ axis)
     p = points[t >= apex_t - 2 * slab].mean(0)
     apex = p + axis * (apex_t - (p - centre) @ axis)
-    # an apex tapers: 10 mm from it the section is a quarter to a third of
-    # the widest (2 x 10 / length for an ellipsoid); a blunt end is a cavity
-    # cut off by haze or the sector's edge
+    # a ventricle is longer than it is wide (apex to base over the widest
+    # section's diameter); a cavity whose apex haze or the sector's edge cuts
+    # off is a squat stump
     widest = area[first:waist + 1].max()
+    # its width from its narrower spread across the axis (a disc's diameter
+    # is sqrt(20) of it), which a neighbour joined on one side leaves alone
+    across = points[lv] - points[lv].mean(0)
+    across = across - np.outer(across @ axis, axis)
+    narrow = float(np.sqrt(max(np.linalg.eigvalsh(across.T @ across / max(len(across), 1))[1], 0.0)))
+    elongation = float(length / (np.sqrt(20.0) * narrow)) if narrow > 0 else 0.0
+    # an apex tapers (10 mm from it the section is a quarter to a third of
+    # the widest on an ellipsoid): the end of a pool with no probe known
     taper = float(np.interp(apex_t - 10.0, heights[::-1], area[::-1]) / widest)
     l_lo, l_hi = LENGTH_RANGE_MM
     scores = {
-        "waist": 0.4 if stepped or waist == last else float(np.clip(depth_of_waist / 0.2, 0, 1)),
+        "waist": 0.4 if stepped or waist == last else float(np.clip((depth_of_waist - WAIST_MIN) / WAIST_MIN, 0, 1)),
         # alone enough to take the confidence under 0.5: a pool of an unusual
         # size is as often the wrong region, or part of the right one
         "size": 1.0 if SIZE_RANGE_ML[0] <= volume_ml <= SIZE_RANGE_ML[1] else 0.4,
         "length": float(l_lo <= length <= l_hi),
-        "taper": float(np.clip((0.65 - taper) / 0.2, 0, 1)),
+        "elongation": float(np.clip((elongation - ELONGATION_MIN) / 0.2, 0, 1)),
     }
     # the cavity's radius within 10 mm of the base, on the ventricle's side
     near = area[max(first, waist - int(round(10.0 / bin_mm))):waist + 1]
     base_radius = float(np.sqrt(near.max() / np.pi))
+    measures = {"waist": float(depth_of_waist), "elongation": elongation, "length_mm": float(length),
+                "width_mm": float(np.sqrt(20.0) * narrow)}
     return {"apex": apex, "base": base, "normal": axis, "volume_ml": volume_ml, "scores": scores,
-            "base_radius": base_radius, "middle": points[lv].mean(0), "taper": taper}
+            "base_radius": base_radius, "middle": points[lv].mean(0), "taper": taper,
+            "measures": measures}
 
 
 def _across(axis) -> tuple[np.ndarray, np.ndarray]:
@@ -612,7 +755,7 @@ def _along_ringed_sections(volume, smooth, inside, threshold: float, spread: flo
     # a half-ellipsoid of the widest ringed section's radius
     volume_ml = 2.0 / 3.0 * np.pi * base_radius ** 2 * length / 1000.0
     return {"apex": apex, "base": base, "volume_ml": float(volume_ml), "refined": True,
-            "scores": {"pool": JOINED_POOL}, "score": 1.0}
+            "scores": {"pool": JOINED_POOL}, "score": 1.0, "measures": {"waist": float(dip)}}
 
 
 def _cavity_ends(volume, start, axis, held, rise: float, reach: float) -> tuple[float | None, float | None]:
@@ -769,7 +912,7 @@ def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) ->
     ----------
     located : Located
         What :func:`locate` found; nothing is said when its confidence is
-        under 0.5.
+        under :data:`CHECK_CONFIDENCE`.
     apex, base : (3,) world mm
         The points given.
     tolerance_mm : float
@@ -782,7 +925,7 @@ def check_points(located: Located, apex, base, *, tolerance_mm: float = 10.0) ->
         One warning per point that looks wrong, naming where the located one
         is; empty when the points agree (or ``located`` is not confident).
     """
-    if not located.confidence >= 0.5:
+    if not located.confidence >= CHECK_CONFIDENCE:
         return []
     apex, base = np.asarray(apex, float), np.asarray(base, float)
     here = lambda p: "(" + ", ".join(f"{x:.1f}" for x in p) + ")"  # noqa: E731
@@ -846,14 +989,24 @@ def initialise(volume, apex, base, *, annulus=None, init=None, check: bool = Tru
 def annotate(result, initialisation: dict, located: Located | None) -> None:
     """Record ``initialisation`` on ``result`` and add to its quality report
     what the location says: a low confidence when the points were located,
-    the click checks when they were given."""
+    the click checks when they were given, and that they could not be
+    checked when the ventricle was not found or not with confidence
+    (:data:`CHECK_CONFIDENCE`)."""
     result.initialisation = initialisation
-    if located is None or result.quality is None:
+    if result.quality is None:
         return
+    checked = initialisation.get("located")
     if initialisation["method"] == "located":
-        warnings = [] if located.confidence >= 0.5 else [
+        warnings = [] if located is None or located.confidence >= CHECK_CONFIDENCE else [
             f"the ventricle was found with low confidence ({located.confidence:.2f}: {located.reason}); "
             "give the apex and base"]
+    elif checked is None:  # not asked to check
+        warnings = []
+    elif located is None:
+        warnings = [f"the clicked points could not be checked: {checked}"]
+    elif not located.confidence >= CHECK_CONFIDENCE:
+        warnings = [f"the clicked points could not be checked: the ventricle was found with low confidence "
+                    f"({located.confidence:.2f}: {located.reason})"]
     else:
         base = result.surface.pose.origin if initialisation["base"] is None else initialisation["base"]
         warnings = check_points(located, initialisation["apex"], base)

@@ -74,7 +74,11 @@ def segment(volume, apex=None, base=None, *, annulus=None, landmarks=None, init:
     check : bool
         Check given points against the located ventricle
         (:func:`spheroseg.locate.check_points`): a gross disagreement makes
-        ``quality["poor"]`` with a warning naming the point.  With the
+        ``quality["poor"]`` with a warning naming the point, and so does a
+        ventricle too uncertain to check them against (refused, or under
+        :data:`spheroseg.locate.CHECK_CONFIDENCE`): a warning that they
+        were not checked.  The location reads a coarse copy of a fixed
+        number of points per 3 mm, whatever the image's resolution.  With the
         points checked or located, a myocardium darker than what lies
         beyond it is a warning too
         (:func:`spheroseg.epicardium.check_wall_polarity`).
