@@ -1,4 +1,4 @@
-"""The command line: ``spheroseg segment | track | batch | scan-convert | view | demo``.
+"""The command line: ``spheroseg segment | track | batch | scan-convert | view | demo | live | replay``.
 
 Every failure is one line on stderr and a non-zero exit status.  Outputs
 are written to temporary files and renamed; existing outputs are kept
@@ -196,6 +196,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", metavar="DIR", help="output folder (default: a new ./spheroseg-demo*)")
     demo.add_argument("--force", action="store_true")
     demo.add_argument("--quiet", action="store_true")
+    from .live.commands import add_live_parsers  # argparse only: pyigtl is imported when they run
+
+    add_live_parsers(sub)
     return parser
 
 
@@ -672,11 +675,17 @@ def cmd_view(args) -> int:
     return 0
 
 
+def cmd_live(args) -> int:
+    from .live.commands import run
+
+    return run(args)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     handlers = {"segment": cmd_segment, "track": cmd_track, "batch": cmd_batch, "scan-convert": cmd_scan_convert,
-                "demo": cmd_demo, "view": cmd_view}
+                "demo": cmd_demo, "view": cmd_view, "live": cmd_live, "replay": cmd_live}
     try:
         return handlers[args.command](args)
     except KeyboardInterrupt:

@@ -1,0 +1,15 @@
+"""Live tracking over OpenIGTLink: ``spheroseg live`` and ``spheroseg replay``.
+
+This subpackage owns the network path from a scanner's stream to 3D
+Slicer: :mod:`~spheroseg.live.messages` (the OpenIGTLink v2 messages: the
+stream split and checked, IMAGE decoded, POLYDATA, IMAGE, TRANSFORM and
+STRING encoded), :mod:`~spheroseg.live.fanout` (a server sending the newest
+messages to every client), :mod:`~spheroseg.live.replay` (a PLUS-like
+sender of a 3D+t sequence), :mod:`~spheroseg.live.session` (frames tracked
+one by one as :func:`spheroseg.track` tracks them, the cardiac cycle found
+on the fly), :mod:`~spheroseg.live.server` (the live tracker between a
+source and its clients), :mod:`~spheroseg.live.client` (a results client)
+and :mod:`~spheroseg.live.commands` (the two subcommands).  It needs
+``pyigtl`` (``pip install "spheroseg[live]"``); nothing here is imported by
+``import spheroseg``.
+"""

@@ -1,0 +1,215 @@
+"""The ``spheroseg live`` and ``spheroseg replay`` subcommands.
+
+Their parsers are built with nothing but argparse (``spheroseg --help``
+stays light); pyigtl and the tracking are imported when a command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import threading
+
+__all__ = ["add_live_parsers", "run"]
+
+#: OpenIGTLink's port by convention (PlusServer's), where ``replay`` serves
+SOURCE_PORT = 18944
+#: where ``live`` serves its results by default (beside the source's)
+SERVE_PORT = 18945
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
+    return value
+
+
+def add_live_parsers(sub) -> None:
+    """Add ``live`` and ``replay`` to the ``spheroseg`` subparsers ``sub``."""
+    from ..cli import _add_model_options
+    from ..options import SMOOTHNESS_REFERENCES, SegmentOptions
+
+    live = sub.add_parser(
+        "live", help="track the left ventricle in a 3D IMAGE stream over OpenIGTLink and serve the results",
+        description="Connect to an OpenIGTLink server streaming 3D IMAGE messages (a PlusServer, spheroseg replay), "
+                    "track the left ventricle frame by frame and serve to every client of --serve (3D Slicer's "
+                    "OpenIGTLinkIF): POLYDATA LVEndo (and LVEpi), IMAGE LVLabel, TRANSFORM LVToImage and STRING "
+                    "LVMetrics (JSON: volume, EDV, ESV, EF over the last cycle, dropped frames, latency). Frames "
+                    "arriving faster than they are tracked are dropped, the newest kept. Ctrl-C stops it.")
+    live.add_argument("--source", default=f"127.0.0.1:{SOURCE_PORT}", metavar="HOST:PORT",
+                      help=f"the image server (default 127.0.0.1:{SOURCE_PORT})")
+    live.add_argument("--serve", default=str(SERVE_PORT), metavar="[HOST:]PORT",
+                      help=f"where result clients connect (default {SERVE_PORT} on 127.0.0.1; 0.0.0.0:PORT for "
+                           "other machines)")
+    live.add_argument("--device", metavar="NAME", help="track only the images of this device name")
+    live.add_argument("--apex", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                      help="apex point, world mm (LPS); with no points the ventricle is located in the first frames")
+    live.add_argument("--base", nargs=3, type=float, metavar=("X", "Y", "Z"), help="centre of the mitral plane")
+    live.add_argument("--annulus", nargs=3, type=float, action="append", default=[], metavar=("X", "Y", "Z"),
+                      help="a point of the mitral annulus (repeatable, 3 or more)")
+    live.add_argument("--points", metavar="MRK_JSON", help="3D Slicer markups with points labelled apex, base...")
+    live.add_argument("--landmark", nargs=3, type=float, action="append", default=[], metavar=("X", "Y", "Z"),
+                      help="a point of the wall the surface is drawn to (repeatable)")
+    live.add_argument("--coordinates", choices=("ras", "lps"), default="ras",
+                      help="world frame of the results sent (default ras, 3D Slicer's); images are read in the "
+                           "frame their messages state")
+    live.add_argument("--myocardium", action="store_true",
+                      help="also segment the epicardium: POLYDATA LVEpi, the 17-segment number of each point, "
+                           "label 2 in LVLabel, the LV mass in LVMetrics")
+    live.add_argument("--rv-insertion", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                      help="with --myocardium: the anterior RV insertion, world mm, where segment 1 starts")
+    live.add_argument("--no-label", action="store_true", help="do not send the labelmap LVLabel")
+    live.add_argument("--record", metavar="DIR",
+                      help="also write each tracked frame to DIR (metrics JSON, mask, mesh; atomically); "
+                           "nothing is written without it")
+    live.add_argument("--iterations-per-frame", type=int, default=20)
+    live.add_argument("--stall", type=_seconds, default=5.0, metavar="S",
+                      help="reconnect to a source silent this long (default 5 s)")
+    live.add_argument("--duration", type=_seconds, metavar="S", help="stop after S seconds")
+    live.add_argument("--quiet", action="store_true", help="only warnings on stderr")
+    _add_model_options(live, no_data_help="voxels without data: 'auto' (default) the zero padding around an echo "
+                                          "sector, 'none', or a voxel value")
+    live.add_argument("--step", type=float, default=SegmentOptions.step, help="largest surface motion per iteration")
+    live.add_argument("--max-iterations", type=int, default=SegmentOptions.max_iterations,
+                      help="per coarse-to-fine level")
+    live.add_argument("--smoothness", type=float, default=SegmentOptions.smoothness)
+    live.add_argument("--smoothness-reference", default=SegmentOptions.smoothness_reference,
+                      choices=SMOOTHNESS_REFERENCES)
+    live.add_argument("--threads", type=int, metavar="N")
+
+    replay = sub.add_parser(
+        "replay", help="stream a 3D+t sequence as OpenIGTLink IMAGE messages, PLUS-like, looping",
+        description="Serve a 3D+t sequence (or, with no file, the demo's synthetic one) as OpenIGTLink IMAGE "
+                    "messages at a set frame rate, looping, stamped with each frame's time: a source for "
+                    "spheroseg live without a scanner. Ctrl-C stops it.")
+    replay.add_argument("sequence", nargs="?",
+                        help="4D image, .seq.nrrd, folder or glob of 3D frames (default: the demo's synthetic "
+                             "sequence)")
+    replay.add_argument("--serve", default=str(SOURCE_PORT), metavar="[HOST:]PORT",
+                        help=f"where clients connect (default {SOURCE_PORT} on 127.0.0.1)")
+    replay.add_argument("--fps", type=float, default=30.0, help="frames a second (default 30)")
+    replay.add_argument("--device", default="Image_Reference", help="the images' device name (PLUS's default)")
+    replay.add_argument("--coordinates", choices=("ras", "lps"), default="ras",
+                        help="the frame of the image matrix sent (default ras)")
+    replay.add_argument("--once", action="store_true", help="stop after the last frame instead of looping")
+    replay.add_argument("--spacing", nargs=3, type=float, metavar=("SX", "SY", "SZ"),
+                        help="voxel spacing in mm (required for .npy)")
+    replay.add_argument("--duration", type=_seconds, metavar="S", help="stop after S seconds")
+    replay.add_argument("--quiet", action="store_true")
+
+
+def _need_pyigtl() -> None:
+    from ..cli import CliError
+
+    try:
+        import pyigtl  # noqa: F401
+    except ImportError:
+        raise CliError('spheroseg live and replay need pyigtl: pip install "spheroseg[live]"') from None
+
+
+def _console(args) -> None:
+    logger = logging.getLogger("spheroseg.live")
+    if not logger.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("spheroseg: %(message)s"))
+        logger.addHandler(handler)
+    logger.setLevel(logging.WARNING if args.quiet else logging.INFO)
+    logger.propagate = False
+
+
+def _wait(duration: float | None, done=lambda: False) -> None:
+    """Until ``duration`` has passed, ``done()`` holds, or Ctrl-C."""
+    stop = threading.Event()
+    waited = 0.0
+    try:
+        while (duration is None or waited < duration) and not done():
+            stop.wait(0.1)
+            waited += 0.1
+    except KeyboardInterrupt:
+        print("spheroseg: stopped", file=sys.stderr)
+
+
+def run(args) -> int:
+    """Run ``spheroseg live`` or ``spheroseg replay``."""
+    _need_pyigtl()
+    _console(args)
+    return _live(args) if args.command == "live" else _replay(args)
+
+
+def _live(args) -> int:
+    import numpy as np
+
+    from ..cli import CliError, _check_options, _load_kernels_saying, _points, _segment_kwargs
+    from .fanout import parse_address
+    from .server import LiveServer
+
+    _check_options(args)
+    try:
+        source = parse_address(args.source)
+        serve = parse_address(args.serve)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    apex, base, landmarks, annulus = _points(args)
+    _load_kernels_saying()
+    try:
+        server = LiveServer(source, serve=serve, device=args.device, coordinates=args.coordinates,
+                            label=not args.no_label, record=args.record, no_data_value=args.no_data,
+                            stall_seconds=args.stall, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
+                            iterations_per_frame=args.iterations_per_frame, myocardium=args.myocardium,
+                            rv_insertion=None if args.rv_insertion is None else np.asarray(args.rv_insertion),
+                            **_segment_kwargs(args))
+    except OSError as exc:
+        raise CliError(f"cannot listen on {serve[0]}:{serve[1]}: {exc.strerror or exc}") from None
+    print(f"spheroseg: tracking the images of {source[0]}:{source[1]}; results on {server.address[0]}:"
+          f"{server.address[1]} (Ctrl-C stops)", file=sys.stderr, flush=True)
+    server.start()
+    try:
+        _wait(args.duration)
+    finally:
+        server.close()
+    if not args.quiet:
+        print(f"spheroseg: {server.status()}", file=sys.stderr)
+    return 0
+
+
+def _replay(args) -> int:
+    from ..cli import CliError
+    from .fanout import parse_address
+    from .replay import Replay
+
+    if not (args.fps > 0 and args.fps < 1000):
+        raise CliError(f"--fps must be a number of frames a second from 0 to 1000, got {args.fps}")
+    try:
+        serve = parse_address(args.serve)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    if args.sequence is None:
+        from ..synthetic.phantom import make_sequence
+
+        volumes = make_sequence(seed=0, n_frames=10, spacing=1.25).volumes
+        what = "the demo's synthetic sequence"
+    else:
+        from ..io import load_sequence
+
+        volumes = load_sequence(args.sequence, spacing=args.spacing, no_data_value=None)
+        what = args.sequence
+    try:
+        replay = Replay(volumes, host=serve[0], port=serve[1], fps=args.fps, loop=not args.once, device=args.device,
+                        coordinates=args.coordinates)
+    except OSError as exc:
+        raise CliError(f"cannot listen on {serve[0]}:{serve[1]}: {exc.strerror or exc}") from None
+    nz, ny, nx = volumes[0].shape
+    print(f"spheroseg: streaming {what} ({len(volumes)} frames of {nx} x {ny} x {nz} voxels) at {args.fps:g} "
+          f"frames a second on {replay.address[0]}:{replay.address[1]} as {args.device!r} (Ctrl-C stops)",
+          file=sys.stderr, flush=True)
+    replay.start()
+    try:
+        _wait(args.duration, done=lambda: args.once and replay.wait(0))
+    finally:
+        replay.close()
+    return 0

@@ -1,0 +1,416 @@
+"""OpenIGTLink v2 messages: the stream split and checked, images decoded,
+results encoded.
+
+pyigtl packs the IMAGE, TRANSFORM and STRING bodies and computes the CRC;
+this module adds what it lacks: a reader that checks every header, body size
+and CRC and finds the next header after garbage bytes, an IMAGE decoder that
+says why an image cannot be a frame, and a POLYDATA body as the
+specification lays it out (pyigtl 0.3 neither reads POLYDATA nor carries
+attributes).
+
+The POLYDATA body (OpenIGTLink ``igtl_polydata.h``), every number big-endian:
+
+- header: 10 ``uint32``: ``NPOINTS``, ``NVERTICES``, ``SIZE_VERTICES``,
+  ``NLINES``, ``SIZE_LINES``, ``NPOLYGONS``, ``SIZE_POLYGONS``,
+  ``NTRIANGLE_STRIPS``, ``SIZE_TRIANGLE_STRIPS``, ``NATTRIBUTES`` (sizes in
+  bytes);
+- points: ``NPOINTS x 3`` ``float32`` (x, y, z);
+- vertices, lines, polygons, triangle strips: ``uint32`` cells
+  ``(N, i1, ..., iN)``;
+- per attribute a header of ``uint8`` type (``0x00`` point scalars,
+  ``0x10`` cell scalars), ``uint8`` components and ``uint32`` count; then
+  the names, each NUL-terminated, padded to an even length; then each
+  attribute's ``count x components`` ``float32``.
+
+World coordinates: an IMAGE says whether its matrix is RAS or LPS; a
+POLYDATA or a TRANSFORM does not, and 3D Slicer reads them as RAS.
+spheroseg works in LPS (ITK); :func:`decode_image` converts what it reads,
+the encoders write in the ``coordinates`` asked for.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["HEADER_SIZE", "MAX_BODY_BYTES", "WireError", "Message", "MessageReader", "decode_image",
+           "encode_image", "encode_polydata", "decode_polydata", "encode_transform", "encode_string",
+           "decode_string", "decode_transform", "image_body_size", "set_timestamp", "lps_to"]
+
+HEADER = struct.Struct(">H12s20sIIQQ")
+HEADER_SIZE = HEADER.size  # 58
+#: the largest body read (bytes); a bigger header is taken for garbage
+MAX_BODY_BYTES = 1 << 30
+#: the IMAGE body's own header: version, components, scalar type, endianness, coordinates, size (3),
+#: matrix (12 float32), subvolume offset (3) and size (3)
+IMAGE_HEADER = struct.Struct(">HBBBBHHH12fHHHHHH")
+#: OpenIGTLink scalar types as numpy's
+SCALAR_TYPES = {2: np.int8, 3: np.uint8, 4: np.int16, 5: np.uint16, 6: np.int32, 7: np.uint32, 10: np.float32,
+                11: np.float64}
+#: a header's first bytes: version 1 or 2, then a type name (capitals, digits, underscores, NUL-padded)
+_HEADER_START = re.compile(rb"\x00[\x01\x02][A-Z][A-Z0-9_]{0,11}\x00*")
+#: RAS <-> LPS (its own inverse)
+_FLIP = np.diag([-1.0, -1.0, 1.0])
+
+
+class WireError(ValueError):
+    """A message that cannot be used, with ``reason`` (a short key, logged
+    once per kind) and the message in words."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass
+class Message:
+    """One message off the wire, its CRC checked.
+
+    ``received`` is :func:`time.perf_counter` when its last byte was read.
+    """
+
+    header_version: int
+    type: str
+    device: str
+    timestamp: float
+    body: bytes
+    received: float
+
+    @property
+    def header_fields(self) -> dict:
+        """As ``pyigtl.MessageBase.parse_header`` gives them."""
+        return {"header_version": self.header_version, "message_type": self.type, "device_name": self.device,
+                "timestamp": self.timestamp, "body_size": len(self.body)}
+
+
+def _crc64():
+    from pyigtl.messages import CRC64
+
+    return CRC64
+
+
+def _text(field: bytes) -> str | None:
+    """A NUL-padded ASCII field; None if something follows the first NUL or
+    a byte is not printable."""
+    head, _, tail = field.partition(b"\0")
+    if tail.strip(b"\0") or any(c < 32 or c > 126 for c in head):
+        return None
+    return head.decode("ascii")
+
+
+class MessageReader:
+    """Splits a byte stream into checked OpenIGTLink messages.
+
+    :meth:`feed` takes the bytes as they arrive and returns the messages
+    completed and the :class:`WireError` of each one skipped: a header that
+    is not one (garbage: the stream is searched for the next header), a body
+    larger than ``max_body_bytes``, a CRC that does not match (the message is
+    skipped, the stream stays in step: its size was read).
+    """
+
+    def __init__(self, *, max_body_bytes: int = MAX_BODY_BYTES):
+        self.max_body_bytes = int(max_body_bytes)
+        self._buffer = bytearray()
+        self._header = None  # the current message's header fields, once read
+        self.garbage_bytes = 0
+
+    def _parse_header(self, raw: bytes):
+        version, kind, device, seconds, fraction, size, crc = HEADER.unpack(raw)
+        kind, device = _text(kind), _text(device)
+        if version not in (1, 2) or not kind or device is None or not re.fullmatch(r"[A-Z][A-Z0-9_]*", kind):
+            return None
+        return version, kind, device, seconds + fraction / 2.0 ** 32, size, crc
+
+    def _resync(self, errors: list) -> bool:
+        """Drop bytes up to the next plausible header; False if more bytes
+        are needed to find one."""
+        found = None
+        for match in _HEADER_START.finditer(self._buffer, 1):
+            start = match.start()
+            if len(self._buffer) - start < HEADER_SIZE:
+                found = start  # maybe a header: wait for the rest of it
+                break
+            header = self._parse_header(bytes(self._buffer[start:start + HEADER_SIZE]))
+            if header is not None and header[4] <= self.max_body_bytes:
+                found = start
+                break
+        skipped = len(self._buffer) if found is None else found
+        if found is None:
+            keep = min(len(self._buffer), HEADER_SIZE - 1)  # a header may start in the last bytes
+            skipped -= keep
+        del self._buffer[:skipped]
+        self.garbage_bytes += skipped
+        if skipped:
+            errors.append(WireError("garbage", f"{skipped} bytes that are not an OpenIGTLink message skipped"))
+        return found is not None and len(self._buffer) >= HEADER_SIZE
+
+    def feed(self, data: bytes) -> list:
+        """Messages and :class:`WireError` s, in stream order."""
+        self._buffer += data
+        out = []
+        while True:
+            if self._header is None:
+                if len(self._buffer) < HEADER_SIZE:
+                    return out
+                header = self._parse_header(bytes(self._buffer[:HEADER_SIZE]))
+                if header is None:
+                    if not self._resync(out):
+                        return out
+                    continue
+                if header[4] > self.max_body_bytes:
+                    out.append(WireError("body size", f"a {header[1]} message of {header[4]} bytes, beyond the "
+                                                      f"{self.max_body_bytes} read, skipped as garbage"))
+                    del self._buffer[:2]  # not a header to trust: search past it
+                    self._resync(out)
+                    continue
+                del self._buffer[:HEADER_SIZE]
+                self._header = header
+            version, kind, device, timestamp, size, crc = self._header
+            if len(self._buffer) < size:
+                return out
+            body = bytes(self._buffer[:size])
+            del self._buffer[:size]
+            self._header = None
+            if _crc64()(body) != crc:
+                out.append(WireError("crc", f"a {kind} message from {device!r} whose CRC does not match its body, "
+                                            "skipped"))
+                continue
+            out.append(Message(version, kind, device, timestamp, body, time.perf_counter()))
+
+
+def _content(message: Message) -> bytes:
+    """The body without a version-2 header's extended header and metadata."""
+    body = message.body
+    if message.header_version < 2:
+        return body
+    if len(body) < 12:
+        raise WireError("body size", f"a {message.type} message too short for its extended header")
+    extended, meta_header, meta_body, _ = struct.unpack(">HHII", body[:12])
+    end = len(body) - meta_header - meta_body
+    if extended < 12 or end < extended:
+        raise WireError("body size", f"a {message.type} message whose extended header does not fit its body")
+    return body[extended:end]
+
+
+def image_body_size(shape, dtype) -> int:
+    """Bytes of an IMAGE body (version 1 header) of ``shape`` ``[k, j, i]``."""
+    return IMAGE_HEADER.size + int(np.prod(shape)) * np.dtype(dtype).itemsize
+
+
+def decode_image(message: Message, *, no_data_value=None):
+    """The :class:`spheroseg.Volume` of an IMAGE message (world LPS mm).
+
+    Raises :class:`WireError` (with the reason) for an image that cannot be
+    a frame: not a scalar 3D image, a zero or one-voxel dimension, a
+    subvolume, an unknown scalar type, voxel data that do not fill the
+    declared size, a singular matrix.
+
+    Returns
+    -------
+    volume : Volume
+    coordinates : str
+        ``"ras"`` or ``"lps"``, as the message gave its matrix.
+    """
+    from ..images import _make_volume
+
+    content = _content(message)
+    if len(content) < IMAGE_HEADER.size:
+        raise WireError("body size", f"an IMAGE of {len(content)} bytes, shorter than its {IMAGE_HEADER.size}-byte "
+                                     "header")
+    fields = IMAGE_HEADER.unpack_from(content)
+    _, components, scalar, endian, system = fields[:5]
+    size = np.array(fields[5:8])  # i, j, k
+    matrix = np.array(fields[8:20], dtype=float).reshape(4, 3).T  # columns t, s, n, centre
+    offset, sub = fields[20:23], np.array(fields[23:26])
+    name = f"image {message.device!r}"
+    if components != 1:
+        raise WireError("components", f"{name} has {components} components per voxel, not one")
+    if scalar not in SCALAR_TYPES:
+        raise WireError("scalar type", f"{name} has an unknown scalar type {scalar}")
+    if np.any(size == 0):
+        raise WireError("zero size", f"{name} has a zero dimension ({size[0]} x {size[1]} x {size[2]})")
+    if np.any(size < 2):
+        raise WireError("2D image", f"{name} is {size[0]} x {size[1]} x {size[2]}: not a 3D image")
+    if any(offset) or np.any(sub != size):
+        raise WireError("subvolume", f"{name} is a subvolume, which is not read")
+    dtype = np.dtype(SCALAR_TYPES[scalar]).newbyteorder("<" if endian == 2 else ">")
+    expected = int(np.prod(size)) * dtype.itemsize
+    if len(content) - IMAGE_HEADER.size != expected:
+        raise WireError("body size", f"{name} declares {size[0]} x {size[1]} x {size[2]} voxels ({expected} bytes) "
+                                     f"but carries {len(content) - IMAGE_HEADER.size}")
+    axes = matrix[:, :3]
+    spacing = np.linalg.norm(axes, axis=0)
+    if not np.all(np.isfinite(matrix)) or np.any(spacing <= 0) or abs(np.linalg.det(axes / spacing)) < 1e-6:
+        raise WireError("matrix", f"{name} has a singular or non-finite matrix")
+    # the message places the image by its centre; the origin is voxel (0, 0, 0)
+    origin = matrix[:, 3] - axes @ ((size - 1) / 2.0)
+    coordinates = "ras" if system == 1 else "lps"
+    if coordinates == "ras":
+        axes, origin = _FLIP @ axes, _FLIP @ origin
+    voxels = np.frombuffer(content, dtype=dtype, offset=IMAGE_HEADER.size).reshape(size[2], size[1], size[0])
+    try:
+        volume = _make_volume(voxels.astype(np.float32), no_data_value, spacing=spacing, origin=origin,
+                              direction=axes / spacing)
+    except ValueError as exc:  # NaN voxels, and such
+        raise WireError("voxels", f"{name}: {exc}") from None
+    return volume, coordinates
+
+
+def lps_to(coordinates: str) -> np.ndarray:
+    """The 3x3 map from LPS to ``coordinates`` (``"lps"`` or ``"ras"``)."""
+    if coordinates not in ("lps", "ras"):
+        raise ValueError(f"coordinates must be 'lps' or 'ras', got {coordinates!r}")
+    return _FLIP if coordinates == "ras" else np.eye(3)
+
+
+def _packed(message, device: str, timestamp: float) -> bytes:
+    message.device_name = device
+    message.timestamp = timestamp
+    return message.pack()
+
+
+def encode_image(array, grid, *, device: str, timestamp: float, coordinates: str = "ras") -> bytes:
+    """An IMAGE message of ``array`` ``[z, y, x]`` on ``grid`` (an
+    :class:`spheroseg.ImageGrid`, LPS), its matrix in ``coordinates``."""
+    from pyigtl import ImageMessage
+
+    flip = lps_to(coordinates)
+    matrix = np.eye(4)
+    matrix[:3, :3] = flip @ (grid.direction * grid.spacing)
+    matrix[:3, 3] = flip @ grid.origin
+    array = np.ascontiguousarray(array)
+    if array.dtype == np.bool_:
+        array = array.astype(np.uint8)
+    return _packed(ImageMessage(array, ijk_to_world_matrix=matrix, world_coordinate_system=coordinates), device,
+                   timestamp)
+
+
+def set_timestamp(packed: bytes | bytearray, timestamp: float) -> bytes:
+    """``packed`` (a whole message) with its header's timestamp replaced
+    (the CRC covers the body only)."""
+    out = bytearray(packed)
+    seconds = int(timestamp)
+    struct.pack_into(">II", out, 34, seconds, min(int((timestamp - seconds) * 2.0 ** 32), 2 ** 32 - 1))
+    return bytes(out)
+
+
+def encode_transform(matrix, *, device: str, timestamp: float) -> bytes:
+    """A TRANSFORM message of a 4x4 matrix."""
+    from pyigtl import TransformMessage
+
+    return _packed(TransformMessage(np.asarray(matrix, dtype=float)), device, timestamp)
+
+
+def encode_string(text: str, *, device: str, timestamp: float) -> bytes:
+    """A STRING message (UTF-8 where it is not ASCII)."""
+    from pyigtl import StringMessage
+
+    message = StringMessage(text)
+    encoded = text.encode("utf8")
+    if len(encoded) > 65535:
+        raise ValueError(f"a STRING message holds at most 65535 bytes, got {len(encoded)}")
+    return _packed(message, device, timestamp)
+
+
+def decode_string(message: Message) -> str:
+    content = _content(message)
+    if len(content) < 4:
+        raise WireError("body size", "a STRING message shorter than its header")
+    encoding, length = struct.unpack_from(">HH", content)
+    if len(content) - 4 < length:
+        raise WireError("body size", "a STRING message shorter than its declared length")
+    return content[4:4 + length].decode("ascii" if encoding == 3 else "utf8")
+
+
+def decode_transform(message: Message) -> np.ndarray:
+    """The 4x4 matrix of a TRANSFORM message."""
+    values = struct.unpack(">12f", _content(message)[:48])
+    matrix = np.eye(4)
+    matrix[:3, :4] = np.array(values).reshape(4, 3).T
+    return matrix
+
+
+def _polydata_message():
+    from pyigtl import MessageBase
+
+    class PolyData(MessageBase):
+        def __init__(self, content: bytes):
+            MessageBase.__init__(self)
+            self._message_type = "POLYDATA"
+            self._content = content
+            self._valid_message = True
+
+        def _pack_content(self):
+            return self._content
+
+    return PolyData
+
+
+_ATTRIBUTE = struct.Struct(">BBI")
+
+
+def encode_polydata(points, triangles, *, device: str, timestamp: float, point_scalars: dict | None = None) -> bytes:
+    """A POLYDATA message of a triangle mesh.
+
+    Parameters
+    ----------
+    points : array (n, 3)
+        In the coordinates the receiver expects (3D Slicer: RAS).
+    triangles : int array (m, 3)
+    point_scalars : dict, optional
+        ``{name: array (n,)}``: one scalar per point each (type ``0x00``).
+    """
+    points = np.asarray(points, dtype=float)
+    triangles = np.asarray(triangles)
+    if points.ndim != 2 or points.shape[1] != 3 or triangles.ndim != 2 or triangles.shape[1] != 3:
+        raise ValueError(f"expected points (n, 3) and triangles (m, 3), got {points.shape} and {triangles.shape}")
+    if len(triangles) and (triangles.min() < 0 or triangles.max() >= len(points)):
+        raise ValueError("triangles refer to points that do not exist")
+    cells = np.column_stack([np.full(len(triangles), 3), triangles]).astype(">u4")
+    scalars = {name: np.asarray(values, dtype=">f4").reshape(-1) for name, values in (point_scalars or {}).items()}
+    for name, values in scalars.items():
+        if len(values) != len(points):
+            raise ValueError(f"attribute {name!r} has {len(values)} values for {len(points)} points")
+    header = struct.pack(">10I", len(points), 0, 0, 0, 0, len(triangles), cells.nbytes, 0, 0, len(scalars))
+    attribute_headers = b"".join(_ATTRIBUTE.pack(0x00, 1, len(points)) for _ in scalars)
+    names = b"".join(name.encode("ascii") + b"\0" for name in scalars)
+    names += b"\0" * (len(names) % 2)
+    content = (header + points.astype(">f4").tobytes() + cells.tobytes() + attribute_headers + names
+               + b"".join(values.tobytes() for values in scalars.values()))
+    return _packed(_polydata_message()(content), device, timestamp)
+
+
+def decode_polydata(message: Message) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Points ``(n, 3)``, triangles ``(m, 3)`` and point scalars of a
+    POLYDATA message (its polygons all triangles)."""
+    content = _content(message)
+    try:
+        counts = struct.unpack_from(">10I", content)
+        n_points, _, size_vertices, _, size_lines, n_polygons, size_polygons, _, size_strips, n_attributes = counts
+        at = 40
+        points = np.frombuffer(content, ">f4", 3 * n_points, at).reshape(n_points, 3).astype(float)
+        at += 12 * n_points + size_vertices + size_lines
+        cells = np.frombuffer(content, ">u4", size_polygons // 4, at).astype(np.int64)
+        at += size_polygons + size_strips
+        headers = [_ATTRIBUTE.unpack_from(content, at + 6 * k) for k in range(n_attributes)]
+        at += 6 * n_attributes
+        names = []
+        for _ in range(n_attributes):
+            end = content.index(b"\0", at)
+            names.append(content[at:end].decode("ascii"))
+            at = end + 1
+        at += sum(len(name) + 1 for name in names) % 2
+        attributes = {}
+        for name, (_, components, count) in zip(names, headers):
+            attributes[name] = np.frombuffer(content, ">f4", count * components, at).astype(float)
+            at += 4 * count * components
+    except (struct.error, ValueError) as exc:
+        raise WireError("body size", f"a POLYDATA message that does not fit its body ({exc})") from None
+    triangles = cells.reshape(-1, 4)
+    if len(triangles) != n_polygons or np.any(triangles[:, 0] != 3):
+        raise WireError("polygons", "a POLYDATA message whose polygons are not all triangles")
+    return points, triangles[:, 1:], attributes
