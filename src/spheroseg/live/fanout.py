@@ -89,6 +89,7 @@ class Broadcaster:
         self._clients: list[_Client] = []
         self._lock = threading.Lock()
         self._stop = threading.Event()
+        self._closing = threading.Event()
         self._threads = [threading.Thread(target=self._accept, name="spheroseg-live-accept", daemon=True)]
         self._threads[0].start()
 
@@ -108,12 +109,15 @@ class Broadcaster:
             client.put(key, data)
 
     def _accept(self) -> None:
-        while not self._stop.is_set():
+        while not self._closing.is_set():
             try:
                 sock, address = self._listener.accept()
             except (socket.timeout, TimeoutError):
                 continue
             except OSError:
+                return
+            if self._closing.is_set():
+                sock.close()
                 return
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             sock.settimeout(self.send_timeout)
@@ -150,7 +154,15 @@ class Broadcaster:
 
     def close(self) -> None:
         """Stop listening and disconnect every client."""
-        self._stop.set()
+        # no connection accepted any more (not even by the kernel's backlog) before the clients are let go:
+        # one reconnecting at once is refused, as by a server that is gone
+        self._closing.set()
+        try:
+            self._listener.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self._threads[0].join(timeout=2.0)
         self._listener.close()
-        for thread in self._threads:
+        self._stop.set()
+        for thread in self._threads[1:]:
             thread.join(timeout=2.0)

@@ -129,7 +129,8 @@ class MessageReader:
         """Drop bytes up to the next plausible header; False if more bytes
         are needed to find one."""
         found = None
-        for match in _HEADER_START.finditer(self._buffer, 1):
+        match = _HEADER_START.search(self._buffer, 1)
+        while match is not None:  # (not finditer: a failed candidate may overlap the next header)
             start = match.start()
             if len(self._buffer) - start < HEADER_SIZE:
                 found = start  # maybe a header: wait for the rest of it
@@ -138,6 +139,7 @@ class MessageReader:
             if header is not None and header[4] <= self.max_body_bytes:
                 found = start
                 break
+            match = _HEADER_START.search(self._buffer, start + 1)
         skipped = len(self._buffer) if found is None else found
         if found is None:
             keep = min(len(self._buffer), HEADER_SIZE - 1)  # a header may start in the last bytes
@@ -162,8 +164,8 @@ class MessageReader:
                         return out
                     continue
                 if header[4] > self.max_body_bytes:
-                    out.append(WireError("body size", f"a {header[1]} message of {header[4]} bytes, beyond the "
-                                                      f"{self.max_body_bytes} read, skipped as garbage"))
+                    out.append(WireError("body size", f"a message of type {header[1]} and {header[4]} bytes, "
+                                                      f"beyond the {self.max_body_bytes} read: skipped as garbage"))
                     del self._buffer[:2]  # not a header to trust: search past it
                     self._resync(out)
                     continue
@@ -176,8 +178,8 @@ class MessageReader:
             del self._buffer[:size]
             self._header = None
             if _crc64()(body) != crc:
-                out.append(WireError("crc", f"a {kind} message from {device!r} whose CRC does not match its body, "
-                                            "skipped"))
+                out.append(WireError("crc", f"a message of type {kind} from {device!r} whose CRC does not match "
+                                            "its body: skipped"))
                 continue
             out.append(Message(version, kind, device, timestamp, body, time.perf_counter()))
 

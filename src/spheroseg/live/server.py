@@ -215,7 +215,7 @@ class LiveServer:
         if isinstance(item, WireError):
             return self._skip(item)
         if item.type != "IMAGE":
-            return self._skip(WireError(f"type {item.type}", f"a {item.type} message is not an image: skipped"))
+            return self._skip(WireError(f"type {item.type}", f"a message of type {item.type} is not an image: skipped"))
         if self.device is not None and item.device != self.device:
             return self._skip(WireError(f"device {item.device}",
                                         f"images from device {item.device!r} skipped (--device {self.device})"))

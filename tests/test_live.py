@@ -1,0 +1,312 @@
+"""spheroseg live and replay: OpenIGTLink on loopback, bounded in time.
+
+A replay source and a results client in the test; frames sent one at a
+time where the test needs every frame tracked (their metrics then equal
+``track()``'s), in a burst where it needs frames dropped."""
+
+import json
+import os
+import socket
+import struct
+import time
+
+import numpy as np
+import pytest
+
+if os.environ.get("CI") == "true":
+    import pyigtl  # noqa: F401  (under CI a missing pyigtl fails these tests)
+else:
+    pytest.importorskip("pyigtl")
+
+from spheroseg import track  # noqa: E402
+from spheroseg.live import messages  # noqa: E402
+from spheroseg.live.client import ResultClient  # noqa: E402
+from spheroseg.live.messages import (MessageReader, WireError, decode_image, decode_polydata,  # noqa: E402
+                                     decode_transform, encode_image, encode_polydata, encode_string)
+from spheroseg.live.replay import Replay, wire_array  # noqa: E402
+from spheroseg.live.server import LiveServer  # noqa: E402
+from spheroseg.live.session import LiveTracker, VolumeCurve  # noqa: E402
+from spheroseg.synthetic.phantom import make_sequence  # noqa: E402
+from spheroseg.volume import Volume  # noqa: E402
+
+RAS = np.diag([-1.0, -1.0, 1.0])
+WAIT = 60.0  # seconds a test waits for a frame at most (the first one loads the kernels)
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return make_sequence(seed=3, n_frames=6, spacing=2.5)
+
+
+def on_the_wire(volume):
+    """The volume as ``live`` decodes it from an IMAGE message."""
+    (message,) = MessageReader().feed(encode_image(wire_array(volume), volume.grid, device="Image", timestamp=0.0))
+    return decode_image(message, no_data_value="auto")[0]
+
+
+@pytest.fixture(scope="module")
+def tracked(seq):
+    first = seq.frames[0]
+    volumes = [on_the_wire(v) for v in seq.volumes]
+    return volumes, track(volumes, first.apex, first.base)
+
+
+class Loop:
+    """A replay, a live server between it and a client; closed by the test's end."""
+
+    def __init__(self, seq, *, backlog=2, **options):
+        first = seq.frames[0]
+        self.replay = Replay(seq.volumes, fps=10.0, backlog=backlog)
+        options = {"apex": first.apex, "base": first.base, "stall_seconds": 60.0, **options}
+        self.live = LiveServer(self.replay.address, serve=("127.0.0.1", 0), **options).start()
+        self.client = ResultClient(self.live.address)
+        assert wait(lambda: self.replay.clients == 1, 10)
+
+    def frame(self, k, **kwargs):
+        """Send frame k; wait for its metrics."""
+        count = len(self.client.metrics)
+        self.replay.send(k, **kwargs)
+        assert self.client.wait_for(lambda c: len(c.metrics) > count, WAIT), f"no metrics for frame {k}"
+        return self.client.metrics[-1]
+
+    def close(self):
+        self.client.close()
+        self.live.close()
+        self.replay.close()
+
+
+def wait(predicate, timeout):
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+@pytest.fixture
+def loop(seq, request):
+    made = []
+
+    def make(**options):
+        made.append(Loop(seq, **options))
+        return made[-1]
+
+    yield make
+    for each in made:
+        each.close()
+
+
+def test_every_frame_equals_track(loop, tracked):
+    """Frames sent one at a time: each frame's volume, and EDV, ESV and EF
+    after the cycle, equal track() of the same frames; the mesh, labelmap
+    and pose sent decode back to the result's (RAS)."""
+    volumes, expected = tracked
+    run = loop()
+    for k, frame in enumerate(expected.frames):
+        metrics = run.frame(k)
+        assert metrics["index"] == k and metrics["dropped"] == 0
+        assert metrics["volume_ml"] == pytest.approx(frame.volume_ml, rel=1e-9)
+        assert metrics["latency_ms"] > 0 and metrics["coordinates"] == "ras"
+        if k == 1:
+            endo = run.client.latest["LVEndo"]
+            points, triangles, _ = decode_polydata(endo)
+            mesh_points, mesh_faces = frame.mesh()
+            np.testing.assert_array_equal(triangles, mesh_faces)
+            np.testing.assert_allclose(points, mesh_points @ RAS, rtol=1e-6, atol=1e-4)
+            label, coordinates = decode_image(run.client.latest["LVLabel"])
+            assert coordinates == "ras"
+            np.testing.assert_array_equal(label.array, frame.mask(volumes[k]))
+            np.testing.assert_allclose(label.origin, volumes[k].origin, atol=1e-4)
+            pose = decode_transform(run.client.latest["LVToImage"])
+            np.testing.assert_allclose(pose[:3, :3], RAS @ frame.surface.pose.rotation, atol=1e-6)
+            np.testing.assert_allclose(pose[:3, 3], RAS @ frame.surface.pose.origin, atol=1e-4)
+    assert metrics["edv_ml"] == pytest.approx(expected.edv_ml, rel=1e-9)
+    assert metrics["esv_ml"] == pytest.approx(expected.esv_ml, rel=1e-9)
+    assert metrics["ef"] == pytest.approx(expected.ef, rel=1e-9)
+    assert (metrics["ed_index"], metrics["es_index"]) == (expected.ed_frame, expected.es_frame)
+    assert metrics["source_fps"] == pytest.approx(10.0, rel=1e-6)
+    # a client joining mid-stream gets the latest results at once
+    late = ResultClient(run.live.address)
+    try:
+        assert late.wait_for(lambda c: c.metrics and {"LVEndo", "LVLabel", "LVToImage"} <= set(c.latest), 10)
+        assert late.metrics[-1]["index"] == len(expected.frames) - 1
+    finally:
+        late.close()
+
+
+def test_faster_source_drops_frames_newest_wins(loop, monkeypatch):
+    """Frames sent faster than they are tracked: some are dropped and
+    counted, never queued; the newest is the one tracked last."""
+    process = LiveTracker.process
+
+    def slow(self, *args, **kwargs):
+        time.sleep(0.15)
+        return process(self, *args, **kwargs)
+
+    run = loop(backlog=16)
+    run.frame(0)
+    monkeypatch.setattr(LiveTracker, "process", slow)
+    for k in range(1, 8):
+        run.replay.send(k)
+    assert run.client.wait_for(lambda c: c.metrics[-1]["index"] == 7, WAIT)
+    last = run.client.metrics[-1]
+    assert last["received"] == 8 and last["dropped"] >= 3
+    assert last["tracked"] + last["dropped"] == last["received"]
+    indices = [m["index"] for m in run.client.metrics]
+    assert indices == sorted(indices) and len(indices) == last["tracked"]
+
+
+def _raw_image_header(size, *, device="Image"):
+    """An IMAGE message declaring ``size`` (i, j, k) voxels, with none."""
+    from pyigtl.messages import CRC64
+
+    body = messages.IMAGE_HEADER.pack(1, 1, 10, 2, 2, *size, *np.eye(3, 4).T.ravel(), 0, 0, 0, *size)
+    header = messages.HEADER.pack(1, b"IMAGE", device.encode(), 1, 0, len(body), CRC64(body))
+    return header + body
+
+
+def test_bad_input_is_survived(loop, seq, caplog):
+    """Garbage, a wrong CRC, a 2D image, a zero and a huge dimension, a
+    message of another type: each logged once with its reason and skipped,
+    the stream goes on; a frame of another geometry restarts the tracker."""
+    caplog.set_level("WARNING", logger="spheroseg.live")
+    run = loop(backlog=16)
+    run.frame(0)
+    good = run.replay.frames[1]
+    bad_crc = bytearray(good)
+    bad_crc[-1] ^= 0xFF
+    for data in (b"\x00\x01not a header at all" * 40, bytes(bad_crc), bytes(bad_crc),
+                 _raw_image_header((8, 8, 1)), _raw_image_header((0, 4, 4)),  # 2D; a zero dimension
+                 _raw_image_header((60000, 60000, 60000)), encode_string("hello", device="Note", timestamp=1.0)):
+        run.replay.send_raw(data)
+    metrics = run.frame(1)
+    assert metrics["index"] == 1 and metrics["restarted"] is False
+    skipped = metrics["skipped"]
+    assert skipped["garbage"] >= 1 and skipped["crc"] == 2 and skipped["2D image"] == 1
+    assert skipped["zero size"] == 1 and skipped["body size"] == 1 and skipped["type STRING"] == 1
+    crc_lines = [r for r in caplog.records if "CRC" in r.getMessage()]
+    assert len(crc_lines) == 1  # logged once, then counted
+    # another geometry mid-stream: tracking starts again, then goes on
+    for k, restarted in ((2, True), (3, False), (4, True)):  # moved, moved, back
+        moved = seq.volumes[k]
+        if k < 4:
+            moved = Volume(moved.array, spacing=moved.spacing, origin=moved.origin + np.array([2.5, 0.0, 0.0]))
+        run.replay.send_raw(encode_image(wire_array(moved), moved.grid, device="Image", timestamp=2.0 + k))
+        assert run.client.wait_for(lambda c: c.metrics[-1]["index"] == k, WAIT)
+        assert run.client.metrics[-1]["restarted"] is restarted
+
+
+def test_reconnects_to_a_restarted_source(seq):
+    """The source killed and started again on its port: live reconnects
+    with back-off, its results client staying connected throughout."""
+    first = seq.frames[0]
+    replay = Replay(seq.volumes, fps=10.0)
+    port = replay.address[1]
+    live = LiveServer(replay.address, serve=("127.0.0.1", 0), apex=first.apex, base=first.base, stall_seconds=60.0,
+                      backoff=(0.05, 0.2)).start()
+    client = ResultClient(live.address)
+    try:
+        assert wait(lambda: replay.clients == 1, 10)
+        replay.send(0)
+        assert client.wait_for(lambda c: len(c.metrics) == 1, WAIT)
+        replay.close()
+        time.sleep(0.5)  # live retries meanwhile
+        replay = Replay(seq.volumes, port=port, fps=10.0)
+        assert wait(lambda: replay.clients == 1, 10)
+        replay.send(1)
+        assert client.wait_for(lambda c: len(c.metrics) == 2, WAIT)
+        assert client.metrics[-1]["restarted"] is False and live.connections == 2
+    finally:
+        client.close()
+        live.close()
+        replay.close()
+
+
+def test_polydata_bytes_follow_the_specification():
+    """Two triangles and a point scalar against the layout of
+    OpenIGTLink's igtl_polydata.h, written out by hand: big-endian counts,
+    float32 points, (3, i, j, k) uint32 cells, attribute header
+    (type, components, count), NUL-terminated names padded to even."""
+    points = np.array([[0.0, 1.0, 2.0], [3.0, 4.0, 5.0], [6.0, 7.5, -8.0], [1.0, 0.0, 0.0]])
+    triangles = np.array([[0, 1, 2], [0, 2, 3]])
+    data = encode_polydata(points, triangles, device="LVEndo", timestamp=1.5,
+                           point_scalars={"Segment": [1, 2, 3, 17]})
+    expected = struct.pack(">10I", 4, 0, 0, 0, 0, 2, 32, 0, 0, 1)
+    expected += struct.pack(">12f", *points.ravel())
+    expected += struct.pack(">8I", 3, 0, 1, 2, 3, 0, 2, 3)
+    expected += struct.pack(">BBI", 0, 1, 4) + b"Segment\0" + struct.pack(">4f", 1, 2, 3, 17)
+    header = messages.HEADER.unpack(data[:58])
+    assert data[58:] == expected and header[1].rstrip(b"\0") == b"POLYDATA" and header[5] == len(expected)
+    (message,) = MessageReader().feed(data)
+    got_points, got_triangles, attributes = decode_polydata(message)
+    np.testing.assert_array_equal(got_points, points)
+    np.testing.assert_array_equal(got_triangles, triangles)
+    np.testing.assert_array_equal(attributes["Segment"], [1, 2, 3, 17])
+
+
+def test_reader_splits_resyncs_and_checks(seq):
+    """Fed a byte at a time or at once, the same messages; garbage before a
+    message is skipped and reported; a flipped body byte fails the CRC."""
+    frame = encode_image(wire_array(seq.volumes[0]), seq.volumes[0].grid, device="Image", timestamp=3.25)
+    note = encode_string("x", device="Note", timestamp=1.0)
+    stream = b"junk\x00\x02ABC" + frame + note
+    whole = MessageReader().feed(stream)
+    reader = MessageReader()
+    pieces = [item for k in range(0, len(stream), 7919) for item in reader.feed(stream[k:k + 7919])]
+    for items in (whole, pieces):
+        kinds = [item.reason if isinstance(item, WireError) else item.type for item in items]
+        assert kinds == ["garbage", "IMAGE", "STRING"], kinds
+        assert items[1].timestamp == pytest.approx(3.25, abs=1e-6)
+    broken = bytearray(frame)
+    broken[100] ^= 1
+    (error,) = MessageReader().feed(bytes(broken))
+    assert isinstance(error, WireError) and error.reason == "crc"
+
+
+def test_image_coordinates_ras_and_lps_agree(seq):
+    """The same volume sent with a RAS and an LPS matrix decodes to one
+    LPS geometry, that of the volume (float32 on the wire)."""
+    volume = seq.volumes[0]
+    tilted = Volume(volume.array, spacing=(2.5, 2.0, 3.0), origin=(-10.0, 20.0, 5.0),
+                    direction=[[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    grids = []
+    for coordinates in ("ras", "lps"):
+        data = encode_image(wire_array(tilted), tilted.grid, device="Image", timestamp=0.0, coordinates=coordinates)
+        decoded, said = decode_image(MessageReader().feed(data)[0])
+        assert said == coordinates
+        grids.append(decoded.grid)
+        np.testing.assert_array_equal(decoded.array, tilted.array)
+    for grid in grids:
+        np.testing.assert_allclose(grid.origin, tilted.origin, atol=1e-4)
+        np.testing.assert_allclose(grid.spacing, tilted.spacing, rtol=1e-6)
+        np.testing.assert_allclose(grid.direction, tilted.direction, atol=1e-6)
+
+
+def test_cycle_from_the_volume_curve():
+    """A 72-beats-a-minute curve at 30 frames a second: the period found
+    from the autocorrelation, EDV and ESV over the last period only; fewer
+    than two cycles: over every frame."""
+    curve = VolumeCurve()
+    fps, rate = 30.0, 72.0
+    for k in range(90):
+        t = k / fps
+        trend = 10.0 if k >= 90 - 25 else 0.0  # the last cycle is larger: the window must be the last one
+        curve.add(t, k, 100.0 + trend - 30.0 * (0.5 - 0.5 * np.cos(2 * np.pi * rate / 60.0 * t)))
+        if k == 20:
+            early = curve.last_cycle(fps)
+            assert early["cycle"] == "so far" and early["heart_rate_bpm"] is None
+    cycle = curve.last_cycle(fps)
+    assert cycle["cycle"] == "detected"
+    assert cycle["heart_rate_bpm"] == pytest.approx(rate, abs=60.0 * fps / 25 - 60.0 * fps / 26)
+    assert cycle["ed_index"] >= 90 - 25 and cycle["edv_ml"] == pytest.approx(110.0, abs=0.5)
+    assert cycle["ef"] == pytest.approx(100.0 * (cycle["edv_ml"] - cycle["esv_ml"]) / cycle["edv_ml"])
+
+
+def test_commands_fail_in_one_line(capsys):
+    from spheroseg.cli import main
+
+    assert main(["live", "--source", "nowhere", "--serve", "0"]) == 2
+    assert "expected HOST:PORT" in capsys.readouterr().err
+    assert main(["replay", "--fps", "0", "--serve", "0"]) == 2
+    assert "--fps" in capsys.readouterr().err
