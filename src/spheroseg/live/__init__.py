@@ -10,6 +10,7 @@ one by one as :func:`spheroseg.track` tracks them, the cardiac cycle found
 on the fly), :mod:`~spheroseg.live.server` (the live tracker between a
 source and its clients), :mod:`~spheroseg.live.client` (a results client)
 and :mod:`~spheroseg.live.commands` (the two subcommands).  It needs
-``pyigtl`` (``pip install "spheroseg[live]"``); nothing here is imported by
+nothing beyond spheroseg's own dependencies (pyigtl, the ``live`` extra, is
+the tests' reference for the messages); nothing here is imported by
 ``import spheroseg``.
 """

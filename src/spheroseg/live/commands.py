@@ -1,7 +1,7 @@
 """The ``spheroseg live`` and ``spheroseg replay`` subcommands.
 
 Their parsers are built with nothing but argparse (``spheroseg --help``
-stays light); pyigtl and the tracking are imported when a command runs.
+stays light); the tracking is imported when a command runs.
 """
 
 from __future__ import annotations
@@ -103,15 +103,6 @@ def add_live_parsers(sub) -> None:
     replay.add_argument("--quiet", action="store_true")
 
 
-def _need_pyigtl() -> None:
-    from ..cli import CliError
-
-    try:
-        import pyigtl  # noqa: F401
-    except ImportError:
-        raise CliError('spheroseg live and replay need pyigtl: pip install "spheroseg[live]"') from None
-
-
 def _console(args) -> None:
     logger = logging.getLogger("spheroseg.live")
     if not logger.handlers:
@@ -136,7 +127,6 @@ def _wait(duration: float | None, done=lambda: False) -> None:
 
 def run(args) -> int:
     """Run ``spheroseg live`` or ``spheroseg replay``."""
-    _need_pyigtl()
     _console(args)
     return _live(args) if args.command == "live" else _replay(args)
 

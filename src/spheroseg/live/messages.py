@@ -1,12 +1,15 @@
 """OpenIGTLink v2 messages: the stream split and checked, images decoded,
 results encoded.
 
-pyigtl packs the IMAGE, TRANSFORM and STRING bodies and computes the CRC;
-this module adds what it lacks: a reader that checks every header, body size
-and CRC and finds the next header after garbage bytes, an IMAGE decoder that
-says why an image cannot be a frame, and a POLYDATA body as the
-specification lays it out (pyigtl 0.3 neither reads POLYDATA nor carries
-attributes).
+The framing is this module's own rather than pyigtl's: a reader that
+checks every header, body size and CRC and finds the next header after
+garbage bytes (pyigtl checks no CRC, and loses step after garbage), an
+IMAGE decoder that says why an image cannot be a frame, a compiled CRC
+(:mod:`spheroseg.live._crc`, a tenth of crcmod's time on a frame: every
+frame is checked as it is read, every labelmap sent) and a POLYDATA body as
+the specification lays it out (pyigtl 0.3 reads no POLYDATA, carries no
+attributes and writes vertices in the machine's byte order).  pyigtl is
+the tests' reference: what it reads of these messages, they check.
 
 The POLYDATA body (OpenIGTLink ``igtl_polydata.h``), every number big-endian:
 
@@ -37,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["HEADER_SIZE", "MAX_BODY_BYTES", "WireError", "Message", "MessageReader", "decode_image",
+__all__ = ["HEADER_SIZE", "MAX_BODY_BYTES", "WireError", "Message", "MessageReader", "pack", "check_image", "decode_image",
            "encode_image", "encode_polydata", "decode_polydata", "encode_transform", "encode_string",
            "decode_string", "decode_transform", "image_body_size", "set_timestamp", "lps_to"]
 
@@ -88,9 +91,17 @@ class Message:
 
 
 def _crc64():
-    from pyigtl.messages import CRC64
+    from ._crc import crc64
 
-    return CRC64
+    return crc64
+
+
+def pack(kind: str, device: str, timestamp: float, content: bytes) -> bytes:
+    """A whole message (header version 1): header, then ``content``."""
+    seconds = int(timestamp)
+    fraction = min(int((timestamp - seconds) * 2.0 ** 32), 2 ** 32 - 1)
+    return HEADER.pack(1, kind.encode("ascii"), device.encode("ascii"), seconds, fraction, len(content),
+                       _crc64()(content)) + content
 
 
 def _text(field: bytes) -> str | None:
@@ -203,22 +214,21 @@ def image_body_size(shape, dtype) -> int:
     return IMAGE_HEADER.size + int(np.prod(shape)) * np.dtype(dtype).itemsize
 
 
-def decode_image(message: Message, *, no_data_value=None):
-    """The :class:`spheroseg.Volume` of an IMAGE message (world LPS mm).
+def check_image(message: Message) -> dict:
+    """An IMAGE message's header, checked, without its voxels read.
 
     Raises :class:`WireError` (with the reason) for an image that cannot be
     a frame: not a scalar 3D image, a zero or one-voxel dimension, a
     subvolume, an unknown scalar type, voxel data that do not fill the
-    declared size, a singular matrix.
+    declared size, a singular or non-finite matrix.
 
     Returns
     -------
-    volume : Volume
-    coordinates : str
-        ``"ras"`` or ``"lps"``, as the message gave its matrix.
+    dict
+        ``content`` (the body), ``dtype``, ``size`` (i, j, k), ``spacing``,
+        ``direction``, ``origin`` (world LPS mm) and ``coordinates``
+        (``"ras"`` or ``"lps"``, as the message gave its matrix).
     """
-    from ..images import _make_volume
-
     content = _content(message)
     if len(content) < IMAGE_HEADER.size:
         raise WireError("body size", f"an IMAGE of {len(content)} bytes, shorter than its {IMAGE_HEADER.size}-byte "
@@ -253,13 +263,32 @@ def decode_image(message: Message, *, no_data_value=None):
     coordinates = "ras" if system == 1 else "lps"
     if coordinates == "ras":
         axes, origin = _FLIP @ axes, _FLIP @ origin
-    voxels = np.frombuffer(content, dtype=dtype, offset=IMAGE_HEADER.size).reshape(size[2], size[1], size[0])
+    return {"content": content, "dtype": dtype, "size": size, "spacing": spacing, "direction": axes / spacing,
+            "origin": origin, "coordinates": coordinates, "name": name}
+
+
+def decode_image(message: Message, *, no_data_value=None, checked: dict | None = None):
+    """The :class:`spheroseg.Volume` of an IMAGE message (world LPS mm);
+    :class:`WireError` as :func:`check_image` (``checked``: what it
+    returned, not computed again) or for non-finite voxels.
+
+    Returns
+    -------
+    volume : Volume
+    coordinates : str
+        ``"ras"`` or ``"lps"``, as the message gave its matrix.
+    """
+    from ..images import _make_volume
+
+    image = check_image(message) if checked is None else checked
+    size = image["size"]
+    voxels = np.frombuffer(image["content"], dtype=image["dtype"], offset=IMAGE_HEADER.size)
     try:
-        volume = _make_volume(voxels.astype(np.float32), no_data_value, spacing=spacing, origin=origin,
-                              direction=axes / spacing)
+        volume = _make_volume(voxels.reshape(size[2], size[1], size[0]).astype(np.float32), no_data_value,
+                              spacing=image["spacing"], origin=image["origin"], direction=image["direction"])
     except ValueError as exc:  # NaN voxels, and such
-        raise WireError("voxels", f"{name}: {exc}") from None
-    return volume, coordinates
+        raise WireError("voxels", f"{image['name']}: {exc}") from None
+    return volume, image["coordinates"]
 
 
 def lps_to(coordinates: str) -> np.ndarray:
@@ -269,26 +298,28 @@ def lps_to(coordinates: str) -> np.ndarray:
     return _FLIP if coordinates == "ras" else np.eye(3)
 
 
-def _packed(message, device: str, timestamp: float) -> bytes:
-    message.device_name = device
-    message.timestamp = timestamp
-    return message.pack()
+#: numpy's types as OpenIGTLink's
+_IGTL_TYPES = {np.dtype(t).newbyteorder("<"): code for code, t in SCALAR_TYPES.items()}
 
 
 def encode_image(array, grid, *, device: str, timestamp: float, coordinates: str = "ras") -> bytes:
     """An IMAGE message of ``array`` ``[z, y, x]`` on ``grid`` (an
-    :class:`spheroseg.ImageGrid`, LPS), its matrix in ``coordinates``."""
-    from pyigtl import ImageMessage
-
+    :class:`spheroseg.ImageGrid`, LPS), its matrix in ``coordinates``; the
+    voxels little-endian, the matrix placing the image by its centre."""
     flip = lps_to(coordinates)
-    matrix = np.eye(4)
-    matrix[:3, :3] = flip @ (grid.direction * grid.spacing)
-    matrix[:3, 3] = flip @ grid.origin
-    array = np.ascontiguousarray(array)
+    array = np.asarray(array)
     if array.dtype == np.bool_:
         array = array.astype(np.uint8)
-    return _packed(ImageMessage(array, ijk_to_world_matrix=matrix, world_coordinate_system=coordinates), device,
-                   timestamp)
+    array = np.ascontiguousarray(array, dtype=array.dtype.newbyteorder("<"))
+    if array.ndim != 3 or array.dtype not in _IGTL_TYPES:
+        raise ValueError(f"expected a 3D array of one of {sorted(str(t) for t in _IGTL_TYPES)}, got "
+                         f"{array.ndim}D {array.dtype}")
+    nz, ny, nx = array.shape
+    axes = flip @ (grid.direction * grid.spacing)
+    centre = flip @ grid.origin + axes @ ((np.array([nx, ny, nz]) - 1) / 2.0)
+    content = IMAGE_HEADER.pack(1, 1, _IGTL_TYPES[array.dtype], 2, 1 if coordinates == "ras" else 2, nx, ny, nz,
+                                *axes.T.ravel(), *centre, 0, 0, 0, nx, ny, nz) + array.tobytes()
+    return pack("IMAGE", device, timestamp, content)
 
 
 def set_timestamp(packed: bytes | bytearray, timestamp: float) -> bytes:
@@ -301,21 +332,21 @@ def set_timestamp(packed: bytes | bytearray, timestamp: float) -> bytes:
 
 
 def encode_transform(matrix, *, device: str, timestamp: float) -> bytes:
-    """A TRANSFORM message of a 4x4 matrix."""
-    from pyigtl import TransformMessage
-
-    return _packed(TransformMessage(np.asarray(matrix, dtype=float)), device, timestamp)
+    """A TRANSFORM message of a 4x4 matrix: its 3x4 upper part, column by
+    column, float32."""
+    matrix = np.asarray(matrix, dtype=float)
+    return pack("TRANSFORM", device, timestamp, struct.pack(">12f", *matrix[:3, :4].T.ravel()))
 
 
 def encode_string(text: str, *, device: str, timestamp: float) -> bytes:
-    """A STRING message (UTF-8 where it is not ASCII)."""
-    from pyigtl import StringMessage
-
-    message = StringMessage(text)
-    encoded = text.encode("utf8")
+    """A STRING message: ASCII (IANA 3) where it is, else UTF-8 (106)."""
+    try:
+        encoded, encoding = text.encode("ascii"), 3
+    except UnicodeEncodeError:
+        encoded, encoding = text.encode("utf8"), 106
     if len(encoded) > 65535:
         raise ValueError(f"a STRING message holds at most 65535 bytes, got {len(encoded)}")
-    return _packed(message, device, timestamp)
+    return pack("STRING", device, timestamp, struct.pack(">HH", encoding, len(encoded)) + encoded)
 
 
 def decode_string(message: Message) -> str:
@@ -334,22 +365,6 @@ def decode_transform(message: Message) -> np.ndarray:
     matrix = np.eye(4)
     matrix[:3, :4] = np.array(values).reshape(4, 3).T
     return matrix
-
-
-def _polydata_message():
-    from pyigtl import MessageBase
-
-    class PolyData(MessageBase):
-        def __init__(self, content: bytes):
-            MessageBase.__init__(self)
-            self._message_type = "POLYDATA"
-            self._content = content
-            self._valid_message = True
-
-        def _pack_content(self):
-            return self._content
-
-    return PolyData
 
 
 _ATTRIBUTE = struct.Struct(">BBI")
@@ -383,7 +398,7 @@ def encode_polydata(points, triangles, *, device: str, timestamp: float, point_s
     names += b"\0" * (len(names) % 2)
     content = (header + points.astype(">f4").tobytes() + cells.tobytes() + attribute_headers + names
                + b"".join(values.tobytes() for values in scalars.values()))
-    return _packed(_polydata_message()(content), device, timestamp)
+    return pack("POLYDATA", device, timestamp, content)
 
 
 def decode_polydata(message: Message) -> tuple[np.ndarray, np.ndarray, dict]:

@@ -6,7 +6,8 @@ back-off while it cannot, again after a disconnection or a stall), splits
 and checks the stream (:class:`spheroseg.live.messages.MessageReader`),
 decodes each IMAGE and puts it in a one-frame slot: a frame not yet taken
 when the next arrives is dropped and counted, so the newest always wins and
-nothing queues.  The *worker* thread takes the slot, tracks the frame
+nothing queues (an image's header is checked as it comes, its voxels read
+only when it is tracked).  The *worker* thread takes the slot, tracks the frame
 (:class:`spheroseg.live.session.LiveTracker`) and publishes its results;
 the *fan-out* (:class:`spheroseg.live.fanout.Broadcaster`) sends them to
 every client, the latest at once to one that connects.
@@ -32,8 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from .fanout import Broadcaster
-from .messages import (MAX_BODY_BYTES, MessageReader, WireError, decode_image, encode_image, encode_polydata,
-                       encode_string, encode_transform, lps_to)
+from .messages import (MAX_BODY_BYTES, MessageReader, WireError, check_image, decode_image, encode_image,
+                       encode_polydata, encode_string, encode_transform, lps_to)
 from .session import LiveTracker, StartError
 
 __all__ = ["LiveServer", "DEVICES"]
@@ -220,7 +221,7 @@ class LiveServer:
             return self._skip(WireError(f"device {item.device}",
                                         f"images from device {item.device!r} skipped (--device {self.device})"))
         try:
-            volume, _ = decode_image(item, no_data_value=self.no_data_value)
+            checked = check_image(item)  # the header only: the voxels are read if the frame is tracked
         except WireError as error:
             return self._skip(error)
         self._stamps.append(item.timestamp)
@@ -229,7 +230,7 @@ class LiveServer:
             self.received += 1
             if self._slot is not None:
                 self.dropped += 1
-            self._slot = (volume, index, item.timestamp, item.received)
+            self._slot = (item, checked, index)
             self._ready.notify()
 
     # -- the worker ----------------------------------------------------------
@@ -242,8 +243,14 @@ class LiveServer:
                     self._ready.wait(0.2)
                 if self._stop.is_set():
                     return
-                volume, index, timestamp, received = self._slot
+                message, checked, index = self._slot
                 self._slot = None
+            try:
+                volume, _ = decode_image(message, no_data_value=self.no_data_value, checked=checked)
+            except WireError as error:
+                self._skip(error)
+                continue
+            timestamp, received = message.timestamp, message.received
             try:
                 frame = self.tracker.process(volume, index=index, timestamp=timestamp, frame_rate=self.frame_rate)
             except StartError as exc:
