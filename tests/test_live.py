@@ -108,6 +108,8 @@ def test_every_frame_equals_track(loop, tracked):
             mesh_points, mesh_faces = frame.mesh()
             np.testing.assert_array_equal(triangles, mesh_faces)
             np.testing.assert_allclose(points, mesh_points @ RAS, rtol=1e-6, atol=1e-4)
+            assert run.client.wait_for(lambda c: "LVLabel" in c.latest and  # (sent after the metrics)
+                                       abs(c.latest["LVLabel"].timestamp - metrics["timestamp"]) < 1e-6, 10)
             label, coordinates = decode_image(run.client.latest["LVLabel"])
             assert coordinates == "ras"
             np.testing.assert_array_equal(label.array, frame.mask(volumes[k]))

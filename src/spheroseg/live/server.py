@@ -14,10 +14,11 @@ every client, the latest at once to one that connects.
 
 Per frame, with the source frame's timestamp: POLYDATA ``LVEndo`` (and
 ``LVEpi`` with ``myocardium``; with it, each point's 17-segment number as
-the point scalar ``Segment``), IMAGE ``LVLabel`` (1 the cavity, 2 the
-myocardium, on the frame's grid and matrix), TRANSFORM ``LVToImage`` (the
-model's long-axis frame: its first axis from the base towards the apex, its
-origin on the mitral plane) and, last, STRING ``LVMetrics`` (JSON).
+the point scalar ``Segment``), TRANSFORM ``LVToImage`` (the model's
+long-axis frame: its first axis from the base towards the apex, its origin
+on the mitral plane), STRING ``LVMetrics`` (JSON) and then IMAGE
+``LVLabel`` (1 the cavity, 2 the myocardium, on the frame's grid and
+matrix; left out when a newer frame already waits).
 """
 
 from __future__ import annotations
@@ -280,12 +281,6 @@ class LiveServer:
             out.append((DEVICES["epi"], encode_polydata(epi_points @ flip.T, epi_faces, device=DEVICES["epi"],
                                                         timestamp=stamp,
                                                         point_scalars=self._segments(result, epi_points))))
-        if self.label:
-            label = result.mask(frame.volume).astype(np.uint8)
-            if result.epicardium is not None:
-                label[result.myocardium_mask(frame.volume)] = 2
-            out.append((DEVICES["label"], encode_image(label, frame.volume.grid, device=DEVICES["label"],
-                                                       timestamp=stamp, coordinates=self.coordinates)))
         pose = np.eye(4)
         pose[:3, :3] = flip @ result.surface.pose.rotation
         pose[:3, 3] = flip @ result.surface.pose.origin
@@ -300,8 +295,18 @@ class LiveServer:
             self._fanout.publish(device, data)
         self.latencies_ms.append(metrics["latency_ms"])
         self.last_metrics = metrics
+        # the labelmap (a rasterisation of the frame's grid) after the metrics, which it would delay; not at
+        # all when a newer frame is already waiting, whose own labelmap comes next
+        mask = None
+        if self.label and self._slot is None:
+            mask = result.mask(frame.volume)
+            label = mask.astype(np.uint8)
+            if result.epicardium is not None:
+                label[result.myocardium_mask(frame.volume)] = 2
+            self._fanout.publish(DEVICES["label"], encode_image(label, frame.volume.grid, device=DEVICES["label"],
+                                                                timestamp=stamp, coordinates=self.coordinates))
         if self.record is not None:
-            self._write(frame, metrics, points, faces)
+            self._write(frame, metrics, points, faces, mask)
 
     @staticmethod
     def _segments(result, points) -> dict:
@@ -311,15 +316,15 @@ class LiveServer:
         labels = segment_labels(local, length=cavity_length(result.surface), convention=result.segment_convention)
         return {"Segment": labels.astype(float)}
 
-    def _write(self, frame, metrics: dict, points, faces) -> None:
+    def _write(self, frame, metrics: dict, points, faces, mask=None) -> None:
         from ..io import save_mask, write_atomically
         from ..outputs import write_json
         from ..surface_io import write_mesh
 
         stem = self.record / f"frame_{frame.index:06d}"
         try:
-            write_atomically(f"{stem}_mask.nii.gz", lambda tmp: save_mask(tmp, frame.result.mask(frame.volume),
-                                                                        frame.volume))
+            mask = frame.result.mask(frame.volume) if mask is None else mask
+            write_atomically(f"{stem}_mask.nii.gz", lambda tmp: save_mask(tmp, mask, frame.volume))
             write_mesh(f"{stem}.vtk", points, faces)
             write_json(Path(f"{stem}.json"), metrics)  # last: a frame with its JSON is whole
         except OSError as exc:
