@@ -131,6 +131,32 @@ def test_every_frame_equals_track(loop, tracked):
         late.close()
 
 
+def test_myocardium_and_record(loop, tracked, tmp_path):
+    """With the myocardium: LVEpi, each point's segment number, the LV mass
+    as track(myocardium=True)'s; with a record folder, each frame's files
+    (and nothing anywhere without one)."""
+    volumes, _ = tracked
+    first = tracked[1].frames[0]
+    expected = track(volumes[:2], *(np.asarray(first.initialisation[k]) for k in ("apex", "base")),
+                     myocardium=True)
+    run = loop(myocardium=True, record=tmp_path / "frames")
+    for k in range(2):
+        metrics = run.frame(k)
+        assert metrics["lv_mass_g"] == pytest.approx(expected.frames[k].lv_mass_g, rel=1e-9)
+    assert run.client.wait_for(lambda c: "LVEpi" in c.latest and "LVLabel" in c.latest, 10)
+    for device in ("LVEndo", "LVEpi"):
+        points, _, attributes = decode_polydata(run.client.latest[device])
+        segments = attributes["Segment"]
+        assert len(segments) == len(points) and set(np.unique(segments)) <= set(range(18))
+        assert len(set(np.unique(segments)) & set(range(1, 17))) == 16  # every wall segment has points
+    label, _ = decode_image(run.client.latest["LVLabel"])
+    assert set(np.unique(label.array)) == {0.0, 1.0, 2.0}
+    assert wait(lambda: (tmp_path / "frames" / "frame_000001.json").exists(), 10)
+    names = sorted(p.name for p in (tmp_path / "frames").iterdir())
+    assert names == [f"frame_00000{k}{suffix}" for k in range(2) for suffix in (".json", ".vtk", "_mask.nii.gz")]
+    assert json.loads((tmp_path / "frames" / "frame_000001.json").read_text())["index"] == 1
+
+
 def test_faster_source_drops_frames_newest_wins(loop, monkeypatch):
     """Frames sent faster than they are tracked: some are dropped and
     counted, never queued; the newest is the one tracked last."""

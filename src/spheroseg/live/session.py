@@ -92,7 +92,7 @@ class VolumeCurve:
         t, v, k = np.asarray(self.times), np.asarray(self.volumes), np.asarray(self.indices)
         window = np.ones(len(t), bool) if period is None else t > t[-1] - period + 0.5 / frame_rate
         ed, es = np.flatnonzero(window)[[np.argmax(v[window]), np.argmin(v[window])]]
-        return {"edv_ml": float(v[ed]), "esv_ml": float(v[es]), "ef": 100.0 * (v[ed] - v[es]) / v[ed],
+        return {"edv_ml": float(v[ed]), "esv_ml": float(v[es]), "ef": float(100.0 * (v[ed] - v[es]) / v[ed]),
                 "ed_index": int(k[ed]), "es_index": int(k[es]), "cycle": "so far" if period is None else "detected",
                 "heart_rate_bpm": None if period is None else 60.0 / period}
 
