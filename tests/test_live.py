@@ -207,13 +207,14 @@ def test_bad_input_is_survived(loop, seq, caplog):
     bad_crc[-1] ^= 0xFF
     for data in (b"\x00\x01not a header at all" * 40, bytes(bad_crc), bytes(bad_crc),
                  _raw_image_header((8, 8, 1)), _raw_image_header((0, 4, 4)),  # 2D; a zero dimension
-                 _raw_image_header((60000, 60000, 60000)), encode_string("hello", device="Note", timestamp=1.0)):
+                 _raw_image_header((60000, 60000, 60000)), encode_string("hello", device="Note", timestamp=1.0),
+                 messages.HEADER.pack(1, b"IMAGE", b"Image", 1, 0, 1 << 40, 0)):  # a body beyond any read
         run.replay.send_raw(data)
     metrics = run.frame(1)
     assert metrics["index"] == 1 and metrics["restarted"] is False
     skipped = metrics["skipped"]
     assert skipped["garbage"] >= 1 and skipped["crc"] == 2 and skipped["2D image"] == 1
-    assert skipped["zero size"] == 1 and skipped["body size"] == 1 and skipped["type STRING"] == 1
+    assert skipped["zero size"] == 1 and skipped["body size"] == 2 and skipped["type STRING"] == 1
     crc_lines = [r for r in caplog.records if "CRC" in r.getMessage()]
     assert len(crc_lines) == 1  # logged once, then counted
     # another geometry mid-stream: tracking starts again, then goes on
@@ -250,6 +251,34 @@ def test_reconnects_to_a_restarted_source(seq):
         client.close()
         live.close()
         replay.close()
+
+
+def test_a_silent_source_is_reconnected(seq):
+    """A source that stays connected and sends nothing is left after
+    ``stall_seconds`` and connected again."""
+    replay = Replay(seq.volumes[:1], fps=10.0)
+    live = LiveServer(replay.address, serve=("127.0.0.1", 0), stall_seconds=0.3, backoff=(0.05, 0.2)).start()
+    try:
+        assert wait(lambda: live.connections >= 3, 10)
+        assert live.received == 0
+    finally:
+        live.close()
+        replay.close()
+
+
+def test_sector_cache_equals_outside_sector(seq):
+    """The padding kept from frame to frame is outside_sector's of each
+    frame, found again when the zeros change."""
+    from spheroseg.live.messages import SectorCache
+    from spheroseg.raster import outside_sector
+
+    cache = SectorCache()
+    array = np.pad(seq.volumes[0].array, 3)
+    other = array.copy()
+    other[:, :, :6] = 0  # a wider padding
+    assert outside_sector(array) is not None
+    for frame in (array, array + (array > 0), other, array):
+        np.testing.assert_array_equal(cache(frame), outside_sector(frame))
 
 
 def test_polydata_bytes_follow_the_specification():

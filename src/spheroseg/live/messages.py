@@ -267,10 +267,31 @@ def check_image(message: Message) -> dict:
             "origin": origin, "coordinates": coordinates, "name": name}
 
 
-def decode_image(message: Message, *, no_data_value=None, checked: dict | None = None):
+class SectorCache:
+    """The sector's padding of the last frame (``no_data_value="auto"``,
+    :func:`spheroseg.raster.outside_sector`): a function of the image's
+    exact zeros only, found again only when they changed (a scanner's
+    sector stays put from frame to frame)."""
+
+    def __init__(self):
+        self.zeros = self.padding = None
+
+    def __call__(self, array: np.ndarray):
+        from ..raster import outside_sector
+
+        zeros = array == 0
+        if self.zeros is None or self.zeros.shape != zeros.shape or not np.array_equal(zeros, self.zeros):
+            self.zeros, self.padding = zeros, outside_sector(array)
+        return self.padding
+
+
+def decode_image(message: Message, *, no_data_value=None, checked: dict | None = None,
+                 sector: SectorCache | None = None):
     """The :class:`spheroseg.Volume` of an IMAGE message (world LPS mm);
     :class:`WireError` as :func:`check_image` (``checked``: what it
     returned, not computed again) or for non-finite voxels.
+    ``no_data_value`` as :func:`spheroseg.load`'s; with ``"auto"``,
+    ``sector`` keeps the padding from frame to frame.
 
     Returns
     -------
@@ -279,13 +300,18 @@ def decode_image(message: Message, *, no_data_value=None, checked: dict | None =
         ``"ras"`` or ``"lps"``, as the message gave its matrix.
     """
     from ..images import _make_volume
+    from ..volume import Volume
 
     image = check_image(message) if checked is None else checked
     size = image["size"]
     voxels = np.frombuffer(image["content"], dtype=image["dtype"], offset=IMAGE_HEADER.size)
+    voxels = voxels.reshape(size[2], size[1], size[0]).astype(np.float32)
+    geometry = dict(spacing=image["spacing"], origin=image["origin"], direction=image["direction"])
     try:
-        volume = _make_volume(voxels.reshape(size[2], size[1], size[0]).astype(np.float32), no_data_value,
-                              spacing=image["spacing"], origin=image["origin"], direction=image["direction"])
+        if sector is not None and isinstance(no_data_value, str) and no_data_value == "auto":
+            volume = Volume(voxels, **geometry, no_data_mask=sector(voxels))  # as _make_volume's "auto"
+        else:
+            volume = _make_volume(voxels, no_data_value, **geometry)
     except ValueError as exc:  # NaN voxels, and such
         raise WireError("voxels", f"{image['name']}: {exc}") from None
     return volume, image["coordinates"]

@@ -34,8 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from .fanout import Broadcaster
-from .messages import (MAX_BODY_BYTES, MessageReader, WireError, check_image, decode_image, encode_image,
-                       encode_polydata, encode_string, encode_transform, lps_to)
+from .messages import (MAX_BODY_BYTES, MessageReader, SectorCache, WireError, check_image, decode_image,
+                       encode_image, encode_polydata, encode_string, encode_transform, lps_to)
 from .session import LiveTracker, StartError
 
 __all__ = ["LiveServer", "DEVICES"]
@@ -109,6 +109,7 @@ class LiveServer:
         self._stamps = deque(maxlen=64)  # the source's timestamps, for its frame rate
         self._reported: set = set()
         self._slot = None
+        self._sector = SectorCache()
         self._ready = threading.Condition()
         self._stop = threading.Event()
         self._fanout = Broadcaster(*serve, backlog=len(DEVICES), retain=True)
@@ -247,7 +248,8 @@ class LiveServer:
                 message, checked, index = self._slot
                 self._slot = None
             try:
-                volume, _ = decode_image(message, no_data_value=self.no_data_value, checked=checked)
+                volume, _ = decode_image(message, no_data_value=self.no_data_value, checked=checked,
+                                         sector=self._sector)
             except WireError as error:
                 self._skip(error)
                 continue
