@@ -72,6 +72,7 @@ def run(volumes, apex, base, *, fps: float, seconds: float, warm: float) -> dict
             "dropped": dropped, "drop_rate": dropped / max(received, 1), "period_ms": period,
             "latency_ms": {"median": float(np.median(latency)), "p99": float(np.percentile(latency, 99))},
             "end_to_end_ms": {"median": float(np.median(end_to_end)), "p99": float(np.percentile(end_to_end, 99))},
+            "stages_ms_median": {k: float(np.median([m["stages_ms"][k] for m in metrics])) for k in metrics[0]["stages_ms"]},
             "edv_ml": after.get("edv_ml"), "esv_ml": after.get("esv_ml"), "ef": after.get("ef"),
             "cycle": after.get("cycle"), "heart_rate_bpm": after.get("heart_rate_bpm")}
 

@@ -247,6 +247,7 @@ class LiveServer:
                     return
                 message, checked, index = self._slot
                 self._slot = None
+            taken = time.perf_counter()
             try:
                 volume, _ = decode_image(message, no_data_value=self.no_data_value, checked=checked,
                                          sector=self._sector)
@@ -254,6 +255,7 @@ class LiveServer:
                 self._skip(error)
                 continue
             timestamp, received = message.timestamp, message.received
+            decoded = time.perf_counter()
             try:
                 frame = self.tracker.process(volume, index=index, timestamp=timestamp, frame_rate=self.frame_rate)
             except StartError as exc:
@@ -265,6 +267,8 @@ class LiveServer:
                 continue
             if frame.restarted:
                 log.warning("frame %d: the image geometry changed: tracking started again", index)
+            frame.metrics["stages_ms"] = {"wait": 1000.0 * (taken - received), "decode": 1000.0 * (decoded - taken),
+                                          "track": 1000.0 * (time.perf_counter() - decoded)}
             self._publish(frame, received)
             if time.monotonic() - shown >= self.status_seconds:
                 shown = time.monotonic()
@@ -291,6 +295,7 @@ class LiveServer:
         metrics = {**frame.metrics, "received": self.received, "tracked": self.processed, "dropped": self.dropped,
                    "skipped": dict(self.skipped), "source_fps": self.frame_rate, "coordinates": self.coordinates}
         metrics["latency_ms"] = 1000.0 * (time.perf_counter() - received)
+        metrics["stages_ms"]["send"] = metrics["latency_ms"] - sum(metrics["stages_ms"].values())
         out.append((DEVICES["metrics"], encode_string(json.dumps(metrics, default=float), device=DEVICES["metrics"],
                                                       timestamp=stamp)))
         for device, data in out:
