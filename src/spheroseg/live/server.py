@@ -211,7 +211,10 @@ class LiveServer:
                 self._take(item)
 
     def _skip(self, error: WireError) -> None:
-        self.skipped[error.reason] += 1
+        reason = error.reason if error.reason in self.skipped or len(self.skipped) < 32 else "other"
+        self.skipped[reason] += 1  # (a bounded count however many device names or types a stream makes up)
+        if reason == "other":
+            return
         self._once(("wire", error.reason), logging.WARNING, f"{error} (reported once; counted in LVMetrics)")
 
     def _take(self, item) -> None:
@@ -259,12 +262,13 @@ class LiveServer:
             try:
                 frame = self.tracker.process(volume, index=index, timestamp=timestamp, frame_rate=self.frame_rate)
             except StartError as exc:
-                self._once(("start", str(exc)), logging.WARNING, f"frame {index}: {exc}; trying the next frames")
+                self._once("start", logging.WARNING, f"frame {index}: {exc}; trying the next frames (reported once)")
                 continue
             except (ValueError, RuntimeError, FloatingPointError, np.linalg.LinAlgError) as exc:
                 log.warning("frame %d: tracking failed (%s): starting again", index, " ".join(str(exc).split()))
                 self.tracker.restart()
                 continue
+            self._reported.discard("start")  # started: a later failure to start is reported again
             if frame.restarted:
                 log.warning("frame %d: the image geometry changed: tracking started again", index)
             frame.metrics["stages_ms"] = {"wait": 1000.0 * (taken - received), "decode": 1000.0 * (decoded - taken),
