@@ -416,3 +416,33 @@ def test_pyigtl_reads_what_is_sent_and_is_read():
     np.testing.assert_array_equal(decoded.array, array)
     np.testing.assert_allclose(decoded.origin, volume.origin, atol=1e-5)
     np.testing.assert_allclose(decoded.direction, volume.direction, atol=1e-6)
+
+
+def test_replay_and_live_commands(seq, tmp_path, capsys):
+    """``spheroseg replay FILE`` and ``spheroseg live`` run side by side
+    in this process, each stopping by itself (--duration, --once)."""
+    import threading
+
+    from spheroseg.cli import main
+    from spheroseg.io import save_volume
+
+    path = tmp_path / "sequence.mha"
+    save_volume(path, seq.volumes)
+    first = seq.frames[0]
+    import socket
+
+    with socket.create_server(("127.0.0.1", 0)) as probe:  # a free port, for the replay command to take
+        port = probe.getsockname()[1]
+    replay = threading.Thread(target=main, args=(["replay", str(path), "--serve", str(port), "--fps", "20",
+                                                  "--duration", "6", "--quiet"],))
+    replay.start()
+    try:
+        code = main(["live", "--source", f"127.0.0.1:{port}", "--serve", "0", "--duration", "4", "--apex",
+                     *map(str, first.apex), "--base", *map(str, first.base)])
+    finally:
+        replay.join(10)
+    assert code == 0 and not replay.is_alive()
+    err = capsys.readouterr().err
+    assert "tracking the images of" in err and " tracked, " in err and "streaming" not in err  # (--quiet)
+    tracked = int(err.rsplit(" tracked,", 1)[0].rsplit(",", 1)[1])
+    assert tracked >= 1

@@ -194,9 +194,10 @@ def _replay(args) -> int:
     except OSError as exc:
         raise CliError(f"cannot listen on {serve[0]}:{serve[1]}: {exc.strerror or exc}") from None
     nz, ny, nx = volumes[0].shape
-    print(f"spheroseg: streaming {what} ({len(volumes)} frames of {nx} x {ny} x {nz} voxels) at {args.fps:g} "
-          f"frames a second on {replay.address[0]}:{replay.address[1]} as {args.device!r} (Ctrl-C stops)",
-          file=sys.stderr, flush=True)
+    if not args.quiet:
+        print(f"spheroseg: streaming {what} ({len(volumes)} frames of {nx} x {ny} x {nz} voxels) at {args.fps:g} "
+              f"frames a second on {replay.address[0]}:{replay.address[1]} as {args.device!r} (Ctrl-C stops)",
+              file=sys.stderr, flush=True)
     replay.start()
     try:
         _wait(args.duration, done=lambda: args.once and replay.wait(0))
