@@ -196,9 +196,11 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", metavar="DIR", help="output folder (default: a new ./spheroseg-demo*)")
     demo.add_argument("--force", action="store_true")
     demo.add_argument("--quiet", action="store_true")
-    from .live.commands import add_live_parsers  # argparse only: pyigtl is imported when they run
+    from .live.commands import add_live_parsers  # argparse only: the tracking is imported when they run
 
-    add_live_parsers(sub)
+    add_live_parsers(sub, model_options=lambda p: _add_model_options(
+        p, no_data_help="voxels without data: 'auto' (default) the zero padding around an echo sector, 'none', or "
+                        "a voxel value"))
     return parser
 
 
@@ -676,9 +678,20 @@ def cmd_view(args) -> int:
 
 
 def cmd_live(args) -> int:
+    """``live`` and ``replay`` (:mod:`spheroseg.live.commands`), given what
+    the other commands share: the options checked, the points, the kernels
+    loaded, and the demo's sequence for a replay of no file."""
     from .live.commands import run
 
-    return run(args)
+    if args.command == "replay":
+        from .synthetic.phantom import make_sequence
+
+        return run(args, demo=lambda: make_sequence(seed=0, n_frames=10, spacing=1.25).volumes)
+    _check_options(args)
+    apex, base, landmarks, annulus = _points(args)
+    _load_kernels_saying()
+    return run(args, points=dict(apex=apex, base=base, landmarks=landmarks, annulus=annulus),
+               options=_segment_kwargs(args))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -29,9 +29,9 @@ def _seconds(text: str) -> float:
     return value
 
 
-def add_live_parsers(sub) -> None:
-    """Add ``live`` and ``replay`` to the ``spheroseg`` subparsers ``sub``."""
-    from ..cli import _add_model_options
+def add_live_parsers(sub, *, model_options) -> None:
+    """Add ``live`` and ``replay`` to the ``spheroseg`` subparsers ``sub``;
+    ``model_options(parser)`` adds the model's options, as for ``track``."""
     from ..options import SMOOTHNESS_REFERENCES, SegmentOptions
 
     live = sub.add_parser(
@@ -72,8 +72,7 @@ def add_live_parsers(sub) -> None:
                       help="reconnect to a source silent this long (default 5 s)")
     live.add_argument("--duration", type=_seconds, metavar="S", help="stop after S seconds")
     live.add_argument("--quiet", action="store_true", help="only warnings on stderr")
-    _add_model_options(live, no_data_help="voxels without data: 'auto' (default) the zero padding around an echo "
-                                          "sector, 'none', or a voxel value")
+    model_options(live)
     live.add_argument("--step", type=float, default=SegmentOptions.step, help="largest surface motion per iteration")
     live.add_argument("--max-iterations", type=int, default=SegmentOptions.max_iterations,
                       help="per coarse-to-fine level")
@@ -125,36 +124,35 @@ def _wait(duration: float | None, done=lambda: False) -> None:
         print("spheroseg: stopped", file=sys.stderr)
 
 
-def run(args) -> int:
-    """Run ``spheroseg live`` or ``spheroseg replay``."""
+def run(args, *, points: dict | None = None, options: dict | None = None, demo=None) -> int:
+    """Run ``spheroseg live`` (``points``: apex, base, landmarks, annulus;
+    ``options``: the segmentation's, both checked) or ``spheroseg replay``
+    (``demo()``: the volumes to stream without a file).  A bad input raises
+    ValueError, one line."""
     _console(args)
-    return _live(args) if args.command == "live" else _replay(args)
+    return _live(args, points or {}, options or {}) if args.command == "live" else _replay(args, demo)
 
 
-def _live(args) -> int:
+def _listening(make, address):
+    try:
+        return make()
+    except OSError as exc:
+        raise ValueError(f"cannot listen on {address[0]}:{address[1]}: {exc.strerror or exc}") from None
+
+
+def _live(args, points: dict, options: dict) -> int:
     import numpy as np
 
-    from ..cli import CliError, _check_options, _load_kernels_saying, _points, _segment_kwargs
     from .fanout import parse_address
     from .server import LiveServer
 
-    _check_options(args)
-    try:
-        source = parse_address(args.source)
-        serve = parse_address(args.serve)
-    except ValueError as exc:
-        raise CliError(str(exc)) from None
-    apex, base, landmarks, annulus = _points(args)
-    _load_kernels_saying()
-    try:
-        server = LiveServer(source, serve=serve, device=args.device, coordinates=args.coordinates,
-                            label=not args.no_label, record=args.record, no_data_value=args.no_data,
-                            stall_seconds=args.stall, apex=apex, base=base, annulus=annulus, landmarks=landmarks,
-                            iterations_per_frame=args.iterations_per_frame, myocardium=args.myocardium,
-                            rv_insertion=None if args.rv_insertion is None else np.asarray(args.rv_insertion),
-                            **_segment_kwargs(args))
-    except OSError as exc:
-        raise CliError(f"cannot listen on {serve[0]}:{serve[1]}: {exc.strerror or exc}") from None
+    source, serve = parse_address(args.source), parse_address(args.serve)
+    server = _listening(lambda: LiveServer(
+        source, serve=serve, device=args.device, coordinates=args.coordinates, label=not args.no_label,
+        record=args.record, no_data_value=args.no_data, stall_seconds=args.stall,
+        iterations_per_frame=args.iterations_per_frame, myocardium=args.myocardium,
+        rv_insertion=None if args.rv_insertion is None else np.asarray(args.rv_insertion), **points, **options),
+        serve)
     print(f"spheroseg: tracking the images of {source[0]}:{source[1]}; results on {server.address[0]}:"
           f"{server.address[1]} (Ctrl-C stops)", file=sys.stderr, flush=True)
     server.start()
@@ -167,32 +165,24 @@ def _live(args) -> int:
     return 0
 
 
-def _replay(args) -> int:
-    from ..cli import CliError
+def _replay(args, demo) -> int:
     from .fanout import parse_address
     from .replay import Replay
 
     if not (args.fps > 0 and args.fps < 1000):
-        raise CliError(f"--fps must be a number of frames a second from 0 to 1000, got {args.fps}")
-    try:
-        serve = parse_address(args.serve)
-    except ValueError as exc:
-        raise CliError(str(exc)) from None
+        raise ValueError(f"--fps must be a number of frames a second from 0 to 1000, got {args.fps}")
+    serve = parse_address(args.serve)
     if args.sequence is None:
-        from ..synthetic.phantom import make_sequence
-
-        volumes = make_sequence(seed=0, n_frames=10, spacing=1.25).volumes
-        what = "the demo's synthetic sequence"
+        if demo is None:
+            raise ValueError("give a sequence to replay")
+        volumes, what = demo(), "the demo's synthetic sequence"
     else:
         from ..io import load_sequence
 
         volumes = load_sequence(args.sequence, spacing=args.spacing, no_data_value=None)
         what = args.sequence
-    try:
-        replay = Replay(volumes, host=serve[0], port=serve[1], fps=args.fps, loop=not args.once, device=args.device,
-                        coordinates=args.coordinates)
-    except OSError as exc:
-        raise CliError(f"cannot listen on {serve[0]}:{serve[1]}: {exc.strerror or exc}") from None
+    replay = _listening(lambda: Replay(volumes, host=serve[0], port=serve[1], fps=args.fps, loop=not args.once,
+                                       device=args.device, coordinates=args.coordinates), serve)
     nz, ny, nx = volumes[0].shape
     if not args.quiet:
         print(f"spheroseg: streaming {what} ({len(volumes)} frames of {nx} x {ny} x {nz} voxels) at {args.fps:g} "
