@@ -680,7 +680,7 @@ def cmd_view(args) -> int:
 def cmd_live(args) -> int:
     """``live`` and ``replay`` (:mod:`spheroseg.live.commands`), given what
     the other commands share: the options checked, the points, the kernels
-    loaded, and the demo's sequence for a replay of no file."""
+    loading, and the demo's sequence for a replay of no file."""
     from .live.commands import run
 
     if args.command == "replay":
@@ -689,9 +689,8 @@ def cmd_live(args) -> int:
         return run(args, demo=lambda: make_sequence(seed=0, n_frames=10, spacing=1.25).volumes)
     _check_options(args)
     apex, base, landmarks, annulus = _points(args)
-    _load_kernels_saying()
     return run(args, points=dict(apex=apex, base=base, landmarks=landmarks, annulus=annulus),
-               options=_segment_kwargs(args))
+               options=_segment_kwargs(args), prepare=_load_kernels_saying)
 
 
 def main(argv: list[str] | None = None) -> int:

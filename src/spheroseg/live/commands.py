@@ -124,13 +124,16 @@ def _wait(duration: float | None, done=lambda: False) -> None:
         print("spheroseg: stopped", file=sys.stderr)
 
 
-def run(args, *, points: dict | None = None, options: dict | None = None, demo=None) -> int:
+def run(args, *, points: dict | None = None, options: dict | None = None, prepare=None, demo=None) -> int:
     """Run ``spheroseg live`` (``points``: apex, base, landmarks, annulus;
-    ``options``: the segmentation's, both checked) or ``spheroseg replay``
-    (``demo()``: the volumes to stream without a file).  A bad input raises
-    ValueError, one line."""
+    ``options``: the segmentation's, both checked; ``prepare()`` once the
+    arguments are, before listening: the kernels loaded) or ``spheroseg
+    replay`` (``demo()``: the volumes to stream without a file).  A bad
+    input raises ValueError, one line."""
     _console(args)
-    return _live(args, points or {}, options or {}) if args.command == "live" else _replay(args, demo)
+    if args.command == "live":
+        return _live(args, points or {}, options or {}, prepare)
+    return _replay(args, demo)
 
 
 def _listening(make, address):
@@ -140,13 +143,15 @@ def _listening(make, address):
         raise ValueError(f"cannot listen on {address[0]}:{address[1]}: {exc.strerror or exc}") from None
 
 
-def _live(args, points: dict, options: dict) -> int:
+def _live(args, points: dict, options: dict, prepare) -> int:
     import numpy as np
 
     from .fanout import parse_address
     from .server import LiveServer
 
     source, serve = parse_address(args.source), parse_address(args.serve)
+    if prepare is not None:
+        prepare()
     server = _listening(lambda: LiveServer(
         source, serve=serve, device=args.device, coordinates=args.coordinates, label=not args.no_label,
         record=args.record, no_data_value=args.no_data, stall_seconds=args.stall,
