@@ -185,7 +185,8 @@ class MessageReader:
             version, kind, device, timestamp, size, crc = self._header
             if len(self._buffer) < size:
                 return out
-            body = bytes(self._buffer[:size])
+            with memoryview(self._buffer) as view:
+                body = view[:size].tobytes()  # (one copy; a slice of the bytearray and bytes of it made two)
             del self._buffer[:size]
             self._header = None
             if _crc64()(body) != crc:
