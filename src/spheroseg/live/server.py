@@ -74,7 +74,8 @@ class LiveServer:
     stall_seconds : float
         A source silent this long is reconnected.
     backoff : (float, float)
-        First and longest wait between connection attempts, seconds.
+        First and longest wait between connection attempts, seconds (the
+        longest bounds how long a restarted source's first frames wait).
     max_body_bytes : int
         The largest message read.
     status_seconds : float
@@ -86,7 +87,7 @@ class LiveServer:
 
     def __init__(self, source, *, serve=("127.0.0.1", 18945), device: str | None = None, coordinates: str = "ras",
                  label: bool = True, record=None, no_data_value="auto", stall_seconds: float = 5.0,
-                 backoff=(0.1, 2.0), max_body_bytes: int = MAX_BODY_BYTES, status_seconds: float = 5.0,
+                 backoff=(0.1, 0.5), max_body_bytes: int = MAX_BODY_BYTES, status_seconds: float = 5.0,
                  **tracking):
         lps_to(coordinates)  # checked
         self.source = (str(source[0]), int(source[1]))
