@@ -368,6 +368,8 @@ def test_commands_fail_in_one_line(capsys):
     assert "expected HOST:PORT" in capsys.readouterr().err
     assert main(["replay", "--fps", "0", "--serve", "0"]) == 2
     assert "--fps" in capsys.readouterr().err
+    assert main(["replay", "--device", "a name too long for a header", "--serve", "0"]) == 2
+    assert "20 characters" in capsys.readouterr().err
 
 
 def test_pyigtl_reads_what_is_sent_and_is_read():

@@ -172,11 +172,13 @@ def _live(args, points: dict, options: dict, prepare) -> int:
 
 def _replay(args, demo) -> int:
     from .fanout import parse_address
+    from .messages import check_device
     from .replay import Replay
 
     if not (args.fps > 0 and args.fps < 1000):
         raise ValueError(f"--fps must be a number of frames a second from 0 to 1000, got {args.fps}")
     serve = parse_address(args.serve)
+    check_device(args.device)
     if args.sequence is None:
         if demo is None:
             raise ValueError("give a sequence to replay")

@@ -96,8 +96,16 @@ def _crc64():
     return crc64
 
 
+def check_device(device: str) -> str:
+    """A device name a header holds: printable ASCII, 20 characters at most."""
+    if not (isinstance(device, str) and len(device) <= 20 and all(32 <= ord(c) <= 126 for c in device)):
+        raise ValueError(f"a device name is printable ASCII of 20 characters at most, got {device!r}")
+    return device
+
+
 def pack(kind: str, device: str, timestamp: float, content: bytes) -> bytes:
     """A whole message (header version 1): header, then ``content``."""
+    check_device(device)
     seconds = int(timestamp)
     fraction = min(int((timestamp - seconds) * 2.0 ** 32), 2 ** 32 - 1)
     return HEADER.pack(1, kind.encode("ascii"), device.encode("ascii"), seconds, fraction, len(content),

@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from .fanout import Broadcaster
-from .messages import encode_image, set_timestamp
+from .messages import check_device, encode_image, set_timestamp
 
 __all__ = ["Replay", "wire_array", "DEVICE"]
 
@@ -66,6 +66,7 @@ class Replay:
             raise ValueError("a replay needs at least one frame")
         if not (np.isfinite(fps) and fps > 0):
             raise ValueError(f"fps must be a positive number, got {fps!r}")
+        check_device(device)
         self.fps = float(fps)
         self.loop = loop
         self.frames = [encode_image(wire_array(v), v.grid, device=device, timestamp=0.0, coordinates=coordinates)
