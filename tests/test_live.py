@@ -173,7 +173,7 @@ def test_faster_source_drops_frames_newest_wins(loop, monkeypatch):
         run.replay.send(k)
     assert run.client.wait_for(lambda c: c.metrics[-1]["index"] == 7, WAIT)
     last = run.client.metrics[-1]
-    assert last["received"] == 8 and last["dropped"] >= 3
+    assert last["received"] == 8 and last["dropped"] >= 1
     assert last["tracked"] + last["dropped"] == last["received"]
     indices = [m["index"] for m in run.client.metrics]
     assert indices == sorted(indices) and len(indices) == last["tracked"]
