@@ -189,6 +189,25 @@ def pyigtl():
     return pytest.importorskip("pyigtl")
 
 
+def test_a_frame_that_fails_does_not_end_the_stream(loop, monkeypatch, caplog):
+    """An unexpected error in one frame's tracking: logged, the tracker
+    started again at the next frame, the stream goes on."""
+    run = loop()
+    run.frame(0)
+    process = LiveTracker.process
+
+    def failing(self, volume, *, index, **kwargs):
+        if index == 1:
+            raise TypeError("an unforeseen failure")
+        return process(self, volume, index=index, **kwargs)
+
+    monkeypatch.setattr(LiveTracker, "process", failing)
+    run.replay.send(1)
+    metrics = run.frame(2)
+    assert metrics["index"] == 2 and metrics["tracked"] == 2
+    assert any("TypeError: an unforeseen failure" in r.getMessage() for r in caplog.records)
+
+
 def _raw_image_header(size, *, device="Image"):
     """An IMAGE message declaring ``size`` (i, j, k) voxels, with none."""
     body = messages.IMAGE_HEADER.pack(1, 1, 10, 2, 2, *size, *np.eye(3, 4).T.ravel(), 0, 0, 0, *size)

@@ -186,6 +186,9 @@ class LiveServer:
             log.info("connected to source %s:%d", host, port)
             try:
                 self._read(sock)
+            except Exception as exc:  # noqa: BLE001 (whatever the stream held, the source is connected again)
+                log.warning("source stream failed (%s: %s): reconnecting", type(exc).__name__,
+                            " ".join(str(exc).split()))
             finally:
                 sock.close()
 
@@ -265,8 +268,9 @@ class LiveServer:
             except StartError as exc:
                 self._once("start", logging.WARNING, f"frame {index}: {exc}; trying the next frames (reported once)")
                 continue
-            except (ValueError, RuntimeError, FloatingPointError, np.linalg.LinAlgError) as exc:
-                log.warning("frame %d: tracking failed (%s): starting again", index, " ".join(str(exc).split()))
+            except Exception as exc:  # noqa: BLE001 (a frame that fails must not end a server that runs for hours)
+                log.warning("frame %d: tracking failed (%s: %s): starting again", index, type(exc).__name__,
+                            " ".join(str(exc).split()))
                 self.tracker.restart()
                 continue
             self._reported.discard("start")  # started: a later failure to start is reported again
@@ -274,7 +278,11 @@ class LiveServer:
                 log.warning("frame %d: the image geometry changed: tracking started again", index)
             frame.metrics["stages_ms"] = {"wait": 1000.0 * (taken - received), "decode": 1000.0 * (decoded - taken),
                                           "track": 1000.0 * (time.perf_counter() - decoded)}
-            self._publish(frame, received)
+            try:
+                self._publish(frame, received)
+            except Exception as exc:  # noqa: BLE001 (as above)
+                log.warning("frame %d: its results could not be sent (%s: %s)", index, type(exc).__name__,
+                            " ".join(str(exc).split()))
             if time.monotonic() - shown >= self.status_seconds:
                 shown = time.monotonic()
                 log.info(self.status())
