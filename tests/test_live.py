@@ -203,9 +203,9 @@ def test_a_frame_that_fails_does_not_end_the_stream(loop, monkeypatch, caplog):
 
     monkeypatch.setattr(LiveTracker, "process", failing)
     run.replay.send(1)
+    assert wait(lambda: any("TypeError: an unforeseen failure" in r.getMessage() for r in caplog.records), WAIT)
     metrics = run.frame(2)
-    assert metrics["index"] == 2 and metrics["tracked"] == 2
-    assert any("TypeError: an unforeseen failure" in r.getMessage() for r in caplog.records)
+    assert metrics["index"] == 2 and metrics["tracked"] == 2 and metrics["dropped"] == 0
 
 
 def _raw_image_header(size, *, device="Image"):
