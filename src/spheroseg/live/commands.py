@@ -109,7 +109,6 @@ def _console(args) -> None:
         handler.setFormatter(logging.Formatter("spheroseg: %(message)s"))
         logger.addHandler(handler)
     logger.setLevel(logging.WARNING if args.quiet else logging.INFO)
-    logger.propagate = False
 
 
 def _wait(duration: float | None, done=lambda: False) -> None:
