@@ -157,6 +157,17 @@ def test_myocardium_and_record(loop, tracked, tmp_path):
     assert json.loads((tmp_path / "frames" / "frame_000001.json").read_text())["index"] == 1
 
 
+def test_located_without_points_as_track(loop, tracked):
+    """No apex or base: the ventricle is located in the first frame, and
+    the frames' volumes equal track()'s located the same way."""
+    volumes, _ = tracked
+    expected = track(volumes[:3])
+    assert expected.initialisation["method"] == "located"
+    run = loop(apex=None, base=None)
+    for k in range(3):
+        assert run.frame(k)["volume_ml"] == pytest.approx(expected.frames[k].volume_ml, rel=1e-9)
+
+
 def test_faster_source_drops_frames_newest_wins(loop, monkeypatch):
     """Frames sent faster than they are tracked: some are dropped and
     counted, never queued; the newest is the one tracked last."""
