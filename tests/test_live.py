@@ -442,12 +442,15 @@ def test_pyigtl_reads_what_is_sent_and_is_read():
     _, string = unpacked(encode_string(text, device="LVMetrics", timestamp=1.0), igtl.StringMessage)
     assert string.string == text
     theirs = igtl.ImageMessage(array, ijk_to_world_matrix=expected, world_coordinate_system="lps", device_name="Im")
-    (message,) = MessageReader().feed(theirs.pack())
-    decoded, coordinates = decode_image(message)
-    assert coordinates == "lps"
-    np.testing.assert_array_equal(decoded.array, array)
-    np.testing.assert_allclose(decoded.origin, volume.origin, atol=1e-5)
-    np.testing.assert_allclose(decoded.direction, volume.direction, atol=1e-6)
+    for version in (1, 2):  # 2: OpenIGTLink 3's header, an extended header and metadata in the body
+        theirs.header_version = version
+        theirs.metadata = {"Source": "test"} if version == 2 else {}
+        (message,) = MessageReader().feed(theirs.pack())
+        decoded, coordinates = decode_image(message)
+        assert coordinates == "lps" and message.header_version == version
+        np.testing.assert_array_equal(decoded.array, array)
+        np.testing.assert_allclose(decoded.origin, volume.origin, atol=1e-5)
+        np.testing.assert_allclose(decoded.direction, volume.direction, atol=1e-6)
 
 
 def test_replay_and_live_commands(seq, tmp_path, capsys):
