@@ -36,7 +36,7 @@ class ResultClient:
         while not self._stop.is_set():
             try:
                 data = self.sock.recv(1 << 20)
-            except (socket.timeout, TimeoutError):
+            except TimeoutError:
                 continue
             except OSError:
                 return

@@ -112,7 +112,7 @@ class Broadcaster:
         while not self._closing.is_set():
             try:
                 sock, address = self._listener.accept()
-            except (socket.timeout, TimeoutError):
+            except TimeoutError:
                 continue
             except OSError:
                 return
@@ -141,7 +141,7 @@ class Broadcaster:
                     return
                 for data in client.take(0.05):
                     client.sock.sendall(data)
-        except (socket.timeout, TimeoutError):
+        except TimeoutError:
             reason = f"did not accept data for {self.send_timeout:g} s"
         except OSError as exc:
             reason = f"disconnected ({exc.strerror or exc})"

@@ -40,7 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["HEADER_SIZE", "MAX_BODY_BYTES", "WireError", "Message", "MessageReader", "pack", "check_image", "decode_image",
+__all__ = ["HEADER_SIZE", "MAX_BODY_BYTES", "WireError", "Message", "MessageReader", "SectorCache", "pack",
+           "check_device", "check_image", "decode_image",
            "encode_image", "encode_polydata", "decode_polydata", "encode_transform", "encode_string",
            "decode_string", "decode_transform", "image_body_size", "set_timestamp", "lps_to"]
 

@@ -94,7 +94,7 @@ class Replay:
         """Send bytes as they are (the tests' bad input)."""
         self._server.publish(next(self._keys), bytes(data))
 
-    def start(self) -> "Replay":
+    def start(self) -> Replay:
         """Send the frames at :attr:`fps` in a background thread."""
         if self._thread is None:
             self._thread = threading.Thread(target=self._run, name="spheroseg-replay", daemon=True)

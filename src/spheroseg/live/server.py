@@ -137,7 +137,7 @@ class LiveServer:
 
     # -- running -------------------------------------------------------------
 
-    def start(self) -> "LiveServer":
+    def start(self) -> LiveServer:
         for name, target in (("source", self._source_loop), ("worker", self._work_loop)):
             thread = threading.Thread(target=target, name=f"spheroseg-live-{name}", daemon=True)
             thread.start()
@@ -199,7 +199,7 @@ class LiveServer:
         while not self._stop.is_set():
             try:
                 data = sock.recv(1 << 20)
-            except (socket.timeout, TimeoutError):
+            except TimeoutError:
                 if time.monotonic() - heard > self.stall_seconds:
                     log.warning("source silent for %g s: reconnecting", self.stall_seconds)
                     return
