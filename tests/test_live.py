@@ -168,6 +168,36 @@ def test_located_without_points_as_track(loop, tracked):
         assert run.frame(k)["volume_ml"] == pytest.approx(expected.frames[k].volume_ml, rel=1e-9)
 
 
+def test_devset_files_replayed_equal_track():
+    """The development set's frames as ``spheroseg replay`` sends them (its
+    8-bit voxels, no padding read) and ``live`` reads them (the padding
+    found as ``load`` finds it): the volumes of track() of the files."""
+    from conftest import SHARED
+
+    from spheroseg.io import load
+
+    folder = SHARED / "data" / "devset" / "dev_sequence"
+    if not folder.is_dir():
+        pytest.skip(f"{folder} not available")
+    case = json.loads((folder / "case.json").read_text())
+    apex, base = (np.array(case["clicks"][k]) for k in ("apex_mm", "base_mm"))
+    files = [folder / f"frame_{k:02d}.mha" for k in range(3)]
+    expected = track([load(f) for f in files], apex, base)
+    replay = Replay([load(f, no_data_value=None) for f in files], fps=10.0)
+    live = LiveServer(replay.address, serve=("127.0.0.1", 0), apex=apex, base=base, stall_seconds=60.0).start()
+    client = ResultClient(live.address)
+    try:
+        assert wait(lambda: replay.clients == 1, 10)
+        for k in range(3):
+            replay.send(k)
+            assert client.wait_for(lambda c, k=k: len(c.metrics) > k, WAIT)
+        assert [m["volume_ml"] for m in client.metrics] == pytest.approx(list(expected.volumes_ml), rel=1e-9)
+    finally:
+        client.close()
+        live.close()
+        replay.close()
+
+
 def test_faster_source_drops_frames_newest_wins(loop, monkeypatch):
     """Frames sent faster than they are tracked: some are dropped and
     counted, never queued; the newest is the one tracked last."""
