@@ -313,6 +313,19 @@ def test_reconnects_to_a_restarted_source(seq):
         replay.close()
 
 
+def test_a_new_geometry_the_points_miss_is_located(seq):
+    """After a change of geometry that puts the given points outside the
+    image, the tracking starts again by locating the ventricle."""
+    first = seq.frames[0]
+    tracker = LiveTracker(apex=first.apex, base=first.base)
+    assert tracker.process(seq.volumes[0], index=0, timestamp=0.0).result.initialisation["method"] == "given"
+    far = seq.volumes[1]
+    far = Volume(far.array, spacing=far.spacing, origin=far.origin + 500.0)
+    frame = tracker.process(far, index=1, timestamp=0.1)
+    assert frame.restarted and frame.result.initialisation["method"] == "located"
+    assert far.contains(frame.result.surface.pose.origin)
+
+
 def test_a_silent_source_is_reconnected(seq):
     """A source that stays connected and sends nothing is left after
     ``stall_seconds`` and connected again."""

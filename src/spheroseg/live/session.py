@@ -121,7 +121,8 @@ class LiveTracker:
     apex, base, annulus, landmarks
         As :func:`spheroseg.track` (world LPS mm); neither apex nor base: the
         ventricle is located in the first frame (and in the next ones, until
-        it is found).
+        it is found).  After a change of geometry the tracking starts again
+        from the points, or by locating the ventricle where they fail.
     iterations_per_frame, follow_base, check, myocardium, rv_insertion, epicardium_options, **options
         As :func:`spheroseg.track`.
     max_frames : int
@@ -149,6 +150,7 @@ class LiveTracker:
         self.tracker = None
         self.grid = None
         self._previous = None
+        self._started = False
 
     def restart(self) -> None:
         """Start again from the points (or locating) at the next frame."""
@@ -160,16 +162,22 @@ class LiveTracker:
         from ..segment import add_checks
         from ..tracker import Tracker
 
-        try:
-            apex, base, initialisation, located = initialise(volume, self.points["apex"], self.points["base"],
-                                                             annulus=self.points["annulus"], check=self.check)
-            tracker = Tracker(volume, apex, base, annulus=self.points["annulus"], landmarks=self.landmarks,
-                              **self.options)
-        except (ValueError, RuntimeError) as exc:  # NoVentricleError is a ValueError; points outside the image
-            raise StartError(f"cannot start on this frame: {' '.join(str(exc).split())}") from None
+        given = any(v is not None for v in self.points.values())
+        # the points were given for the first geometry: on another, where they fail, the ventricle is located
+        starts = [self.points] + ([dict(apex=None, base=None, annulus=None)] if given and self._started else [])
+        for k, points in enumerate(starts):
+            try:
+                apex, base, initialisation, located = initialise(volume, points["apex"], points["base"],
+                                                                 annulus=points["annulus"], check=self.check)
+                tracker = Tracker(volume, apex, base, annulus=points["annulus"],
+                                  landmarks=self.landmarks if points is self.points else None, **self.options)
+                break
+            except (ValueError, RuntimeError) as exc:  # NoVentricleError is a ValueError; points outside the image
+                if k == len(starts) - 1:
+                    raise StartError(f"cannot start on this frame: {' '.join(str(exc).split())}") from None
         result = tracker.run()
         add_checks(result, volume, initialisation, located)
-        self.tracker, self.grid = tracker, volume.grid
+        self.tracker, self.grid, self._started = tracker, volume.grid, True
         return result
 
     def process(self, volume, *, index: int, timestamp: float, frame_rate: float | None = None) -> LiveFrame:
