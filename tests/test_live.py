@@ -434,7 +434,7 @@ def test_cycle_from_the_volume_curve():
     assert cycle["ef"] == pytest.approx(100.0 * (cycle["edv_ml"] - cycle["esv_ml"]) / cycle["edv_ml"])
 
 
-def test_commands_fail_in_one_line(capsys):
+def test_commands_fail_in_one_line(capsys, tmp_path):
     from spheroseg.cli import main
 
     assert main(["live", "--source", "nowhere", "--serve", "0"]) == 2
@@ -443,6 +443,9 @@ def test_commands_fail_in_one_line(capsys):
     assert "--fps" in capsys.readouterr().err
     assert main(["replay", "--device", "a name too long for a header", "--serve", "0"]) == 2
     assert "20 characters" in capsys.readouterr().err
+    (tmp_path / "file").write_text("")
+    assert main(["live", "--serve", "0", "--record", str(tmp_path / "file" / "frames")]) == 2
+    assert "cannot create the record folder" in capsys.readouterr().err
 
 
 def test_pyigtl_reads_what_is_sent_and_is_read():

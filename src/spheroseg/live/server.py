@@ -102,7 +102,10 @@ class LiveServer:
         self.status_seconds = float(status_seconds)
         self.tracker = LiveTracker(**tracking)
         if self.record is not None:
-            self.record.mkdir(parents=True, exist_ok=True)
+            try:
+                self.record.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise ValueError(f"cannot create the record folder {self.record}: {exc.strerror or exc}") from None
         self.received = self.processed = self.dropped = self.connections = 0
         self.skipped: Counter = Counter()
         self.latencies_ms = deque(maxlen=2000)
