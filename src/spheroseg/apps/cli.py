@@ -1,4 +1,4 @@
-"""The command line: ``spheroseg segment | track | batch | scan-convert | view | demo``.
+"""The command line: ``spheroseg segment | track | batch | scan-convert | view | demo | live | replay``.
 
 Every failure is one line on stderr and a non-zero exit status.  Outputs
 are written to temporary files and renamed; existing outputs are kept
@@ -214,6 +214,11 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", metavar="DIR", help="output folder (default: a new ./spheroseg-demo*)")
     demo.add_argument("--force", action="store_true")
     demo.add_argument("--quiet", action="store_true")
+    from .live.commands import add_live_parsers  # argparse only: the tracking is imported when they run
+
+    add_live_parsers(sub, model_options=lambda p: _add_model_options(
+        p, no_data_help="voxels without data: 'auto' (default) the zero padding around an echo sector, 'none', or "
+                        "a voxel value"))
     return parser
 
 
@@ -708,11 +713,27 @@ def cmd_view(args) -> int:
     return 0
 
 
+def cmd_live(args) -> int:
+    """``live`` and ``replay`` (:mod:`spheroseg.apps.live.commands`), given what
+    the other commands share: the options checked, the points, the kernels
+    loading, and the demo's sequence for a replay of no file."""
+    from .live.commands import run
+
+    if args.command == "replay":
+        from .synthetic.phantom import make_sequence
+
+        return run(args, demo=lambda: make_sequence(seed=0, n_frames=10, spacing=1.25).volumes)
+    _check_options(args)
+    apex, base, landmarks, annulus = _points(args)
+    return run(args, points=dict(apex=apex, base=base, landmarks=landmarks, annulus=annulus),
+               options=_segment_kwargs(args), prepare=_load_kernels_saying)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     handlers = {"segment": cmd_segment, "track": cmd_track, "batch": cmd_batch, "scan-convert": cmd_scan_convert,
-                "demo": cmd_demo, "view": cmd_view}
+                "demo": cmd_demo, "view": cmd_view, "live": cmd_live, "replay": cmd_live}
     try:
         # numpy's warnings on extreme input (an overflow of 1e300) would be
         # lines before the error: the checks say what is wrong, in one

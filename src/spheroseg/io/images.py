@@ -31,7 +31,7 @@ from ..volumes.budget import BUDGET_VARIABLE, DEFAULT_BUDGET_GB, budget_bytes  #
 from .._compiled.raster import outside_sector
 from ..volumes.volume import ImageGrid, Volume
 
-__all__ = ["load", "load_sequence", "load_frames", "save_mask", "save_volume", "image_format", "image_files",
+__all__ = ["volume_with_no_data", "load", "load_sequence", "load_frames", "save_mask", "save_volume", "image_format", "image_files",
            "frame_order", "shown_path", "is_sequence_file", "check_image_size", "beam_header",
            "beam_geometry_from_header", "ImageFileError", "IMAGE_SUFFIXES", "MASK_SUFFIXES", "BEAM_SUFFIXES",
            "BEAM_KEYS", "BEAM_OPTIONAL_KEYS", "BUDGET_VARIABLE", "VOXEL_BYTES"]
@@ -351,7 +351,7 @@ def _load_npy(path: Path) -> np.ndarray:
         raise ImageFileError(f"{path}: cannot read numpy array ({exc})") from None
 
 
-def _make_volume(array, no_data_value, **geometry) -> Volume:
+def volume_with_no_data(array, no_data_value, **geometry) -> Volume:
     """A Volume whose no-data voxels follow ``no_data_value``: a value,
     ``None``, or ``"auto"`` (the zero padding around an echo sector)."""
     if isinstance(no_data_value, str):
@@ -388,7 +388,7 @@ def _volume_from_image(image, no_data_value) -> Volume:
         raise ValueError(f"expected a 3D image, got {image.GetDimension()}D")
     if image.GetNumberOfComponentsPerPixel() != 1:
         raise ValueError(f"expected a scalar image, got {image.GetNumberOfComponentsPerPixel()} components per voxel")
-    return _make_volume(
+    return volume_with_no_data(
         _voxels(image),
         no_data_value,
         spacing=image.GetSpacing(),
@@ -531,7 +531,7 @@ def load(path: str | os.PathLike, *, spacing=None,
         array = _load_npy(path)
         if spacing is None:
             raise ValueError(f"{path}: a .npy array has no geometry; give its voxel spacing")
-        return _make_volume(array, no_data_value, spacing=spacing)
+        return volume_with_no_data(array, no_data_value, spacing=spacing)
     image = _read_image(path)
     if image.GetDimension() == 4 or image.GetNumberOfComponentsPerPixel() > 1:
         raise ValueError(f"{path}: a 3D+t image; use load_sequence (spheroseg track)")
@@ -626,7 +626,7 @@ def load_sequence(path: str | os.PathLike, *, spacing=None, no_data_value: float
             raise ValueError(f"{path}: expected a 4D array [t, z, y, x], got {array.ndim}D")
         if spacing is None:
             raise ValueError(f"{path}: a .npy array has no geometry; give its voxel spacing")
-        return [_make_volume(a, no_data_value, spacing=spacing) for a in array]
+        return [volume_with_no_data(a, no_data_value, spacing=spacing) for a in array]
     image = _read_image(path)
     beam = _beam_geometry(image, path, spacing) if image.GetDimension() in (3, 4) else None
     if image.GetNumberOfComponentsPerPixel() > 1 and image.GetDimension() == 3:
