@@ -26,7 +26,7 @@ def test_import_loads_neither_numba_nor_matplotlib():
 
 
 def test_cli_help_loads_neither_numba_nor_matplotlib():
-    code = ("import sys\nfrom spheroseg.cli import main\n"
+    code = ("import sys\nfrom spheroseg.apps.cli import main\n"
             "for argv in (['--help'], ['segment', '--help'], ['track', '--help']):\n"
             "    try:\n        main(argv)\n    except SystemExit:\n        pass")
     assert loaded_after(code) == {"numba": False, "matplotlib": False}
@@ -34,7 +34,7 @@ def test_cli_help_loads_neither_numba_nor_matplotlib():
 
 def test_the_probe_sees_a_heavy_import():
     # the checks above can fail: the compiled sector-padding pass loads numba
-    code = "import numpy as np\nfrom spheroseg.volume import outside_sector\noutside_sector(np.zeros((3, 3, 3)))"
+    code = "import numpy as np\nfrom spheroseg.volumes.volume import outside_sector\noutside_sector(np.zeros((3, 3, 3)))"
     assert loaded_after(code)["numba"] is True
 
 

@@ -13,7 +13,7 @@ import pytest
 from scipy import ndimage
 
 from spheroseg import Located, NoVentricleError, Volume, locate, save_volume, segment
-from spheroseg.tracking.locate import annotate, check_points, initialise
+from spheroseg.tracking.locate import annotate, check_points, fixed_size_copy, initialise
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom
 
 
@@ -265,7 +265,7 @@ def test_the_click_check_is_the_same_on_the_volume_resampled_2x_finer(p157):
     finer = _finer(p157.volume)
     assert finer.shape == tuple(2 * n for n in p157.volume.shape)
     # the coarse copy reads the same points in mm: the same grey levels on the same grid
-    copy = importlib.import_module("spheroseg.locate")._fixed_size_copy
+    copy = fixed_size_copy
     (mean, _, _, first), (fine_mean, _, _, fine_first) = copy(p157.volume, 3.0), copy(finer, 3.0)
     assert mean.shape == fine_mean.shape
     assert np.allclose(p157.volume.index_to_world(first), finer.index_to_world(fine_first))

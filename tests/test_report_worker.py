@@ -86,7 +86,7 @@ def test_without_parallel_the_report_is_drawn_here(parts, tmp_path):
 
 def test_a_forked_worker_does_not_repeat_what_was_printed():
     # text still buffered when the process starts is written once, not again by it
-    code = ("import sys\nfrom spheroseg.report_worker import ReportWorker\nprint('before', end='')\n"
+    code = ("import sys\nfrom spheroseg.apps.report_worker import ReportWorker\nprint('before', end='')\n"
             "with ReportWorker(parallel=True):\n    pass\nprint(' after')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr

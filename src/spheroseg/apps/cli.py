@@ -720,7 +720,7 @@ def cmd_live(args) -> int:
     from .live.commands import run
 
     if args.command == "replay":
-        from .synthetic.phantom import make_sequence
+        from ..synthetic.phantom import make_sequence
 
         return run(args, demo=lambda: make_sequence(seed=0, n_frames=10, spacing=1.25).volumes)
     _check_options(args)

@@ -223,9 +223,12 @@ SUBSAMPLES = 3
 #: most coarse voxels along an axis: a larger image is searched on coarser
 #: voxels, so that the search's cost does not grow with the image
 MAX_COARSE = 96
+#: coarse voxels read at once by :func:`fixed_size_copy` (its indices and
+#: values, m**3 = 27 points each: a few MB whatever the image)
+GATHER_BLOCK = 8192
 
 
-def _fixed_size_copy(volume, spacing: float):
+def fixed_size_copy(volume, spacing: float):
     """Means and standard deviations over coarse voxels of about ``spacing``
     mm of a Cartesian ``volume``, each from its nearest voxels at
     :data:`SUBSAMPLES` cubed points evenly spread over it (NaN where half
@@ -267,16 +270,20 @@ def _fixed_size_copy(volume, spacing: float):
     def gather(spread):
         """Count, sum and sum of squares of the nearest voxels at ``m``
         points a side, ``spread`` voxels apart, over each coarse voxel near
-        the data: one read of the ``m**3`` points of each."""
+        the data: one read of the ``m**3`` points of each, a block of
+        coarse voxels at a time (the indices and values of all at once
+        would hold several times the image's bytes)."""
         kz, jy, ix = nearest(spread, m)
-        kz, jy, ix = kz[:, where[0]], jy[:, where[1]], ix[:, where[2]]
-        # (sub-point, coarse voxel): each sub-point's values contiguous
-        values = samples.take((kz[:, None, None] + jy[None, :, None] + ix[None, None, :]).reshape(m ** 3, -1))
-        ok = np.isfinite(values)
-        values = np.where(ok, values, np.float32(0))
         out = [np.zeros(shape, np.int64), np.zeros(shape), np.zeros(shape)]
-        out[0][where], out[1][where] = ok.sum(0), values.sum(0, dtype=np.float64)
-        out[2][where] = np.einsum("ij,ij->j", values, values, dtype=np.float64)
+        for block in range(0, len(where[0]), GATHER_BLOCK):
+            at = tuple(w[block:block + GATHER_BLOCK] for w in where)
+            # (sub-point, coarse voxel): each sub-point's values contiguous
+            flat = (kz[:, at[0]][:, None, None] + jy[:, at[1]][None, :, None] + ix[:, at[2]][None, None, :])
+            values = samples.take(flat.reshape(m ** 3, -1))
+            ok = np.isfinite(values)
+            values = np.where(ok, values, np.float32(0))
+            out[0][at], out[1][at] = ok.sum(0), values.sum(0, dtype=np.float64)
+            out[2][at] = np.einsum("ij,ij->j", values, values, dtype=np.float64)
         return out
 
     count, total, squares = gather(q / m)
@@ -331,7 +338,7 @@ def _coarse(volume, spacing: float):
         probe_known = True
     else:
         probe_known = True
-        grey, deviation, q, first = _fixed_size_copy(volume, spacing)
+        grey, deviation, q, first = fixed_size_copy(volume, spacing)
         speckle = float(np.nanmedian(np.where(np.isfinite(grey), deviation, np.nan))) if np.isfinite(grey).any() \
             else float("nan")
         step = volume.spacing * q
@@ -558,8 +565,8 @@ def _waist(area, first: int, last: int, allowed) -> tuple[int, float]:
 def _along(points, centre, axis, voxel_ml, slab, *, bin_mm: float = 2.0) -> dict | None:
     """Apex, base and scores of a pool whose apex lies along ``axis``."""
     t = (points - centre) @ axis
-    if np.ptp(t) > 4 * LENGTH_RANGE_MM[1]:  # no ventricle: and its sections would be millions (a wrong spacing)
-        return None
+    if not (t.size and np.all(np.isfinite(t))) or np.ptp(t) > 4 * LENGTH_RANGE_MM[1]:
+        return None  # no ventricle: and its sections would be millions (a wrong spacing)
     edges = np.arange(t.min() - bin_mm / 2, t.max() + bin_mm, bin_mm)
     area = np.histogram(t, edges)[0] * voxel_ml * 1000.0 / bin_mm  # mm^2 of section
     heights = (edges[:-1] + edges[1:]) / 2
