@@ -8,11 +8,14 @@ result records it as ``parameters`` (:meth:`SegmentOptions.as_parameters`).
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .dataterms import DATA_TERMS, DataTerm
 from ..surfaces.surface import DEFAULT_RADIUS_RATIO
+
+if TYPE_CHECKING:  # the data terms (and SciPy's optimize) load when a term is asked for: not for --help
+    from .dataterms import DataTerm
 
 __all__ = ["SegmentOptions", "MODES", "SYSTEMS", "BACKENDS", "LIMITS", "format_point"]
 
@@ -32,6 +35,12 @@ SMOOTHNESS_REFERENCES = ("start", "fitted")
 #: and iterations per level
 LIMITS = {"patches": 32, "order": 16, "sample_points": 32 * 32 * 8 * 8, "band": 50.0, "band_out": 50.0,
           "step": 10.0, "max_iterations": 10000}
+
+
+def _data_terms():
+    from . import dataterms
+
+    return dataterms
 
 
 def format_point(point) -> str:
@@ -165,7 +174,7 @@ class SegmentOptions:
             raise ValueError(f"system must be one of {SYSTEMS}, got {self.system!r}")
         object.__setattr__(self, "system", system)
         if not (self.mode in MODES if isinstance(self.mode, str)
-                else isinstance(self.mode, type) and issubclass(self.mode, DataTerm)):
+                else isinstance(self.mode, type) and issubclass(self.mode, _data_terms().DataTerm)):
             raise ValueError(f"mode must be one of {MODES} or a spheroseg.dataterms.DataTerm subclass, "
                              f"got {self.mode!r}")
         if self.backend not in BACKENDS:
@@ -228,7 +237,7 @@ class SegmentOptions:
     @property
     def data_term(self) -> type[DataTerm]:
         """The data term ``mode`` names (or is)."""
-        return DATA_TERMS[self.mode] if isinstance(self.mode, str) else self.mode
+        return _data_terms().DATA_TERMS[self.mode] if isinstance(self.mode, str) else self.mode
 
     def as_parameters(self) -> dict:
         """The options as plain JSON-ready values (what results record)."""
