@@ -576,7 +576,7 @@ def cmd_batch(args) -> int:
         client.run(warm_up)
         executor = client.get_executor()
     rows = {}
-    bar = tqdm(total=len(studies), unit="study", desc="batch", file=sys.stderr, disable=not _shows_progress(args))
+    bar = tqdm(total=len(studies), unit="study", desc="batch", file=sys.stderr, disable=args.quiet)
     outcomes = segment_many(studies, out=out, executor=executor, workers=args.workers, timeout=args.timeout,
                             options=options)
     try:
