@@ -137,7 +137,8 @@ def measure(before: str, repeats: int) -> dict:
     result = {"modules": {v: loaded_modules(s) for v, s in versions.items()},
               "importtime": {v: import_time_tree(s) for v, s in versions.items()}}
     py = [sys.executable]
-    commands = {"python -c pass": (py + ["-c", "pass"], env_for(after))}
+    commands = {"python -c pass": (py + ["-c", "pass"], env_for(after)),
+                "python -c 'import numpy'": (py + ["-c", "import numpy"], env_for(after))}
     for v, s in versions.items():
         commands[f"import spheroseg ({v})"] = (py + ["-c", "import spheroseg"], env_for(s))
         commands[f"spheroseg --help ({v})"] = (py + ["-m", "spheroseg", "--help"], env_for(s))
@@ -178,6 +179,9 @@ def report_section(data: dict) -> str:
              f"{data['before']}, after {data['commit']}.", "",
              "| fresh process (median) | before | after | before / after |", "|---|---:|---:|---:|",
              f"| `python -c pass` | {1000 * base:.0f} ms | | |"]
+    numpy_only = s.get("python -c 'import numpy'")
+    if numpy_only is not None:
+        lines.append(f"| `python -c 'import numpy'` | {1000 * numpy_only:.0f} ms | | |")
     for what in ("import spheroseg", "spheroseg --help", "spheroseg segment --help"):
         b, a = s[f"{what} ({'before'})"], s[f"{what} ({'after'})"]
         lines.append(f"| `{what}` | {1000 * b:.0f} ms | {1000 * a:.0f} ms | {b / a:.1f}x |")
