@@ -150,7 +150,7 @@ def measure(before: str, repeats: int) -> dict:
         paths = ([case["path"]] if case else []) + sorted(str(p) for p in DEVSET.glob("dev_*/image.mha"))
         result["load"] = {}
         for v, s in versions.items():
-            run = subprocess.run([sys.executable, "-c", LOAD_CHILD, json.dumps(paths), str(3 * repeats)],
+            run = subprocess.run([sys.executable, "-c", LOAD_CHILD, json.dumps(paths), str(10 * repeats)],
                                  env=env_for(s), capture_output=True, text=True, check=True)
             result["load"][v] = {Path(p).parent.name if "devset" in p else "cetus_p7_ed": r
                                  for p, r in json.loads(run.stdout.strip().splitlines()[-1]).items()}
