@@ -6,7 +6,7 @@ from argparse import Namespace
 
 import numpy as np
 
-from spheroseg.apps.cli import _bar_progress, _shows_progress
+from spheroseg.apps.cli import progress_callback, shows_progress
 from spheroseg.synthetic.phantom import make_sequence
 
 
@@ -17,22 +17,22 @@ class Terminal(io.StringIO):
 
 def test_bars_show_on_a_terminal_or_when_asked_and_never_when_quiet(monkeypatch):
     monkeypatch.setattr("sys.stderr", io.StringIO())
-    assert not _shows_progress(Namespace(quiet=False, progress=False))  # a pipe, a log file, a test
-    assert _shows_progress(Namespace(quiet=False, progress=True))
-    assert not _shows_progress(Namespace(quiet=True, progress=True))
+    assert not shows_progress(Namespace(quiet=False, progress=False))  # a pipe, a log file, a test
+    assert shows_progress(Namespace(quiet=False, progress=True))
+    assert not shows_progress(Namespace(quiet=True, progress=True))
     monkeypatch.setattr("sys.stderr", Terminal())
-    assert _shows_progress(Namespace(quiet=False, progress=False))
-    assert not _shows_progress(Namespace(quiet=True, progress=False))
+    assert shows_progress(Namespace(quiet=False, progress=False))
+    assert not shows_progress(Namespace(quiet=True, progress=False))
 
 
 def test_a_bar_is_drawn_on_stderr_only_when_shown(monkeypatch):
     monkeypatch.setattr("sys.stderr", io.StringIO())
-    with _bar_progress(Namespace(quiet=False, progress=False), total=3, desc="quiet") as progress:
+    with progress_callback(Namespace(quiet=False, progress=False), total=3, desc="quiet") as progress:
         assert progress is None
     assert "quiet" not in __import__("sys").stderr.getvalue()
     stderr = io.StringIO()
     monkeypatch.setattr("sys.stderr", stderr)
-    with _bar_progress(Namespace(quiet=False, progress=True), total=3, desc="making") as progress:
+    with progress_callback(Namespace(quiet=False, progress=True), total=3, desc="making") as progress:
         for done in (1, 2, 3):
             progress(done, 3)
     assert "making" in stderr.getvalue() and "/3" in stderr.getvalue()

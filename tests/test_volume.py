@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from spheroseg.volumes.volume import _PENDING, Volume, outside_sector
+from spheroseg.volumes.volume import Volume, outside_sector
 
 
 def affine_volume():
@@ -92,7 +92,7 @@ def test_integer_volumes_are_their_values_in_float32():
     assert v.array.dtype == np.float32 and np.array_equal(v.array, a.astype(np.float32))
 
 
-def test_a_volume_from_an_array_finds_its_sector_as_load_does(tmp_path):
+def test_a_volume_from_an_array_finds_its_sector_as_load_does(tmp_path, monkeypatch):
     # one volume whatever its origin: the same voxels from an array and from
     # a file have the same no-data (the sector padding), the same samples,
     # the same repr and the same segmentation
@@ -108,12 +108,21 @@ def test_a_volume_from_an_array_finds_its_sector_as_load_does(tmp_path):
     image.SetSpacing(tuple(ph.volume.spacing))
     image.SetOrigin(tuple(ph.volume.origin))
     sitk.WriteImage(image, str(tmp_path / "case.mha"))
+    searched = []
+
+    def counted(values, **kwargs):
+        searched.append(values.shape)
+        return outside_sector(values, **kwargs)
+
+    monkeypatch.setattr("spheroseg.volumes.volume.outside_sector", counted)
     loaded = spheroseg.load(tmp_path / "case.mha")
     built = Volume(array, spacing=ph.volume.spacing, origin=ph.volume.origin)
-    assert loaded._missing is _PENDING and built._missing is _PENDING  # searched when first needed
+    assert searched == []  # searched when first needed, not by load or the constructor
     expected = outside_sector(array)
     for volume in (loaded, built):
         np.testing.assert_array_equal(volume.no_data_mask, expected)
+        np.testing.assert_array_equal(volume.no_data_mask, expected)
+    assert len(searched) == 2  # once each, then kept
     assert repr(built) == repr(loaded) and "sector padding" in repr(built)
     assert "no_data='none'" in repr(Volume(array, spacing=ph.volume.spacing, no_data_value=None))
     points = ph.volume.index_to_world(np.random.default_rng(0).uniform(0, 20, (500, 3)))

@@ -68,7 +68,7 @@ if _typing.TYPE_CHECKING:  # pragma: no cover - what type checkers and IDEs read
     from .volumes.volume import ImageGrid, Volume
 
 
-_install_aliases(_sys.modules[__name__], public=_PUBLIC)
+_install_aliases(_sys.modules[__name__])
 
 
 def __getattr__(name: str):

@@ -76,20 +76,18 @@ class MovedFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
 class Package(types.ModuleType):
     """The package's module type: an old path imported (``spheroseg.segment``,
     ``spheroseg.locate``) must not replace the public function of its name
-    that the package binds, or will bind on first use (``_public``)."""
-
-    _public: frozenset = frozenset()
+    that the package binds, or will bind on first use (the names of its
+    ``_PUBLIC``)."""
 
     def __setattr__(self, name, value):
-        if isinstance(value, types.ModuleType) and (name in self._public or callable(self.__dict__.get(name))):
+        if isinstance(value, types.ModuleType) and (name in self.__dict__.get("_PUBLIC", ())
+                                                    or callable(self.__dict__.get(name))):
             return
         super().__setattr__(name, value)
 
 
-def install(package: types.ModuleType, public=()) -> None:
-    """Serve the old paths below ``package`` (called once by its ``__init__``);
-    ``public``: the names it binds lazily."""
+def install(package: types.ModuleType) -> None:
+    """Serve the old paths below ``package`` (called once by its ``__init__``)."""
     if not any(isinstance(finder, MovedFinder) for finder in sys.meta_path):
         sys.meta_path.insert(0, MovedFinder())
     package.__class__ = Package
-    Package._public = frozenset(public)

@@ -374,14 +374,14 @@ def _load_timed(source, args, seconds: dict):
     return volume
 
 
-def _shows_progress(args) -> bool:
+def shows_progress(args) -> bool:
     """Progress bars: on a terminal's stderr, or anywhere with --progress; never with --quiet."""
     return not getattr(args, "quiet", False) and (getattr(args, "progress", False) or sys.stderr.isatty())
 
 
 def _progress_bar(args, **kwargs):
-    """A tqdm bar on stderr when :func:`_shows_progress`, else None."""
-    if not _shows_progress(args):
+    """A tqdm bar on stderr when :func:`shows_progress`, else None."""
+    if not shows_progress(args):
         return None
     from tqdm import tqdm
 
@@ -390,7 +390,7 @@ def _progress_bar(args, **kwargs):
 
 
 @contextlib.contextmanager
-def _bar_progress(args, **kwargs):
+def progress_callback(args, **kwargs):
     """A ``progress(done, total)`` callback drawing a bar (None without one), the bar closed after."""
     bar = _progress_bar(args, **kwargs)
     try:
@@ -626,13 +626,13 @@ def cmd_demo(args) -> int:
     _say(args, "spheroseg demo: a synthetic apical 3D+t echo sequence (10 frames, 1.25 mm voxels, speckle), tracked "
                "from its apex and base points and compared with its exact truth")
     t0 = time.perf_counter()
-    with _bar_progress(args, total=10, unit="frame", desc="making the sequence") as progress:
+    with progress_callback(args, total=10, unit="frame", desc="making the sequence") as progress:
         seq = make_sequence(seed=0, n_frames=10, spacing=1.25, progress=progress)
     t_make = time.perf_counter() - t0
     timings = {"make_phantom": t_make}
     _kernels_loaded(timings)
     first = seq.frames[0]
-    with _bar_progress(args, total=len(seq.volumes), unit="frame", desc="tracking") as progress:
+    with progress_callback(args, total=len(seq.volumes), unit="frame", desc="tracking") as progress:
         result = track(seq.volumes, first.apex, first.base, progress=progress)
     ed = result.ed_frame
     rows = []
