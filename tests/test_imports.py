@@ -1,4 +1,4 @@
-"""What importing spheroseg costs: neither numba nor matplotlib until used."""
+"""What importing spheroseg costs: none of the heavy libraries until used."""
 
 import ast
 import json
@@ -10,7 +10,11 @@ from pathlib import Path
 
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
-HEAVY = ("numba", "matplotlib")
+#: what ``import spheroseg`` and the command's --help must not load: each is
+#: imported where it is used (SciPy's submodules, SimpleITK by the readers,
+#: matplotlib by the report, meshio by the mesh writers, numba by the kernels)
+HEAVY = ("numba", "matplotlib", "scipy", "SimpleITK", "meshio", "tqdm")
+NONE_LOADED = dict.fromkeys(HEAVY, False)
 
 
 def loaded_after(code: str) -> dict:
@@ -21,21 +25,36 @@ def loaded_after(code: str) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def test_import_loads_neither_numba_nor_matplotlib():
-    assert loaded_after("import spheroseg") == {"numba": False, "matplotlib": False}
+def test_import_loads_none_of_the_heavy_libraries():
+    assert loaded_after("import spheroseg") == NONE_LOADED
 
 
-def test_cli_help_loads_neither_numba_nor_matplotlib():
+def test_the_public_names_are_all_there():
+    # read lazily, each name of __all__ is the object of its module
+    code = ("import spheroseg, json\n"
+            "print(json.dumps({n: getattr(spheroseg, n).__module__.startswith('spheroseg.') for n in spheroseg.__all__}))")
+    env = dict(os.environ, PYTHONPATH=SRC + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    import spheroseg
+
+    assert json.loads(out.stdout) == dict.fromkeys(spheroseg.__all__, True)
+    assert set(spheroseg.__all__) <= set(dir(spheroseg))
+
+
+def test_cli_help_loads_none_of_the_heavy_libraries():
     code = ("import sys\nfrom spheroseg.apps.cli import main\n"
             "for argv in (['--help'], ['segment', '--help'], ['track', '--help']):\n"
             "    try:\n        main(argv)\n    except SystemExit:\n        pass")
-    assert loaded_after(code) == {"numba": False, "matplotlib": False}
+    assert loaded_after(code) == NONE_LOADED
 
 
 def test_the_probe_sees_a_heavy_import():
-    # the checks above can fail: the compiled sector-padding pass loads numba
+    # the checks above can fail: each heavy library imported is seen, the
+    # compiled sector-padding pass loads numba, segment's data terms SciPy
+    assert loaded_after("import numba, matplotlib, scipy.ndimage, SimpleITK, meshio, tqdm") == dict.fromkeys(HEAVY, True)
     code = "import numpy as np\nfrom spheroseg.volumes.volume import outside_sector\noutside_sector(np.zeros((3, 3, 3)))"
     assert loaded_after(code)["numba"] is True
+    assert loaded_after("import spheroseg\nspheroseg.segment")["scipy"] is True
 
 
 PACKAGE = Path(SRC) / "spheroseg"

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from spheroseg.volumes.volume import Volume
+from spheroseg.volumes.volume import Volume, outside_sector
 
 
 def affine_volume():
@@ -114,3 +114,59 @@ def test_a_scaled_direction_in_a_file_is_refused(tmp_path):
     sitk.WriteImage(image, str(tmp_path / "scaled.mha"))
     with pytest.raises(ValueError, match=r"\[2 0 0; 0 2 0; 0 0 2\] is not orthonormal"):
         load(tmp_path / "scaled.mha", no_data_value=None)
+
+
+def test_a_volume_from_an_array_finds_its_sector_as_load_does(tmp_path, monkeypatch):
+    # one volume whatever its origin: the same voxels from an array and from
+    # a file have the same no-data (the sector padding), the same samples,
+    # the same repr and the same segmentation
+    import SimpleITK as sitk
+
+    import spheroseg
+    from spheroseg.synthetic.phantom import make_phantom
+
+    ph = make_phantom(seed=3, spacing=3.0)
+    array = ph.volume.array.astype(np.uint8)
+    assert (array == 0).mean() > 0.05  # the phantom's conical sector has padding
+    image = sitk.GetImageFromArray(array)
+    image.SetSpacing(tuple(ph.volume.spacing))
+    image.SetOrigin(tuple(ph.volume.origin))
+    sitk.WriteImage(image, str(tmp_path / "case.mha"))
+    searched = []
+
+    def counted(values, **kwargs):
+        searched.append(values.shape)
+        return outside_sector(values, **kwargs)
+
+    monkeypatch.setattr("spheroseg.volumes.volume.outside_sector", counted)
+    loaded = spheroseg.load(tmp_path / "case.mha")
+    built = Volume(array, spacing=ph.volume.spacing, origin=ph.volume.origin)
+    assert searched == []  # searched when first needed, not by load or the constructor
+    expected = outside_sector(array)
+    for volume in (loaded, built):
+        np.testing.assert_array_equal(volume.no_data_mask, expected)
+        np.testing.assert_array_equal(volume.no_data_mask, expected)
+    assert len(searched) == 2  # once each, then kept
+    assert repr(built) == repr(loaded) and "sector padding" in repr(built)
+    assert "no_data='none'" in repr(Volume(array, spacing=ph.volume.spacing, no_data_value=None))
+    points = ph.volume.index_to_world(np.random.default_rng(0).uniform(0, 20, (500, 3)))
+    np.testing.assert_array_equal(built.sample(points), loaded.sample(points))
+    assert np.isnan(built.sample(points)).any()  # some of them in the padding
+    results = [spheroseg.segment(v, ph.apex, ph.base, threads=1) for v in (built, loaded)]
+    assert results[0].volume_ml == results[1].volume_ml
+    unmasked = spheroseg.segment(Volume(array, spacing=ph.volume.spacing, origin=ph.volume.origin,
+                                        no_data_value=None), ph.apex, ph.base, threads=1)
+    assert unmasked.volume_ml != results[0].volume_ml  # the padding changes the result: the check can fail
+
+
+def test_auto_with_a_mask_takes_the_mask_and_a_bad_keyword_is_refused():
+    a = np.full((6, 6, 6), 50.0)
+    a[:, :, 0] = 0
+    mask = np.zeros(a.shape, bool)
+    mask[0] = True
+    vol = Volume(a, no_data_mask=mask)
+    np.testing.assert_array_equal(vol.no_data_mask, mask)
+    assert "mask, 16.7% of voxels" in repr(vol)
+    np.testing.assert_array_equal(Volume(a).no_data_mask, a == 0)
+    with pytest.raises(ValueError, match="no_data_value must be a number, None or 'auto', got 'sector'"):
+        Volume(a, no_data_value="sector")

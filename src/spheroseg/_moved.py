@@ -76,10 +76,12 @@ class MovedFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
 class Package(types.ModuleType):
     """The package's module type: an old path imported (``spheroseg.segment``,
     ``spheroseg.locate``) must not replace the public function of its name
-    that the package binds."""
+    that the package binds, or will bind on first use (the names of its
+    ``_PUBLIC``)."""
 
     def __setattr__(self, name, value):
-        if isinstance(value, types.ModuleType) and callable(self.__dict__.get(name)):
+        if isinstance(value, types.ModuleType) and (name in self.__dict__.get("_PUBLIC", ())
+                                                    or callable(self.__dict__.get(name))):
             return
         super().__setattr__(name, value)
 

@@ -111,6 +111,8 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stl", action="store_true", help="also write the mesh as STL")
     p.add_argument("--no-report", action="store_true", help="skip the PNG report")
     p.add_argument("--quiet", action="store_true", help="no progress or summary on stdout")
+    p.add_argument("--progress", action="store_true",
+                   help="progress bars on stderr even when it is not a terminal (default: only on a terminal)")
     p.add_argument("--allow-poor", action="store_true",
                    help="exit 0 when a result is poor (its quality report has warnings); default: exit 3")
     p.add_argument("--profile", action="store_true",
@@ -214,6 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", metavar="DIR", help="output folder (default: a new ./spheroseg-demo*)")
     demo.add_argument("--force", action="store_true")
     demo.add_argument("--quiet", action="store_true")
+    demo.add_argument("--progress", action="store_true", help="progress bars on stderr even when it is not a terminal")
     from .live.commands import add_live_parsers  # argparse only: the tracking is imported when they run
 
     add_live_parsers(sub, model_options=lambda p: _add_model_options(
@@ -400,6 +403,32 @@ def _load_timed(source, args, seconds: dict):
     return volume
 
 
+def shows_progress(args) -> bool:
+    """Progress bars: on a terminal's stderr, or anywhere with --progress; never with --quiet."""
+    return not getattr(args, "quiet", False) and (getattr(args, "progress", False) or sys.stderr.isatty())
+
+
+def _progress_bar(args, **kwargs):
+    """A tqdm bar on stderr when :func:`shows_progress`, else None."""
+    if not shows_progress(args):
+        return None
+    from tqdm import tqdm
+
+    # leave=False: the bar clears itself, so an error after it is the only line
+    return tqdm(file=sys.stderr, leave=False, **kwargs)
+
+
+@contextlib.contextmanager
+def progress_callback(args, **kwargs):
+    """A ``progress(done, total)`` callback drawing a bar (None without one), the bar closed after."""
+    bar = _progress_bar(args, **kwargs)
+    try:
+        yield (lambda done, total: bar.update(done - bar.n)) if bar is not None else None
+    finally:
+        if bar is not None:
+            bar.close()
+
+
 def _report_worker(args):
     """What draws the command's report: a second process that imports
     matplotlib while this one loads and segments (:mod:`spheroseg.report_worker`),
@@ -493,12 +522,7 @@ def cmd_track(args) -> int:
         t_load = time.perf_counter() - t0
         timings = {"load": t_load}
         _kernels_loaded(timings)
-        bar = None
-        if not args.quiet:
-            from tqdm import tqdm
-
-            # leave=False: the bar clears itself, so an error after it is the only line
-            bar = tqdm(total=len(volumes), unit="frame", desc="tracking", file=sys.stderr, leave=False)
+        bar = _progress_bar(args, total=len(volumes), unit="frame", desc="tracking")
         progress = (lambda done, total: bar.update(done - bar.n)) if bar is not None else None
         try:
             result = track(volumes, apex, base, annulus=annulus, landmarks=landmarks,
@@ -643,12 +667,14 @@ def cmd_demo(args) -> int:
     _say(args, "spheroseg demo: a synthetic apical 3D+t echo sequence (10 frames, 1.25 mm voxels, speckle), tracked "
                "from its apex and base points and compared with its exact truth")
     t0 = time.perf_counter()
-    seq = make_sequence(seed=0, n_frames=10, spacing=1.25)
+    with progress_callback(args, total=10, unit="frame", desc="making the sequence") as progress:
+        seq = make_sequence(seed=0, n_frames=10, spacing=1.25, progress=progress)
     t_make = time.perf_counter() - t0
     timings = {"make_phantom": t_make}
     _kernels_loaded(timings)
     first = seq.frames[0]
-    result = track(seq.volumes, first.apex, first.base)
+    with progress_callback(args, total=len(seq.volumes), unit="frame", desc="tracking") as progress:
+        result = track(seq.volumes, first.apex, first.base, progress=progress)
     ed = result.ed_frame
     rows = []
     for t, (frame, truth) in enumerate(zip(result.frames, seq.frames)):

@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import asdict, dataclass, fields
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .._moved import MOVED_IN, REMOVED_IN
-from .dataterms import DATA_TERMS, DataTerm, FixedInterface
 from ..surfaces.surface import DEFAULT_RADIUS_RATIO
+
+if TYPE_CHECKING:  # the data terms (and SciPy's optimize) load when a term is asked for: not for --help
+    from .dataterms import DataTerm
 
 __all__ = ["SegmentOptions", "MODES", "SYSTEMS", "BACKENDS", "LIMITS", "format_point"]
 
@@ -34,6 +37,12 @@ SMOOTHNESS_REFERENCES = ("start", "fitted")
 #: and iterations per level
 LIMITS = {"patches": 32, "order": 16, "sample_points": 32 * 32 * 8 * 8, "band": 50.0, "band_out": 50.0,
           "step": 10.0, "max_iterations": 10000, "smoothness": 1e6}
+
+
+def _data_terms():
+    from . import dataterms
+
+    return dataterms
 
 
 def format_point(point) -> str:
@@ -168,11 +177,12 @@ class SegmentOptions:
         if system not in SYSTEMS:
             raise ValueError(f"system must be one of {SYSTEMS}, got {self.system!r}")
         object.__setattr__(self, "system", system)
-        if isinstance(self.mode, type) and issubclass(self.mode, DataTerm):  # 0.1 took the class
+        terms = _data_terms()
+        if isinstance(self.mode, type) and issubclass(self.mode, terms.DataTerm):  # 0.1 took the class
             warnings.warn(f"mode takes a DataTerm object since spheroseg {MOVED_IN}: pass {self.mode.__name__}(), "
                           f"not the class (which it takes until {REMOVED_IN})", DeprecationWarning, stacklevel=4)
             object.__setattr__(self, "mode", self.mode())
-        if not (self.mode in MODES if isinstance(self.mode, str) else isinstance(self.mode, DataTerm)):
+        if not (self.mode in MODES if isinstance(self.mode, str) else isinstance(self.mode, terms.DataTerm)):
             raise ValueError(f"mode must be one of {MODES} or a spheroseg.descent.dataterms.DataTerm object, "
                              f"got {self.mode!r}")
         if self.backend not in BACKENDS:
@@ -252,9 +262,10 @@ class SegmentOptions:
         ``interface`` option), or is."""
         if not isinstance(self.mode, str):
             return self.mode
+        terms = _data_terms()
         if self.mode == "fast":
-            return FixedInterface(interface=self.interface)
-        return DATA_TERMS[self.mode]()
+            return terms.FixedInterface(interface=self.interface)
+        return terms.DATA_TERMS[self.mode]()
 
     def as_parameters(self) -> dict:
         """The options as plain JSON-ready values (what results record)."""

@@ -24,10 +24,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.linalg
-import scipy.sparse as sp
+
+if TYPE_CHECKING:  # SciPy is imported where a matrix is built: the package's import loads none
+    import scipy.sparse as sp
 
 from . import hermite
 from .array_cache import cached_arrays
@@ -144,6 +146,8 @@ def spd_inverse(matrix: np.ndarray) -> np.ndarray:
 
     An iteration applies the inverses as mat-vecs: at a few hundred
     unknowns a dense product is cheaper than a triangular solve."""
+    import scipy.linalg
+
     factor = scipy.linalg.cho_factor(matrix)
     inverse = scipy.linalg.cho_solve(factor, np.eye(len(matrix)))
     return (inverse + inverse.T) / 2
@@ -215,5 +219,6 @@ def _matrices(grid: HermiteGrid, order: int) -> dict:
 
 
 def _unpack(arrays: dict, name: str) -> sp.csr_matrix:
+    import scipy.sparse as sp
     return sp.csr_matrix((arrays[f"{name}_data"], arrays[f"{name}_indices"], arrays[f"{name}_indptr"]),
                          shape=tuple(arrays[f"{name}_shape"]))

@@ -29,9 +29,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
+
+if TYPE_CHECKING:  # SciPy is imported where a matrix is built: the package's import loads none
+    import scipy.sparse as sp
 
 __all__ = ["hermite_basis", "global_basis", "patch_dofs", "HermiteGrid", "basis_norms", "gauss_legendre"]
 
@@ -259,6 +262,7 @@ class HermiteGrid:
         ``v1`` is wrapped into ``[0, 2 pi)``; ``v2`` outside the range is
         extrapolated from the end patch.
         """
+        import scipy.sparse as sp
         index, values = self._terms(np.ravel(v1), np.ravel(v2), d1, d2)
         n = index.shape[1]
         # 16 distinct columns a row: built as CSR directly (COO's conversion
@@ -381,6 +385,7 @@ class HermiteGrid:
         Free nodes keep their four coefficients as parameters; each pole row
         is replaced by three parameters ``(c, p1, p2)`` (module docstring).
         """
+        import scipy.sparse as sp
         idx = np.arange(self.n_coefficients).reshape(self.shape)
         rows, cols, vals = [], [], []
         n_param = 0
@@ -410,6 +415,7 @@ class HermiteGrid:
     @lru_cache(maxsize=16)
     def _constraint_pinv(self) -> sp.csr_matrix:
         # the columns of A are mutually orthogonal, so pinv(A) = diag(1/|a_j|^2) A^T
+        import scipy.sparse as sp
         a = self.constraints
         norms = np.asarray(a.multiply(a).sum(axis=0)).ravel()
         return (sp.diags(1.0 / norms) @ a.T).tocsr()
@@ -426,6 +432,7 @@ class HermiteGrid:
     def roughness_matrix(self, order: int = 4) -> sp.csr_matrix:
         """Thin-plate energy in the parameters: ``p^T T p = int f_11^2 +
         2 f_12^2 + f_22^2 dv1 dv2 / area``, zero for constant ``f``."""
+        import scipy.sparse as sp
         q1, q2, w = self.quadrature(order)
         w = w / w.sum()
         a = self.constraints
@@ -452,6 +459,7 @@ class HermiteGrid:
     @lru_cache(maxsize=16)
     def _refinement_matrix(self) -> sp.csr_matrix:
         # row (node, k) of the fine grid: the k-th derivative of the coarse basis there
+        import scipy.sparse as sp
         fine = self.refined()
         v2, v1 = np.meshgrid(fine.node_v2, fine.node_v1, indexing="ij")
         parts = [self.basis_matrix(v1, v2, d1, d2) for d1, d2 in ((0, 0), (1, 0), (0, 1), (1, 1))]

@@ -28,7 +28,6 @@ import numpy as np
 from .atomic import write_atomically
 from ..volumes.beamspace import CONVENTIONS, BeamGeometry, BeamVolume
 from ..volumes.budget import BUDGET_VARIABLE, DEFAULT_BUDGET_GB, budget_bytes  # noqa: F401 (their old home)
-from .._compiled.raster import outside_sector
 from ..volumes.volume import ImageGrid, Volume
 
 __all__ = ["volume_with_no_data", "load", "load_sequence", "load_frames", "save_mask", "save_volume", "image_format", "image_files",
@@ -354,16 +353,7 @@ def _load_npy(path: Path) -> np.ndarray:
 def volume_with_no_data(array, no_data_value, **geometry) -> Volume:
     """A Volume whose no-data voxels follow ``no_data_value``: a value,
     ``None``, or ``"auto"`` (the zero padding around an echo sector)."""
-    if isinstance(no_data_value, str):
-        if no_data_value != "auto":
-            raise ValueError(f"no_data_value must be a number, None or 'auto', got {no_data_value!r}")
-        array = np.asarray(array)
-        if array.dtype.kind in "iu":
-            # the Volume keeps these float32 voxels (it takes them without a
-            # copy) and they have the same zeros: the search reads them in place
-            array = np.ascontiguousarray(array, dtype=np.float32)
-        return Volume(array, **geometry, no_data_mask=outside_sector(array))
-    return Volume(array, **geometry, no_data_value=no_data_value)
+    return Volume(array, **geometry, no_data_value=no_data_value)  # "auto": the Volume searches when first sampled
 
 
 class _ImageBuffer:
@@ -383,7 +373,7 @@ def _voxels(image) -> np.ndarray:
     return np.asarray(_ImageBuffer(image))
 
 
-def _volume_from_image(image, no_data_value) -> Volume:
+def _volume_from_image(image, no_data_value, spacing=None) -> Volume:
     if image.GetDimension() != 3:
         raise ValueError(f"expected a 3D image, got {image.GetDimension()}D")
     if image.GetNumberOfComponentsPerPixel() != 1:
@@ -391,7 +381,7 @@ def _volume_from_image(image, no_data_value) -> Volume:
     return volume_with_no_data(
         _voxels(image),
         no_data_value,
-        spacing=image.GetSpacing(),
+        spacing=image.GetSpacing() if spacing is None else spacing,
         origin=image.GetOrigin(),
         direction=np.array(image.GetDirection()).reshape(3, 3),
     )
@@ -540,11 +530,7 @@ def load(path: str | os.PathLike, *, spacing=None,
     beam = _beam_geometry(image, path, spacing)
     if beam is not None:
         return _make_beam_volume(_sitk().GetArrayFromImage(image), beam, no_data_value)
-    volume = _volume_from_image(image, no_data_value)
-    if spacing is not None:
-        volume = Volume(volume.array, spacing=spacing, origin=volume.origin, direction=volume.direction,
-                        no_data_mask=volume.no_data_mask)
-    return volume
+    return _volume_from_image(image, no_data_value, spacing)
 
 
 def is_sequence_file(path: str | os.PathLike) -> bool:
@@ -638,11 +624,7 @@ def load_sequence(path: str | os.PathLike, *, spacing=None, no_data_value: float
         raise ValueError(f"{path}: expected a 3D+t image (4D, or frames as components), got a {image.GetDimension()}D image")
     if beam is not None:
         return [_make_beam_volume(sitk.GetArrayFromImage(f), beam, no_data_value) for f in frames]
-    volumes = [_volume_from_image(f, no_data_value) for f in frames]
-    if spacing is not None:
-        volumes = [Volume(v.array, spacing=spacing, origin=v.origin, direction=v.direction, no_data_mask=v.no_data_mask)
-                   for v in volumes]
-    return volumes
+    return [_volume_from_image(f, no_data_value, spacing) for f in frames]
 
 
 def _header_data_file(path: Path) -> Path | None:

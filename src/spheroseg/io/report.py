@@ -68,6 +68,7 @@ def parts_figure(parts: dict):
     for setter, c in zip((ax3.set_xlim, ax3.set_ylim, ax3.set_zlim), centre):
         setter(c - span, c + span)
     ax3.invert_zaxis()  # depth grows downwards, as in the slices
+    ax3.set_box_aspect(None, zoom=0.85)  # its z label inside its panel (the margins are fixed)
     ax3.set_title(f"cavity {parts['volume_ml']:.1f} mL", fontsize=9)
     ax3.set_xlabel("x (mm)", fontsize=7)
     ax3.set_ylabel("y (mm)", fontsize=7)
@@ -91,7 +92,9 @@ def parts_figure(parts: dict):
         ax.set_title("17 segments, seen from the apex", fontsize=9)
     if parts["title"]:
         fig.suptitle(parts["title"], fontsize=10)
-    fig.tight_layout()
+    # fixed margins for the one row of panels: tight_layout would draw the
+    # figure once more only to measure it
+    fig.subplots_adjust(left=0.01, right=0.98, bottom=0.1, top=0.86, wspace=0.3)
     return fig
 
 

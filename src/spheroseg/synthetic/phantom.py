@@ -533,7 +533,7 @@ def myocardium_truth(shape_fn, wall: float, anatomy: dict) -> dict:
 
 def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33, base_descent: float = 0.0,
                   formation: ImageFormation | None = None, workers: int | None = None,
-                  late_region: "LateRegion | None" = None, **kwargs) -> PhantomSequence:
+                  late_region: "LateRegion | None" = None, progress=None, **kwargs) -> PhantomSequence:
     """A cardiac cycle from end-diastole.
 
     At phase ``s(t) = (1 - cos(2 pi t / n_frames)) / 2`` (0 at end-diastole,
@@ -562,6 +562,8 @@ def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33
         Frames made at once, in threads (numpy's array loops release the
         GIL): by default the cores this process may run on.  The frames do
         not depend on it (each has its own seeds); memory grows with it.
+    progress : callable, optional
+        ``progress(done, total)`` after each frame is made (a progress bar).
     **kwargs
         Further options of :func:`make_phantom`.
     """
@@ -589,7 +591,12 @@ def make_sequence(*, n_frames: int = 10, seed: int = 0, shortening: float = 0.33
                             _speckle_seed=seed * 1000 + t, _base_descent=descent, formation=formation, **kwargs)
 
     with ThreadPoolExecutor(min(n_frames, workers or usable_cores())) as pool:  # the frames' speckle, on every core
-        return PhantomSequence(list(pool.map(frame, range(n_frames))))
+        frames = []
+        for made in pool.map(frame, range(n_frames)):  # in order, as each is made
+            frames.append(made)
+            if progress is not None:
+                progress(len(frames), n_frames)
+        return PhantomSequence(frames)
 
 
 @dataclass(frozen=True)

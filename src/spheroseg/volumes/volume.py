@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -19,6 +20,13 @@ DIRECTION_TOLERANCE = 1e-4
 #: the largest coordinate an image's origin may have, mm (a kilometre): beyond
 #: it the world -> index arithmetic loses the voxel (float64 keeps 16 digits)
 MAX_COORDINATE_MM = 1e6
+
+
+class _PENDING:
+    """A no-data mask not yet searched for (a class: pickled by reference, it stays itself)."""
+
+
+_SEARCH_LOCK = threading.Lock()
 
 
 @dataclass(frozen=True)
@@ -92,12 +100,19 @@ class Volume:
     spacing, origin : (x, y, z) floats, mm
     direction : 3x3 array
         Columns are the image axes (i, j, k) in world coordinates.
-    no_data_value : float, optional
+    no_data_value : float, None or "auto"
         Value that marks voxels without data (the black outside of an
         echo sector, 0 in CETUS volumes).  Samples touching such a voxel are
-        treated as missing.  ``None``: every voxel is data.
+        treated as missing.  ``None``: every voxel is data.  ``"auto"`` (the
+        default, as :func:`spheroseg.load`'s): the black padding around a
+        scan-converted sector, the exact zeros connected to the image's
+        faces covering 1% of it or more (:func:`outside_sector`), searched
+        once when first needed (a sample, ``no_data_mask``, the repr) and
+        kept; a volume built from an array and one loaded from a file of
+        the same voxels have the same no-data.
     no_data_mask : bool array, optional
-        Voxels without data, in addition (see :func:`outside_sector`).
+        Voxels without data, in addition to those of a value; with
+        ``"auto"``, the sector itself (no search).
 
     Notes
     -----
@@ -105,7 +120,7 @@ class Volume:
     ``(x, y, z)`` in mm (LPS).
     """
 
-    def __init__(self, array, *, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), direction=None, no_data_value=None,
+    def __init__(self, array, *, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), direction=None, no_data_value="auto",
                  no_data_mask=None):
         array = np.asarray(array)
         if array.ndim != 3:
@@ -126,26 +141,63 @@ class Volume:
             raise ValueError(f"spacing must be 3 positive numbers (x, y, z), got {spacing!r}")
         direction = np.eye(3) if direction is None else np.asarray(direction, dtype=float).reshape(3, 3)
         self.grid = ImageGrid(self.array.shape, spacing, origin, direction)
-        self.no_data_value = None if no_data_value is None else float(no_data_value)
+        auto = isinstance(no_data_value, str)
+        if auto and no_data_value != "auto":
+            raise ValueError(f"no_data_value must be a number, None or 'auto', got {no_data_value!r}")
+        self.no_data_value = None if no_data_value is None or auto else float(no_data_value)
         # world -> continuous index (x, y, z order) as one affine map
         self._to_index = np.linalg.inv(direction * self.grid.spacing[None, :])
-        # what sampling reads: the values, with NaN on no-data voxels so that
-        # any sample touching one comes out NaN without a second lookup
-        missing = None if no_data_value is None else self.array == float(no_data_value)
+        missing = None if self.no_data_value is None else self.array == self.no_data_value
         if no_data_mask is not None:
             no_data_mask = np.asarray(no_data_mask, dtype=bool)
             if no_data_mask.shape != self.array.shape:
                 raise ValueError(f"no_data_mask must have the volume's shape {self.array.shape}, got {no_data_mask.shape}")
-            missing = no_data_mask if missing is None else missing | no_data_mask
-        self.no_data_mask = missing
+        #: how the no-data voxels were given: "sector" (searched), "value", "mask" or None
+        self._no_data_source = None
+        if auto and no_data_mask is None:  # searched at the first sample: an image loaded and only looked at needs none
+            self._missing = _PENDING
+            # the zeros are the input's: a float64 1e-50 is data though float32 rounds it to 0
+            # (integers and narrower floats have the zeros of their float32 copy)
+            self._searched = array if array.dtype.kind == "f" and array.dtype.itemsize > 4 else self.array
+        else:
+            self._set_missing(missing, no_data_mask, "value" if missing is not None else None)
+        nz, ny, nx = self.array.shape
+        self._upper = np.array([nx - 1, ny - 1, nz - 1], dtype=float)
+        self._strides = np.array([1, nx, nx * ny], dtype=np.int64)
+
+    # no-data voxels -------------------------------------------------------
+
+    def _set_missing(self, missing, mask, source) -> None:
+        if mask is not None:
+            missing, source = (mask, "mask") if missing is None else (missing | mask, source + " and mask")
+        # what sampling reads: the values, with NaN on no-data voxels so that
+        # any sample touching one comes out NaN without a second lookup
         if missing is not None and missing.any():
             self._samples = np.where(missing, np.float32(np.nan), self.array)
         else:
             self._samples = self.array
-        self._flat = self._samples.ravel()
-        nz, ny, nx = self.array.shape
-        self._upper = np.array([nx - 1, ny - 1, nz - 1], dtype=float)
-        self._strides = np.array([1, nx, nx * ny], dtype=np.int64)
+        self._flat_samples = self._samples.ravel()
+        self._no_data_source = source
+        self._missing = missing  # last: a thread that sees it set finds the samples set
+
+    def _resolve(self) -> None:
+        if self._missing is _PENDING:
+            with _SEARCH_LOCK:  # threads sampling one new volume: one search
+                if self._missing is _PENDING:
+                    sector = outside_sector(self._searched)
+                    self._searched = None
+                    self._set_missing(sector, None, "sector" if sector is not None else None)
+
+    @property
+    def no_data_mask(self) -> np.ndarray | None:
+        """The voxels without data (bool ``[z, y, x]``), or None: every voxel is data."""
+        self._resolve()
+        return self._missing
+
+    @property
+    def _flat(self) -> np.ndarray:
+        self._resolve()
+        return self._flat_samples
 
     # geometry ------------------------------------------------------------
 
@@ -213,7 +265,16 @@ class Volume:
         return self.sample(world)
 
     def __repr__(self) -> str:
-        return f"Volume(shape={self.shape}, spacing={tuple(self.spacing.round(4))}, origin={tuple(self.origin.round(3))})"
+        missing = self.no_data_mask
+        if missing is None:
+            no_data = "none"
+        else:
+            source = self._no_data_source.replace("sector", "sector padding")
+            if self.no_data_value is not None:
+                source = source.replace("value", f"value {self.no_data_value:g}")
+            no_data = f"{source}, {100 * np.count_nonzero(missing) / missing.size:.1f}% of voxels"
+        spacing, origin = (tuple(float(v) for v in values.round(n)) for values, n in ((self.spacing, 4), (self.origin, 3)))
+        return f"Volume(shape={self.shape}, spacing={spacing}, origin={origin}, no_data={no_data!r})"
 
 
 def sample_at_index(flat: np.ndarray, strides: np.ndarray, upper: np.ndarray, index: np.ndarray, *,
