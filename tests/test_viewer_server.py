@@ -551,6 +551,9 @@ def test_command_prints_the_address_once_it_answers(phantom, tmp_path):
         connection.close()
         process.send_signal(signal.SIGINT)
         assert process.wait(timeout=30) == 0
+        # a cold start is not silent: each long step is said before it starts
+        said = process.stderr.read()
+        assert said.index(f"reading {path}") < said.index("loading the numerical kernels") < said.index("serving")
     finally:
         if process.poll() is None:
             process.kill()
