@@ -651,8 +651,6 @@ def cmd_view(args) -> int:
         raise CliError(f"--port must be from 0 to 65535, got {args.port}")
     if args.save_root is not None and not Path(args.save_root).is_dir():
         raise CliError(f"--save-root {args.save_root} is not a folder")
-    # each step is said before it starts: a first run's compiling takes a minute
-    print(f"spheroseg: reading {args.image}", file=sys.stderr, flush=True)
     try:
         server = open_viewer(args.image, port=args.port, points=args.points, save_root=args.save_root,
                              spacing=args.spacing, no_data_value=args.no_data, system=args.system,
@@ -661,7 +659,9 @@ def cmd_view(args) -> int:
         if exc.errno is not None and exc.filename is None:  # the socket, not a file
             raise CliError(f"cannot listen on 127.0.0.1:{args.port}: {exc.strerror}") from None
         raise
-    print("spheroseg: loading the numerical kernels (a first run compiles them)", file=sys.stderr, flush=True)
+    # said before it starts: a first run compiles the kernels for a minute or more
+    print(f"spheroseg: {args.image} read; loading the numerical kernels (a first run compiles them)",
+          file=sys.stderr, flush=True)
     _load_kernels_saying()
     print(server.url, flush=True)  # once the kernels are loaded: a pasted address answers at once
     if not args.no_browser:
