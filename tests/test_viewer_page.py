@@ -226,13 +226,17 @@ def test_sequence_track_slider_and_curve(browser, tmp_path):
         assert frame_volume == pytest.approx(api.volumes_ml[2], abs=0.05)
         page.screenshot(path=str(tmp_path / "6-tracked.png"))
         # Play steps through the frames, Pause stops; the 3D view drawn at most once a frame shown
-        before = page.evaluate("[viewer.state.draws3D, viewer.state.framesShown]")
+        before = page.evaluate("[viewer.state.renders, viewer.state.framesShown]")
         page.click("#play")
         page.wait_for_function("viewer.state.frame !== 2", polling=100, timeout=TIMEOUT_MS)
         page.wait_for_timeout(1500)
         page.click("#play")
-        after = page.evaluate("[viewer.state.draws3D, viewer.state.framesShown]")
+        after = page.evaluate("[viewer.state.renders, viewer.state.framesShown]")
+        # (a frame was drawn with its 3D view by NiiVue's setFrame4D and again by the page)
         assert after[1] > before[1] and after[0] - before[0] <= after[1] - before[1], (before, after)
+        # each frame when the clock says (frames the browser could not draw in time skipped, none late)
+        for elapsed, frame, first in page.evaluate("viewer.state.playLog"):
+            assert frame == (first + int(elapsed // 250)) % 4, (elapsed, frame, first)
         _shot(page, "sequence-curve.png")
         assert page.text_content("#play") == "Play"
         stopped = page.evaluate("viewer.state.frame")
@@ -670,6 +674,7 @@ def test_undo_prompts_notes_clear_labels_and_wording(browser, phantom_file, tmp_
     server.serve_in_thread()
     try:
         page, errors = open_page(browser, server)
+        page.wait_for_function("document.body.dataset.drawn3d !== undefined", polling=100, timeout=TIMEOUT_MS)
         labels = page.evaluate("viewer.state.labels")
         names = page.evaluate("viewer.TILE_NAMES")
         for kind in (0, 1, 2):

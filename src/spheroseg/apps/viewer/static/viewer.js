@@ -23,7 +23,7 @@ const INTERMEDIATE_MS = 150;
 const IDLE_3D_MS = 600;   // the 3D view is drawn once the slices have been still this long
 const PLAY_MS = 250;      // Play shows one frame this often (frames the browser cannot keep up with are skipped)
 // the tiles' names (3D echo's multiplanar planes): A and B contain the beam axis, C is across it
-const TILE_NAMES = ['C plane (across the beam)', 'A plane (beam, left-right)', 'B plane (beam, front-back)'];
+const TILE_NAMES = ['C plane', 'A plane', 'B plane'];
 // display = LPS * SIGN (a map that is its own inverse)
 const SIGN = { echo: [-1, 1, -1], anatomical: [-1, -1, 1] };
 const HINTS = {
@@ -45,7 +45,7 @@ const state = {
   server: null,         // the study's state as the server last said it (points, options, start frame)
   sending: 0,           // point requests not yet answered
   inflight: null,       // the newest of them (a drag's release waits for it)
-  draws3D: 0, framesShown: 0,  // how often the 3D view and a new frame were drawn (Play draws 3D at most once a frame)
+  draws3D: 0, framesShown: 0, renders: 0, cost3D: 0, playLog: [],  // playLog: [ms since Play, frame, first]  // how often the 3D view and a new frame were drawn (Play draws 3D at most once a frame)
   labels: [],           // the labels drawn on the tiles at the last overlay: [tile kind, text]
 };
 let nv = null;
@@ -206,7 +206,16 @@ function sendPoints({ intermediate = false, released = null } = {}) {
   }, (error) => {
     if (intermediate) return;  // the drag goes on; its release says what the server kept
     adopt(error.state);
-    const kept = released && error.state ? `; ${released} stays at its last accepted point` : '';
+    // the status the note replaces: the kept points' job, finished or still running
+    if (!complete(state.points)) show('', 'ready');
+    else if (state.doneJob === state.job) show(state.donePoor ? 'done: poor result' : 'done', 'done');
+    else show('segmenting...', 'running');
+    const kept = released && error.state ? `; ${released.name} stays at its last accepted point` : '';
+    if (kept) {  // the slices go back to it from the padding the drag ended in
+      const point = allPoints().find((q) => q.kind === released.kind && (q.index === undefined ||
+                                                                         q.index === released.index));
+      if (point) { nv.scene.crosshairPos = nv.mm2frac(point.shown); drawSlices(); }
+    }
     note(error.message + kept, 'error');
     if (!complete(state.points)) hideSurface();
   }).finally(() => {
@@ -227,7 +236,7 @@ function place(mm, shift) {
     else if (mode === 'annulus') p.annulus.push(mm);
     else if (mode === 'landmark') p.landmarks.push(mm);
   }).then(() => {
-    if (state.status === 'error') setMode(modeFor(state.points, mode));  // refused: the point is asked for again
+    if (state.status === 'error') setMode(mode);  // refused: the same point is asked for again
     const p = state.points;
     if (mode === 'annulus' && p.annulus.length < 3 && p.base === null && state.status !== 'error') {
       say(`${p.annulus.length} annulus point(s): 3 or more close the cavity at their plane`);
@@ -447,7 +456,7 @@ async function onRelease(event) {
     state.drag = null;
     const name = { apex: 'the apex', base: 'the base', landmark: `landmark ${drag.index}`,
                    annulus: `annulus point ${drag.index}` }[drag.kind];
-    sendPoints({ released: name });
+    sendPoints({ released: { name, kind: drag.kind, index: drag.index } });
   } else state.drag = null;
 }
 
@@ -490,9 +499,11 @@ function draw3D({ now = false } = {}) {
     }
   }
   state.draws3D += 1;
+  const began = performance.now();
   nv.drawScene();
   const gl = nv.gl;
   gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));  // waits for the frame to be drawn
+  state.cost3D = performance.now() - began;  // Play draws the 3D view only when a frame leaves this long
   const timing = state.timings.find((t) => t.job === state.job);
   if (timing && timing.final !== null && timing.final3d === null) timing.final3d = performance.now();
   document.body.dataset.drawn3d = String(state.job);
@@ -557,6 +568,8 @@ function showSurface(lps, data) {
       ? `${frame}${data.iterations} iterations, ${(1000 * data.seconds).toFixed(0)} ms; ${data.message}` : '';
     showQuality(data);
     document.body.dataset.job = String(data.job);
+    state.doneJob = data.job;
+    state.donePoor = Boolean(data.poor);
     // the points it was made from, when no newer ones are on their way
     if (data.points && data.job === state.job && !state.drag && !state.sending && !samePoints(data.points, state.points)) {
       state.points = copyPoints(data.points);
@@ -623,9 +636,11 @@ function drawOverlay() {
   const cross = crosshairMM();
   const points = allPoints();
   state.labels = [];
+  // the 3D tile's place (a drawing of the slices alone leaves it out of screenSlices)
   const render = nv.screenSlices.find((q) => q.axCorSag > 2 && q.leftTopWidthHeight);
-  if (render && nv.opts.multiplanarShowRender !== niivue.SHOW_RENDER.NEVER) {
-    const [l, t, w] = render.leftTopWidthHeight;
+  if (render) state.renderTile = [...render.leftTopWidthHeight];
+  if (state.renderTile && $('render3d').checked) {
+    const [l, t, w] = state.renderTile;
     drawLabel(ctx, '3D', l + w - 6, t + 18, 'right', 3);
   }
   for (const tile of sliceTiles()) {
@@ -664,12 +679,12 @@ function drawDirections(ctx, tile, plane) {
   const [l, t, w, h] = tile.leftTopWidthHeight;
   const label = (axis, positive) => names[axis][(positive === (s[axis] > 0)) ? 1 : 0];
   const kind = tile.axCorSag;
-  // the top and bottom letters a third of the way across: off the crosshair's usual place
-  drawLabel(ctx, label(plane.v, true), l + w / 3, t + 18, 'center', kind);
-  drawLabel(ctx, label(plane.v, false), l + w / 3, t + h - 6, 'center', kind);
+  // on boxes: readable over speckle and over the crosshair's lines
+  drawLabel(ctx, label(plane.v, true), l + w / 2, t + 18, 'center', kind);
+  drawLabel(ctx, label(plane.v, false), l + w / 2, t + h - 6, 'center', kind);
   drawLabel(ctx, label(plane.u, false), l + 6, t + h / 2, 'left', kind);
   drawLabel(ctx, label(plane.u, true), l + w - 6, t + h / 2, 'right', kind);
-  drawLabel(ctx, TILE_NAMES[kind], l + w - 6, t + 18, 'right', kind);
+  drawLabel(ctx, TILE_NAMES[kind], l + 6, t + 18, 'left', kind);
 }
 
 function drawContour(ctx, tile, plane, level, v, color) {
@@ -866,8 +881,11 @@ function play() {
     const elapsed = performance.now() - playing.t0;
     const frame = (playing.first + Math.floor(elapsed / PLAY_MS)) % state.frames;
     if (frame !== state.frame) {
+      state.playLog.push([elapsed, frame, playing.first]);
       setFrame(frame);
-      if ($('render3d').checked) requestAnimationFrame(() => { if (state.playing === playing) draw3D({ now: true }); });
+      // the 3D view once for this frame, if it can be drawn before the next is due
+      const left = PLAY_MS - ((performance.now() - playing.t0) % PLAY_MS);
+      if ($('render3d').checked && state.cost3D < left) draw3D({ now: true });
     }
     playing.timer = setTimeout(tick, PLAY_MS - ((performance.now() - playing.t0) % PLAY_MS));
   };
@@ -989,7 +1007,12 @@ async function start() {
   nv.setClipPlane([0, 270, 0]);
   setOrientation(true);
   const draw = nv.drawScene.bind(nv);  // eslint-disable-line
-  nv.drawScene = () => { const out = draw(); drawOverlay(); return out; };
+  nv.drawScene = () => {
+    if (nv.opts.multiplanarShowRender !== niivue.SHOW_RENDER.NEVER) state.renders += 1;  // with the 3D view
+    const out = draw();
+    drawOverlay();
+    return out;
+  };
   if (state.frames > 1) {
     $('sequence').hidden = false;
     $('frame').max = String(state.frames - 1);
