@@ -45,7 +45,9 @@ const state = {
   server: null,         // the study's state as the server last said it (points, options, start frame)
   sending: 0,           // point requests not yet answered
   inflight: null,       // the newest of them (a drag's release waits for it)
-  draws3D: 0, framesShown: 0, renders: 0, cost3D: 0, playLog: [],  // playLog: [ms since Play, frame, first]  // how often the 3D view and a new frame were drawn (Play draws 3D at most once a frame)
+  // how often the page drew the 3D view, a new frame, and NiiVue a scene with the 3D view; the
+  // 3D view's last cost (ms); Play's frames as [ms since Play, frame, the frame it began at]
+  draws3D: 0, framesShown: 0, renders: 0, cost3D: 0, playLog: [],
   labels: [],           // the labels drawn on the tiles at the last overlay: [tile kind, text]
 };
 let nv = null;
@@ -832,8 +834,10 @@ function drawCurve() {
     ctx.beginPath();
     ctx.arc(x(k), y(v[k]), 4, 0, 2 * Math.PI);
     ctx.fill();
-    // ED (the largest volume) is labelled above its point, ES below: never on the curve
-    ctx.fillText(label, Math.min(x(k) - 6, canvas.width - 16), k === t.ed_frame ? y(v[k]) - 7 : y(v[k]) + 14);
+    // ED (the largest volume) is labelled above its point, ES beside it (the frame numbers are below)
+    const ed = k === t.ed_frame;
+    ctx.fillText(label, ed ? Math.min(x(k) - 6, canvas.width - 16) : Math.min(x(k) + 6, canvas.width - 16),
+                 ed ? y(v[k]) - 7 : y(v[k]) - 4);
   }
   ctx.fillStyle = '#99a';
   ctx.fillText(`${hi.toFixed(0)} mL`, 0, 10);
