@@ -22,6 +22,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -34,7 +35,7 @@ from ...surfaces.surface import Surface
 from ...tracking.tracker import Tracker
 from ...volumes.volume import Volume
 
-from ...tracking.locate import NoVentricleError, initialise, locate
+from ...tracking.locate import NoVentricleError, annotate, initialise, locate
 
 #: the display mesh's resolution (around the axis, from apex to base): fixed,
 #: so the page builds its mesh once and only moves the vertices
@@ -361,12 +362,11 @@ class Session:
         with self._lock:
             self._found[frame] = points
         job = self.set_points(points, frame=frame)
-        # as spheroseg.segment says of a location it starts from (locate.annotate)
-        poor = not found.confidence >= 0.5
-        warnings = [f"the ventricle was found with low confidence ({found.confidence:.2f}: {found.reason}); "
-                    "give the apex and base"] if poor else []
+        # what spheroseg.segment says of a location it starts from, said at once
+        said = SimpleNamespace(quality={"warnings": [], "poor": False})
+        annotate(said, {"method": "located", **points.as_json(), "located": found.as_dict()}, found)
         return {"job": job, **points.as_json(), "confidence": float(found.confidence), "reason": str(found.reason),
-                "poor": poor, "warnings": warnings}
+                "poor": bool(said.quality["poor"]), "warnings": list(said.quality["warnings"])}
 
     def track(self, *, frame: int) -> int:
         """Track every frame from ``frame`` (forwards to the last, then
