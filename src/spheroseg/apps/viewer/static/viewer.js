@@ -44,6 +44,7 @@ const state = {
   note: null,           // [text, status] a note (a refused action) replaced: the next action puts it back
   server: null,         // the study's state as the server last said it (points, options, start frame)
   sending: 0,           // point requests not yet answered
+  sent: 0,              // point requests sent (the newest's answer is adopted)
   inflight: null,       // the newest of them (a drag's release waits for it)
   // how often the page drew the 3D view, a new frame, and NiiVue a scene with the 3D view; the
   // 3D view's last cost (ms); Play's frames as [ms since Play, frame, the frame it began at]
@@ -199,14 +200,16 @@ function sendPoints({ intermediate = false, released = null } = {}) {
   if (complete(state.points)) say('segmenting...', 'running');
   else if (!intermediate) say('', 'ready');
   state.sending += 1;
+  const seq = ++state.sent;  // only the newest request's answer is the state (answers may cross)
   const sent = api('/api/points', { frame: state.frame, ...state.points }).then((reply) => {
     timing.job = reply.job;
     state.job = Math.max(state.job, reply.job);
     document.body.dataset.sent = String(reply.job);
-    if (!intermediate) adopt(reply.state);
+    if (!intermediate && seq === state.sent) adopt(reply.state);
     if (!complete(state.points)) hideSurface();
   }, (error) => {
     if (intermediate) return;  // the drag goes on; its release says what the server kept
+    if (seq !== state.sent) { note(error.message, 'error'); return; }  // a newer request is on its way
     adopt(error.state);
     // the status the note replaces: the kept points' job, finished or still running
     if (!complete(state.points)) show('', 'ready');
