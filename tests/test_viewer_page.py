@@ -711,3 +711,40 @@ def test_undo_prompts_notes_clear_labels_and_wording(browser, phantom_file, tmp_
         assert errors == []
     finally:
         server.close()
+
+
+def test_standard_views_drawn_and_clicked(browser, phantom_file, tmp_path):
+    """Stretch of issue 52: ticked, the standard views (4C, 2C, 3C, three
+    short-axis levels) are drawn with the contour, each named; a landmark
+    clicked on the 4C view lands where that view's pixel is in the world."""
+    ph, path = phantom_file
+    server = open_viewer(path, save_root=tmp_path)
+    server.serve_in_thread()
+    session = server.session
+    try:
+        page, errors = open_page(browser, server)
+        page.mouse.click(*screen_xy(page, 1, ph.apex))
+        page.wait_for_function("Number(document.body.dataset.sent) >= 1", polling=100, timeout=TIMEOUT_MS)
+        page.mouse.click(*screen_xy(page, 1, ph.base))
+        job = wait_done(page)
+        page.click("#standard")
+        page.wait_for_function(f"Number(document.body.dataset.views) >= {job}", polling=100, timeout=TIMEOUT_MS)
+        names = page.evaluate("Array.from(document.querySelectorAll('#standardviews figcaption'), (f) => f.textContent)")
+        assert names == ["4C", "2C", "3C", "SAX basal", "SAX mid", "SAX apical"]
+        _shot(page, "standard-views.png")
+        view = page.evaluate("viewer.state.views[0]")
+        box = page.locator("#standardviews canvas").first.bounding_box()
+        # a pixel on the 4C view's wall: a contour segment's first end
+        col, row = view["contour"][0], view["contour"][1]
+        page.keyboard.press("l")
+        page.mouse.click(box["x"] + col * box["width"] / view["cols"], box["y"] + row * box["height"] / view["rows"])
+        wait_done(page, job)
+        a = (col - (view["cols"] - 1) / 2) * view["pixel_mm"]
+        b = ((view["rows"] - 1) / 2 - row) * view["pixel_mm"]
+        expected = np.array(view["centre"]) + a * np.array(view["u"]) + b * np.array(view["v"])
+        assert len(session.points.landmarks) == 1
+        # within the CSS pixel the click was rounded to (the canvas is shown smaller than its pixels)
+        assert np.linalg.norm(session.points.landmarks[0] - expected) < 1.5 * view["pixel_mm"] * view["cols"] / box["width"]
+        assert errors == []
+    finally:
+        server.close()

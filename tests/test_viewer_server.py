@@ -648,3 +648,43 @@ def test_the_lv_mass_carries_its_caveats(phantom, tmp_path):
             assert json.loads(request(server, "GET", "/api/study")[1])["spacing_assumed"] == (spacing is not None)
         finally:
             server.close()
+
+
+def test_the_standard_views_go_through_the_long_axis(phantom, tmp_path):
+    """Stretch of issue 52: the 4C plane of a phantom's segmentation contains
+    the phantom's true apex and base within a voxel; the 2C and 3C planes
+    contain the axis too, the short-axis planes are perpendicular to it;
+    pixels map to the world and back; the contour lies on the plane's image."""
+    from spheroseg.apps.viewer.views import View
+
+    path = tmp_path / "study.mha"
+    save_volume(path, phantom.volume)
+    write_markups(tmp_path / "points.mrk.json", apex=phantom.apex, base=phantom.base)
+    server = open_viewer(path, save_root=tmp_path, points=tmp_path / "points.mrk.json")
+    server.serve_in_thread()
+    try:
+        wait_for(server)
+        response, payload = request(server, "GET", "/api/views?frame=0")
+        assert response.status == 200, payload
+        views = json.loads(payload)["views"]
+        assert [v["name"] for v in views] == ["4C", "2C", "3C", "SAX basal", "SAX mid", "SAX apical"]
+        voxel = float(min(phantom.volume.spacing))
+        axis = (phantom.apex - phantom.base) / np.linalg.norm(phantom.apex - phantom.base)
+        for data in views:
+            view = View(data["name"], np.array(data["centre"]), np.array(data["u"]), np.array(data["v"]),
+                        data["pixel_mm"], data["rows"], data["cols"])
+            if data["name"] in ("4C", "2C", "3C"):
+                for point in (phantom.apex, phantom.base):
+                    assert abs((point - view.centre) @ view.normal) < voxel, (data["name"], point)
+            else:
+                assert abs(abs(view.normal @ axis) - 1) < 0.01
+            pixel = np.array([12.5, 100.25])
+            np.testing.assert_allclose(view.to_pixel(view.to_world(*pixel)), pixel, atol=1e-9)
+            image = np.frombuffer(base64.b64decode(data["image"]), np.uint8).reshape(data["rows"], data["cols"])
+            segments = np.reshape(data["contour"], (-1, 4))
+            assert len(segments) > 20 and image.max() > 100
+            # the cavity is dark inside the contour: its mid-points sit on the wall's edge, the centre is blood
+            inside = image[data["rows"] // 2 - 3:data["rows"] // 2 + 4, data["cols"] // 2 - 3:data["cols"] // 2 + 4]
+            assert inside.mean() < np.percentile(image[image > 0], 60), data["name"]
+    finally:
+        server.close()

@@ -249,6 +249,9 @@ class ViewerHandler(BaseHTTPRequestHandler):
     def epicardium(self, query, body) -> None:
         self._frame_event(query, self.server.session.epicardium_event)
 
+    def views(self, query, body) -> None:
+        self._frame_event(query, self.server.session.views_event)
+
     def _frame_event(self, query, event) -> None:
         """``event(frame)`` of the query's frame, or 404 before it is segmented."""
         frame = self.server.session.check_frame(_integer(query.get("frame", ["0"])[0], "frame"))
@@ -320,6 +323,7 @@ ROUTES = {
     ("GET", "/api/volume.nii"): ViewerHandler.volume,
     ("GET", "/api/surface"): ViewerHandler.surface,
     ("GET", "/api/epicardium"): ViewerHandler.epicardium,
+    ("GET", "/api/views"): ViewerHandler.views,
     ("GET", "/api/events"): ViewerHandler.events,
     ("POST", "/api/points"): ViewerHandler.points,
     ("POST", "/api/find"): ViewerHandler.find,

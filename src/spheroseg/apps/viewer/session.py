@@ -239,6 +239,7 @@ class Session:
         self._found: dict[int, Points] = {}
         # frame -> (the result, its epicardium): computed when the page asks
         self._epicardia: dict[int, tuple] = {}
+        self._grey_range: tuple[float, float] | None = None  # the displayed grey levels' range
         self._worker = threading.Thread(target=self._work, name="spheroseg-viewer-worker", daemon=True)
         self._worker.start()
         if points is not None and points.complete:
@@ -326,6 +327,29 @@ class Session:
             caveats.insert(0, "voxel spacing assumed, not read from the file")
         return {"frame": frame, "job": self._generation, "vertices": vertices,
                 "lv_mass_g": lv_mass_g(myocardial_volume_ml(result.surface, epicardium)), "caveats": caveats}
+
+    def views_event(self, frame: int) -> dict | None:
+        """The standard views (:func:`.views.standard_views`) of ``frame``'s
+        result for the current points: each plane, its image (uint8,
+        base64, rows x cols, scaled as the displayed volume) and the
+        surface's contour on it (pixel segments); None before the frame is
+        segmented."""
+        from .views import contour, sample, standard_views
+
+        result = self._frame_result(frame)
+        if result is None:
+            return None
+        with self._lock:
+            if self._grey_range is None:
+                arrays = [v.array if v.no_data_mask is None else v.array[~v.no_data_mask] for v in self.display]
+                self._grey_range = (min(float(a.min()) for a in arrays), max(float(a.max()) for a in arrays))
+            lo, hi = self._grey_range
+        vertices, faces = result.surface.mesh(*MESH_RESOLUTION)
+        shown = self.display[frame]
+        views = [{**view.as_json(), "image": _encode(sample(shown, view, lo=lo, hi=hi), "u1"),
+                  "contour": contour(vertices, faces, view).ravel().tolist()}
+                 for view in standard_views(result.surface)]
+        return {"frame": frame, "job": self._generation, "views": views}
 
     # what the page asks for ---------------------------------------------------
 

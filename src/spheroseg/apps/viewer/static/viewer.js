@@ -553,7 +553,7 @@ function showSurface(lps, data) {
   state.shownLPS = lps;
   state.shown = displayVertices(lps);
   state.epicardium = null;  // it belonged to the surface shown before
-  if (data.final) showEpicardium(data);
+  if (data.final) { showEpicardium(data); showViews(); }
   drawOverlay();
   schedule3D();
   if (data.final) {  // the slices under it are drawn (a wait for the GPU: not for every intermediate)
@@ -613,7 +613,64 @@ async function showEpicardium(data) {
   schedule3D();
 }
 
+// the standard views of the shown frame's final surface, asked for only while their box is ticked
+async function showViews() {
+  const box = $('standardviews');
+  if (!$('standard').checked || !state.shown) { box.replaceChildren(); state.views = null; return; }
+  let data;
+  try { data = await api(`/api/views?frame=${state.frame}`); } catch (error) { return; }  // points changed since
+  if (data.frame !== state.frame || data.job !== state.job || !state.shown) return;
+  state.views = data.views;
+  box.replaceChildren();
+  for (const view of data.views) {
+    const figure = document.createElement('figure');
+    const canvas = document.createElement('canvas');
+    canvas.width = view.cols;
+    canvas.height = view.rows;
+    const ctx = canvas.getContext('2d');
+    const grey = decode(view.image, Uint8Array);
+    const pixels = ctx.createImageData(view.cols, view.rows);
+    for (let i = 0; i < grey.length; i++) {
+      pixels.data.set([grey[i], grey[i], grey[i], 255], 4 * i);
+    }
+    ctx.putImageData(pixels, 0, 0);
+    ctx.strokeStyle = COLORS.contour;
+    ctx.lineWidth = 1.5;
+    ctx.beginPath();
+    const c = view.contour;
+    for (let k = 0; k < c.length; k += 4) { ctx.moveTo(c[k], c[k + 1]); ctx.lineTo(c[k + 2], c[k + 3]); }
+    ctx.stroke();
+    canvas.dataset.view = view.name;
+    canvas.onclick = (event) => clickView(view, canvas, event);
+    const caption = document.createElement('figcaption');
+    caption.textContent = view.name;
+    figure.append(canvas, caption);
+    box.append(figure);
+  }
+  document.body.dataset.views = String(data.job);
+}
+
+// a click on a standard view: the point it shows, placed as a click on a slice would
+function clickView(view, canvas, event) {
+  const r = canvas.getBoundingClientRect();
+  const col = ((event.clientX - r.left) * view.cols) / r.width;
+  const row = ((event.clientY - r.top) * view.rows) / r.height;
+  const a = (col - (view.cols - 1) / 2) * view.pixel_mm;
+  const b = ((view.rows - 1) / 2 - row) * view.pixel_mm;
+  const lps = [0, 1, 2].map((i) => view.centre[i] + a * view.u[i] + b * view.v[i]);
+  if (state.mode === 'navigate' && !event.shiftKey) {  // the slices go there
+    viewChanged();
+    nv.scene.crosshairPos = nv.mm2frac(toDisplay(lps));
+    drawSlices();
+    return;
+  }
+  if (!inImage(toDisplay(lps))) { note('outside the image: click inside the volume', 'error'); return; }
+  place(lps, event.shiftKey);
+}
+
 function hideSurface() {
+  $('standardviews').replaceChildren();
+  state.views = null;
   state.epicardium = null;
   $('caveats').textContent = '';
   state.shown = null;
@@ -1056,6 +1113,7 @@ async function start() {
       schedule3D();
     }
   };
+  $('standard').onchange = () => { viewChanged(); showViews(); };
   $('render3d').onchange = () => {
     viewChanged();
     nv.opts.multiplanarShowRender = $('render3d').checked ? niivue.SHOW_RENDER.ALWAYS : niivue.SHOW_RENDER.NEVER;
