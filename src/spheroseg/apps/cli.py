@@ -722,6 +722,9 @@ def cmd_view(args) -> int:
         if exc.errno is not None and exc.filename is None:  # the socket, not a file
             raise CliError(f"cannot listen on 127.0.0.1:{args.port}: {exc.strerror}") from None
         raise
+    # said before it starts: a first run compiles the kernels for a minute or more
+    print(f"spheroseg: {args.image} read; loading the numerical kernels (a first run compiles them)",
+          file=sys.stderr, flush=True)
     _load_kernels_saying()
     print(server.url, flush=True)  # once the kernels are loaded: a pasted address answers at once
     if not args.no_browser:

@@ -50,7 +50,7 @@ def open_viewer(path, *, port: int = 0, points=None, save_root=None, spacing=Non
         start = Points(apex=marks["apex"], base=marks["base"], landmarks=np.reshape(marks["landmarks"], (-1, 3)),
                        annulus=np.reshape(marks["annulus"], (-1, 3)))
     session = Session(frames, source=path, save_root=Path.cwd() if save_root is None else save_root, points=start,
-                      **options)
+                      spacing_assumed=spacing is not None, **options)
     try:
         return ViewerServer(session, port=port, token=token)
     except BaseException:  # the port taken, say: the session's worker stops first

@@ -152,8 +152,9 @@ class ViewerHandler(BaseHTTPRequestHandler):
             handler(self, query, body)
         except RequestError as exc:
             self._refuse(exc.status, str(exc))
-        except ValueError as exc:  # the session's one-line refusals
-            self._refuse(HTTPStatus.BAD_REQUEST, " ".join(str(exc).split())[:500])
+        except ValueError as exc:  # the session's one-line refusals, with the state they left unchanged
+            self._refuse(HTTPStatus.BAD_REQUEST, " ".join(str(exc).split())[:500],
+                         state=self.server.session.state() if parts.path.startswith("/api/") else None)
         except (BrokenPipeError, ConnectionResetError):
             pass
         except Exception as exc:  # never kill the server
@@ -219,10 +220,10 @@ class ViewerHandler(BaseHTTPRequestHandler):
     def _json(self, data, status: HTTPStatus = HTTPStatus.OK) -> None:
         self._send(status, json.dumps(data, allow_nan=False).encode(), "application/json")
 
-    def _refuse(self, status: HTTPStatus, message: str) -> None:
+    def _refuse(self, status: HTTPStatus, message: str, *, state: dict | None = None) -> None:
         try:
             self.close_connection = True
-            self._json({"error": message}, status)
+            self._json({"error": message} if state is None else {"error": message, "state": state}, status)
         except (BrokenPipeError, ConnectionResetError):
             pass
 
@@ -248,6 +249,9 @@ class ViewerHandler(BaseHTTPRequestHandler):
     def epicardium(self, query, body) -> None:
         self._frame_event(query, self.server.session.epicardium_event)
 
+    def views(self, query, body) -> None:
+        self._frame_event(query, self.server.session.views_event)
+
     def _frame_event(self, query, event) -> None:
         """``event(frame)`` of the query's frame, or 404 before it is segmented."""
         frame = self.server.session.check_frame(_integer(query.get("frame", ["0"])[0], "frame"))
@@ -259,19 +263,21 @@ class ViewerHandler(BaseHTTPRequestHandler):
     def points(self, query, body) -> None:
         body = _object(body)
         job = self.server.session.set_points(Points.from_json(body), frame=body.get("frame", 0))
-        self._json({"job": job})
+        self._json({"job": job, "state": self.server.session.state()})
 
     def find(self, query, body) -> None:
-        self._json(self.server.session.find(frame=_object(body).get("frame", 0)))
+        self._json({**self.server.session.find(frame=_object(body).get("frame", 0)),
+                    "state": self.server.session.state()})
 
     def track(self, query, body) -> None:
         job = self.server.session.track(frame=_object(body).get("frame", 0))
-        self._json({"job": job})
+        self._json({"job": job, "state": self.server.session.state()})
 
     def save(self, query, body) -> None:
         body = _object(body)
-        self._json(self.server.session.save(body.get("folder"), frame=body.get("frame", 0),
-                                            report=bool(body.get("report", True))))
+        self._json({**self.server.session.save(body.get("folder"), frame=body.get("frame", 0),
+                                               report=bool(body.get("report", True))),
+                    "state": self.server.session.state()})
 
     def events(self, query, body) -> None:
         session = self.server.session
@@ -317,6 +323,7 @@ ROUTES = {
     ("GET", "/api/volume.nii"): ViewerHandler.volume,
     ("GET", "/api/surface"): ViewerHandler.surface,
     ("GET", "/api/epicardium"): ViewerHandler.epicardium,
+    ("GET", "/api/views"): ViewerHandler.views,
     ("GET", "/api/events"): ViewerHandler.events,
     ("POST", "/api/points"): ViewerHandler.points,
     ("POST", "/api/find"): ViewerHandler.find,

@@ -22,6 +22,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -35,7 +36,7 @@ from ...surfaces.surface import Surface
 from ...tracking.tracker import Tracker
 from ...volumes.volume import Volume
 
-from ...tracking.locate import NoVentricleError, initialise, locate
+from ...tracking.locate import NoVentricleError, annotate, initialise, locate
 
 #: the display mesh's resolution (around the axis, from apex to base): fixed,
 #: so the page builds its mesh once and only moves the vertices
@@ -194,6 +195,9 @@ class Session:
         The only folder under which :meth:`save` writes.
     points : Points, optional
         Points to start from (a markups file): the frame is segmented at once.
+    spacing_assumed : bool
+        The voxel spacing was given by the user, not read from the file: the
+        LV mass (and every volume) rests on it, and the page says so.
     **options
         :class:`spheroseg.SegmentOptions`.
 
@@ -208,7 +212,7 @@ class Session:
     """
 
     def __init__(self, frames, *, source, save_root, points: Points | None = None, iterations_per_frame: int = 20,
-                 **options):
+                 spacing_assumed: bool = False, **options):
         self.frames = list(frames)
         if not self.frames:
             raise ValueError("no frames to show")
@@ -216,6 +220,7 @@ class Session:
         self.save_root = Path(save_root).resolve()
         self.options = SegmentOptions(**options)
         self.iterations_per_frame = int(iterations_per_frame)
+        self.spacing_assumed = bool(spacing_assumed)
         self.display = [scan_convert(f) if isinstance(f, BeamVolume) else f for f in self.frames]
         self.points = Points()
         # frame -> (the points it was segmented from, its result)
@@ -230,8 +235,12 @@ class Session:
         self._faces = None
         # frame -> what locate() found there (or the NoVentricleError it raised)
         self._located: dict[int, object] = {}
+        # frame -> the points Find placed there: segmented from them, the
+        # result is checked as spheroseg.segment checks a located one
+        self._found: dict[int, Points] = {}
         # frame -> (the result, its epicardium): computed when the page asks
         self._epicardia: dict[int, tuple] = {}
+        self._grey_range: tuple[float, float] | None = None  # the displayed grey levels' range
         self._worker = threading.Thread(target=self._work, name="spheroseg-viewer-worker", daemon=True)
         self._worker.start()
         if points is not None and points.complete:
@@ -268,13 +277,29 @@ class Session:
             "job": self._generation,
             "tracking": self._tracking_summary(),
             "save_root": str(self.save_root),
+            "spacing_assumed": self.spacing_assumed,
+            "state": self.state(),
         }
+
+    def state(self) -> dict:
+        """What the study's results are made from, as the server holds it:
+        the points (LPS mm), the options, the newest job's number and, when
+        the sequence was tracked with these points, the frame tracking
+        started from.  Every answer to the page carries it, and the page
+        shows, lists and saves what it says."""
+        with self._lock:
+            points, job = self.points, self._generation
+            tracked = self.tracking is not None and self.tracked_points is not None and points.same(self.tracked_points)
+            start = self.tracking.start_frame if tracked else None
+        return {"points": points.as_json(), "options": self.options.as_parameters(), "job": job,
+                "tracked": tracked, "start_frame": start}
 
     def surface_event(self, frame: int) -> dict | None:
         result = self._frame_result(frame)
         if result is None:
             return None
-        return self._surface_data(frame, result.surface, final=True, result=result, job=self._generation)
+        return self._surface_data(frame, result.surface, final=True, result=result, job=self._generation,
+                                  points=self.points)
 
     def epicardium_event(self, frame: int) -> dict | None:
         """The epicardium of ``frame``'s result for the current points
@@ -298,8 +323,34 @@ class Session:
                 self._epicardia[frame] = cached
         epicardium = cached[1]
         vertices = _encode(epicardium.mesh(*MESH_RESOLUTION)[0], "<f4")
+        caveats = ["myocardium validated on phantoms only"]
+        if self.spacing_assumed:
+            caveats.insert(0, "voxel spacing assumed, not read from the file")
         return {"frame": frame, "job": self._generation, "vertices": vertices,
-                "lv_mass_g": lv_mass_g(myocardial_volume_ml(result.surface, epicardium))}
+                "lv_mass_g": lv_mass_g(myocardial_volume_ml(result.surface, epicardium)), "caveats": caveats}
+
+    def views_event(self, frame: int) -> dict | None:
+        """The standard views (:func:`.views.standard_views`) of ``frame``'s
+        result for the current points: each plane, its image (uint8,
+        base64, rows x cols, scaled as the displayed volume) and the
+        surface's contour on it (pixel segments); None before the frame is
+        segmented."""
+        from .views import contour, sample, standard_views
+
+        result = self._frame_result(frame)
+        if result is None:
+            return None
+        with self._lock:
+            if self._grey_range is None:
+                arrays = [v.array if v.no_data_mask is None else v.array[~v.no_data_mask] for v in self.display]
+                self._grey_range = (min(float(a.min()) for a in arrays), max(float(a.max()) for a in arrays))
+            lo, hi = self._grey_range
+        vertices, faces = result.surface.mesh(*MESH_RESOLUTION)
+        shown = self.display[frame]
+        views = [{**view.as_json(), "image": _encode(sample(shown, view, lo=lo, hi=hi), "u1"),
+                  "contour": contour(vertices, faces, view).ravel().tolist()}
+                 for view in standard_views(result.surface)]
+        return {"frame": frame, "job": self._generation, "views": views}
 
     # what the page asks for ---------------------------------------------------
 
@@ -333,8 +384,14 @@ class Session:
             self._located.pop(frame, None)
         found = self._locate(self.frames[frame], frame)
         points = Points(apex=np.asarray(found.apex, dtype=float), base=np.asarray(found.base, dtype=float))
+        with self._lock:
+            self._found[frame] = points
         job = self.set_points(points, frame=frame)
-        return {"job": job, **points.as_json(), "confidence": float(found.confidence), "reason": str(found.reason)}
+        # what spheroseg.segment says of a location it starts from, said at once
+        said = SimpleNamespace(quality={"warnings": [], "poor": False})
+        annotate(said, {"method": "located", **points.as_json(), "located": found.as_dict()}, found)
+        return {"job": job, **points.as_json(), "confidence": float(found.confidence), "reason": str(found.reason),
+                "poor": bool(said.quality["poor"]), "warnings": list(said.quality["warnings"])}
 
     def track(self, *, frame: int) -> int:
         """Track every frame from ``frame`` (forwards to the last, then
@@ -455,12 +512,15 @@ class Session:
             return None
         return {"volumes_ml": tracking.volumes_ml.tolist(), "ed_frame": tracking.ed_frame,
                 "es_frame": tracking.es_frame, "edv_ml": tracking.edv_ml, "esv_ml": tracking.esv_ml,
-                "ef_percent": tracking.ef}
+                "ef_percent": tracking.ef, "start_frame": tracking.start_frame}
 
-    def _surface_data(self, frame, surface, *, final, result=None, job=None, iteration=0, level=0) -> dict:
-        points = surface.mesh(*MESH_RESOLUTION)[0]
+    def _surface_data(self, frame, surface, *, final, result=None, job=None, iteration=0, level=0,
+                      points: Points | None = None) -> dict:
+        vertices = surface.mesh(*MESH_RESOLUTION)[0]
         data = {"job": job, "frame": frame, "final": final, "iteration": iteration, "level": level,
-                "vertices": _encode(points, "<f4"), "volume_ml": surface.volume_ml()}
+                "vertices": _encode(vertices, "<f4"), "volume_ml": surface.volume_ml()}
+        if points is not None:  # what the surface was made from: the page lists these
+            data["points"] = points.as_json()
         if result is not None:
             quality = result.quality or {}
             data.update(status=result.status, message=result.message, iterations=result.iterations,
@@ -532,9 +592,15 @@ class Session:
         in ``result.quality``, as :func:`spheroseg.segment` does
         (:func:`spheroseg.segment.add_checks`)."""
         keywords = points.keywords()
-        _, _, initialisation, located = initialise(
-            self.frames[frame], keywords["apex"], keywords["base"], annulus=keywords["annulus"],
-            locator=lambda volume: self._locate(volume, frame))
+        with self._lock:
+            found = self._found.get(frame)
+        if found is not None and found.same(points):  # Find's points, unmoved: checked as located ones
+            _, _, initialisation, located = initialise(self.frames[frame], None, None,
+                                                       locator=lambda volume: self._locate(volume, frame))
+        else:
+            _, _, initialisation, located = initialise(
+                self.frames[frame], keywords["apex"], keywords["base"], annulus=keywords["annulus"],
+                locator=lambda volume: self._locate(volume, frame))
         add_checks(result, self.frames[frame], initialisation, located)
 
     def _segment(self, job: int, frame: int, points: Points) -> None:
@@ -546,7 +612,8 @@ class Session:
         self._check_points(result, frame, points)
         with self._lock:
             self.results[frame] = (points, result)
-        self.events.publish("surface", self._surface_data(frame, result.surface, final=True, result=result, job=job))
+        self.events.publish("surface", self._surface_data(frame, result.surface, final=True, result=result, job=job,
+                                                          points=points))
 
     def _track(self, job: int, frame: int, points: Points) -> None:
         n = len(self.frames)
@@ -561,24 +628,25 @@ class Session:
                 if t == frame:
                     results[t] = tracker.run(self._stream(job, t), callback_every=STREAM_EVERY)
                     self._check_points(results[t], t, points)
-                    self._publish_frame(job, t, results[t], done, n)
+                    self._publish_frame(job, t, results[t], done, n, points)
                     continue
                 tracker.run()
             results[t] = tracker.next_frame(self.frames[t], max_iterations=self.iterations_per_frame,
                                             iter_callback=self._stream(job, t), callback_every=STREAM_EVERY,
                                             follow_base=True)
-            self._publish_frame(job, t, results[t], done, n)
+            self._publish_frame(job, t, results[t], done, n, points)
         if not self._current(job):
             return
         tracking = TrackingResult([results[t] for t in range(n)], start_frame=frame)
         with self._lock:
             self.tracking, self.tracked_points = tracking, points
-        self.events.publish("tracked", {"job": job, **self._tracking_summary()})
+        self.events.publish("tracked", {"job": job, **self._tracking_summary(), "state": self.state()})
 
-    def _publish_frame(self, job, t, result, done, total) -> None:
+    def _publish_frame(self, job, t, result, done, total, points) -> None:
         if self._current(job):
             self.events.publish("progress", {"job": job, "done": done, "total": total})
-            self.events.publish("surface", self._surface_data(t, result.surface, final=True, result=result, job=job))
+            self.events.publish("surface", self._surface_data(t, result.surface, final=True, result=result, job=job,
+                                                              points=points))
 
 
 def _display_nifti(volumes) -> bytes:

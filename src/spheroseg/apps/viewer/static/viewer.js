@@ -21,6 +21,9 @@ const DRAG_SEND_MS = 120; // the least time between two segmentations sent while
 // of the CPU the segmentation runs on: intermediate surfaces are shown at most this often
 const INTERMEDIATE_MS = 150;
 const IDLE_3D_MS = 600;   // the 3D view is drawn once the slices have been still this long
+const PLAY_MS = 250;      // Play shows one frame this often (frames the browser cannot keep up with are skipped)
+// the tiles' names (3D echo's multiplanar planes): A and B contain the beam axis, C is across it
+const TILE_NAMES = ['C plane', 'A plane', 'B plane'];
 // display = LPS * SIGN (a map that is its own inverse)
 const SIGN = { echo: [-1, 1, -1], anatomical: [-1, -1, 1] };
 const HINTS = {
@@ -38,7 +41,15 @@ const state = {
   tracking: null, trackingRun: null, playing: null, drag: null, dragSent: 0, later3D: null, slicesQueued: false,
   timings: [],          // per job: click, first and final surface drawn on the slices, 3D drawn (ms)
   epicardium: null,     // the shown frame's epicardium (display mm), when the myocardium is drawn
-  beforeSaveError: null,  // [text, status] a refused save's error replaced (viewChanged)
+  note: null,           // [text, status] a note (a refused action) replaced: the next action puts it back
+  server: null,         // the study's state as the server last said it (points, options, start frame)
+  sending: 0,           // point requests not yet answered
+  sent: 0,              // point requests sent (the newest's answer is adopted)
+  inflight: null,       // the newest of them (a drag's release waits for it)
+  // how often the page drew the 3D view, a new frame, and NiiVue a scene with the 3D view; the
+  // 3D view's last cost (ms); Play's frames as [ms since Play, frame, the frame it began at]
+  draws3D: 0, framesShown: 0, renders: 0, cost3D: 0, playLog: [],
+  labels: [],           // the labels drawn on the tiles at the last overlay: [tile kind, text]
 };
 let nv = null;
 
@@ -50,7 +61,11 @@ async function api(path, body) {
   };
   const response = await fetch(path, init);
   const data = await response.json();
-  if (!response.ok) throw new Error(data.error || response.statusText);
+  if (!response.ok) {
+    const error = new Error(data.error || response.statusText);
+    error.state = data.state;  // the study's state the refusal left unchanged
+    throw error;
+  }
   return data;
 }
 
@@ -61,10 +76,9 @@ function decode(base64, Type) {
   return new Type(bytes.buffer);
 }
 
-// -- status and modes: every transition goes through say() and setMode() -----
+// -- status and modes: every transition goes through say(), note() and setMode() --
 
-function say(text, status) {
-  state.beforeSaveError = null;
+function show(text, status) {
   $('status').textContent = text;
   if (status) {
     state.status = status;
@@ -72,7 +86,37 @@ function say(text, status) {
   }
 }
 
+// the study's state (segmenting, done, an error of the server's)
+function say(text, status) {
+  state.note = null;
+  show(text, status);
+}
+
+// a note on an action that changed nothing (a refused click, nothing to undo):
+// it stays until the next action, which puts back what the status said
+function note(text, status = 'error') {
+  if (!state.note) state.note = [$('status').textContent, state.status];
+  show(text, status);
+}
+
+// the study's state changed by itself (a surface finished): said at once, or
+// after the note on screen has gone
+function settle(text, status) {
+  if (state.note) state.note = [text, status];
+  else say(text, status);
+}
+
+// the next action: a note goes, the status it replaced comes back
+function viewChanged() {
+  if (!state.note) return;
+  const [text, status] = state.note;
+  state.note = null;
+  show(text, status);
+}
+
 function showHint() { $('hint').textContent = HINTS[state.mode]; }
+
+function userMode(mode) { viewChanged(); setMode(mode); }
 
 function setMode(mode) {
   state.mode = mode;
@@ -85,6 +129,13 @@ function nextMode(mode, p) {
   if (mode === 'apex') return p.base === null && p.annulus.length < 3 ? 'base' : 'navigate';
   if (mode === 'base') return p.apex === null ? 'apex' : 'navigate';
   return mode;  // annulus points and landmarks: more may follow
+}
+
+// the mode that asks for what the points lack (after an undo, a redo, a refusal)
+function modeFor(p, mode) {
+  if (p.apex === null) return 'apex';
+  if (p.base === null && p.annulus.length < 3) return mode === 'annulus' ? 'annulus' : 'base';
+  return mode === 'apex' || mode === 'base' ? 'navigate' : mode;
 }
 
 // -- coordinates ----------------------------------------------------------------
@@ -111,11 +162,24 @@ function copyPoints(p) {
 
 function complete(p) { return p.apex !== null && (p.base !== null || p.annulus.length >= 3); }
 
+function samePoints(a, b) { return JSON.stringify(a) === JSON.stringify(b); }
+
+// the server's state is the one truth: the page lists, draws and saves its points
+function adopt(server) {
+  if (!server) return;
+  state.server = server;
+  state.points = copyPoints(server.points);
+  const top = state.history[state.history.length - 1];
+  if (top && samePoints(top, state.points)) state.history.pop();  // the step changed nothing
+  listPoints();
+  drawOverlay();
+}
+
 async function changePoints(change, { record = true } = {}) {
   const before = copyPoints(state.points);
   change(state.points);
   if (record) { state.history.push(before); state.future = []; }
-  return sendPoints(before);
+  return sendPoints();
 }
 
 function expectJob(clickTime) {
@@ -125,33 +189,52 @@ function expectJob(clickTime) {
   return timing;
 }
 
-async function sendPoints(fallback, { intermediate = false } = {}) {
+// send the page's points; the answer's state is then shown (a refusal's: the
+// points the server kept). A drag's intermediate points keep the dragged one
+// under the mouse: the release adopts the server's.
+function sendPoints({ intermediate = false, released = null } = {}) {
   state.vertices.clear();
   state.tracking = null;
   showTracking();
   const timing = expectJob(performance.now());
   if (complete(state.points)) say('segmenting...', 'running');
   else if (!intermediate) say('', 'ready');
-  try {
-    const { job } = await api('/api/points', { frame: state.frame, ...state.points });
-    timing.job = job;
-    state.job = Math.max(state.job, job);
-    document.body.dataset.sent = String(job);
+  state.sending += 1;
+  const seq = ++state.sent;  // only the newest request's answer is the state (answers may cross)
+  const sent = api('/api/points', { frame: state.frame, ...state.points }).then((reply) => {
+    timing.job = reply.job;
+    state.job = Math.max(state.job, reply.job);
+    document.body.dataset.sent = String(reply.job);
+    if (!intermediate && seq === state.sent) adopt(reply.state);
     if (!complete(state.points)) hideSurface();
-  } catch (error) {
-    if (fallback) {
-      state.points = fallback;
-      state.history.pop();
+  }, (error) => {
+    if (intermediate) return;  // the drag goes on; its release says what the server kept
+    if (seq !== state.sent) { note(error.message, 'error'); return; }  // a newer request is on its way
+    adopt(error.state);
+    // the status the note replaces: the kept points' job, finished or still running
+    if (!complete(state.points)) show('', 'ready');
+    else if (state.doneJob === state.job) show(state.donePoor ? 'done: poor result' : 'done', 'done');
+    else show('segmenting...', 'running');
+    const kept = released && error.state ? `; ${released.name} stays at its last accepted point` : '';
+    if (kept) {  // the slices go back to it from the padding the drag ended in
+      const point = allPoints().find((q) => q.kind === released.kind && (q.index === undefined ||
+                                                                         q.index === released.index));
+      if (point) { nv.scene.crosshairPos = nv.mm2frac(point.shown); drawSlices(); }
     }
-    say(error.message, 'error');
-  }
-  listPoints();
-  drawOverlay();
+    note(error.message + kept, 'error');
+    if (!complete(state.points)) hideSurface();
+  }).finally(() => {
+    state.sending -= 1;
+    listPoints();
+    drawOverlay();
+  });
+  state.inflight = sent;
+  return sent;
 }
 
 function place(mm, shift) {
   const mode = shift ? 'landmark' : state.mode;
-  if (mode === 'landmark' && !complete(state.points)) { say('place the apex and the base first', 'error'); return; }
+  if (mode === 'landmark' && !complete(state.points)) { note('place the apex and the base first', 'error'); return; }
   const key = { apex: 'apex', base: 'base' }[mode];
   changePoints((p) => {
     if (key) p[key] = mm;
@@ -171,11 +254,12 @@ function place(mm, shift) {
 // undo: back one step of the history (the current points to the future); redo: the reverse
 function step(from, to, word) {
   const points = from.pop();
-  if (!points) { say(`nothing to ${word}`, state.status === 'error' ? 'ready' : undefined); return; }
+  if (!points) { note(`nothing to ${word}`, state.status === 'error' ? 'ready' : state.status); return; }
   to.push(copyPoints(state.points));
   state.points = points;
   state.selected = -1;
-  sendPoints(null);
+  setMode(modeFor(points, state.mode));  // and its prompt: what the points now lack
+  sendPoints();
 }
 
 const undo = () => step(state.history, state.future, 'undo');
@@ -183,7 +267,7 @@ const redo = () => step(state.future, state.history, 'redo');
 
 function deleteSelected() {
   const k = state.selected;
-  if (k < 0 || k >= state.points.landmarks.length) { say('click a landmark (cyan) to select it first'); return; }
+  if (k < 0 || k >= state.points.landmarks.length) { note('click a landmark (cyan) to select it first', state.status); return; }
   state.selected = -1;
   changePoints((p) => { p.landmarks.splice(k, 1); });
 }
@@ -200,7 +284,7 @@ async function find() {
     const found = await api('/api/find', { frame: state.frame });
     state.history.push(copyPoints(state.points));
     state.future = [];
-    state.points = { apex: found.apex, base: found.base, landmarks: [], annulus: [] };
+    adopt(found.state);
     state.vertices.clear();  // other frames' surfaces and the tracking were for the old points
     state.tracking = null;
     showTracking();
@@ -209,12 +293,14 @@ async function find() {
     document.body.dataset.sent = String(found.job);
     $('found').textContent = `found: confidence ${(100 * found.confidence).toFixed(0)} %` +
       (found.reason ? ` (${found.reason})` : '') + '; drag apex or base to correct them';
+    showQuality(found);  // a location too uncertain is a poor start, said at once as the API says it
     const mid = [0, 1, 2].map((i) => 0.5 * (found.apex[i] + found.base[i]));
     nv.scene.crosshairPos = nv.mm2frac(toDisplay(mid));
     setMode('navigate');
     if (state.status === 'running') say('segmenting...', 'running');
   } catch (error) {
     $('found').textContent = '';
+    adopt(error.state);
     say(`could not find the ventricle: ${error.message}`, 'error');
   }
   listPoints();
@@ -226,6 +312,9 @@ function listPoints() {
   const p = state.points;
   $('pointlist').textContent = `LPS mm: apex (${f(p.apex)}) base (${f(p.base)}) landmarks ${p.landmarks.length}` +
     (p.annulus.length ? ` annulus ${p.annulus.length}` : '');
+  const o = state.server && state.server.options;
+  $('options').textContent = o ? `options: ${o.system}, ${o.patches.join(' x ')} patches, ${o.mode}, ` +
+    `step ${o.step} mm, tol ${o.tol} mm` : '';
 }
 
 // -- where the mouse is, in mm --------------------------------------------------
@@ -308,9 +397,9 @@ function onPress(event) {
   const placing = state.mode !== 'navigate' || event.shiftKey;
   if (!tile) {
     if (placing && renderTileAt(x, y)) {
-      say(`the 3D view only turns: ${HINTS[state.mode] || 'click'} on a slice`, 'error');
+      note(`the 3D view only turns: ${HINTS[state.mode] || 'click'} on a slice`, 'error');
     }
-    else if (placing) say('outside the image: click on a slice', 'error');
+    else if (placing) note('outside the image: click on a slice', 'error');
     return;
   }
   const hit = grab(tile, x, y);
@@ -326,7 +415,7 @@ function onPress(event) {
     event.stopPropagation();
     event.preventDefault();
     const mm = mmAt(tile, x, y, crosshairMM());
-    if (!inImage(mm)) { say('outside the image: click inside the volume', 'error'); return; }
+    if (!inImage(mm)) { note('outside the image: click inside the volume', 'error'); return; }
     // the slices stay (as 3D Slicer's markups placement): the contour is then
     // drawn over them as soon as it comes, with no slice drawing before it
     place(toLPS(mm), event.shiftKey);
@@ -340,7 +429,7 @@ function onMove(event) {
   event.stopPropagation();
   const [x, y] = canvasXY(event);
   const shown = mmAt(drag.tile, x, y, drag.fixed);
-  if (!inImage(shown)) return;
+  if (!inImage(shown)) return;  // beside the image: the point stays at the last place inside it
   const mm = toLPS(shown);
   const p = state.points;
   if (drag.kind === 'apex') p.apex = mm;
@@ -351,22 +440,29 @@ function onMove(event) {
   const now = performance.now();
   if (complete(p) && now - state.dragSent >= DRAG_SEND_MS) {  // the surface follows, throttled
     state.dragSent = now;
-    sendPoints(null, { intermediate: true });
+    sendPoints({ intermediate: true });
   }
   drawOverlay();
   requestSlices();
 }
 
-function onRelease(event) {
+async function onRelease(event) {
   const drag = state.drag;
   if (!drag) return;
   event.stopPropagation();
-  state.drag = null;
   if (drag.moved) {
     state.history.push(drag.before);
     state.future = [];
-    sendPoints(drag.before);
-  }
+    // after the last intermediate's answer: the server's points are then the
+    // last it accepted, which a refused release leaves on both sides
+    const released = copyPoints(state.points);
+    if (state.inflight) await state.inflight.catch(() => {});
+    state.points = released;
+    state.drag = null;
+    const name = { apex: 'the apex', base: 'the base', landmark: `landmark ${drag.index}`,
+                   annulus: `annulus point ${drag.index}` }[drag.kind];
+    sendPoints({ released: { name, kind: drag.kind, index: drag.index } });
+  } else state.drag = null;
 }
 
 // -- drawing: the slices first, the 3D view when the slices are still ----------
@@ -394,18 +490,25 @@ function schedule3D() {
   if ($('render3d').checked) state.later3D = setTimeout(draw3D, IDLE_3D_MS);
 }
 
-function draw3D() {
+function draw3D({ now = false } = {}) {
   state.later3D = null;
-  if (state.drag || state.pending || state.slicesQueued || state.status === 'running') { schedule3D(); return; }
-  const mesh = nv.meshes[0];
-  mesh.visible = state.shown !== null;
-  if (state.shown && mesh.pts !== state.shown) {
-    mesh.pts = state.shown;
-    mesh.updateMesh(nv.gl);
+  if (!now && (state.drag || state.pending || state.slicesQueued || state.status === 'running' || state.playing)) {
+    schedule3D();
+    return;
   }
+  for (const [mesh, pts] of [[nv.meshes[0], state.shown], [nv.meshes[1], state.epicardium]]) {
+    mesh.visible = pts !== null;
+    if (pts && mesh.pts !== pts) {
+      mesh.pts = pts;
+      mesh.updateMesh(nv.gl);
+    }
+  }
+  state.draws3D += 1;
+  const began = performance.now();
   nv.drawScene();
   const gl = nv.gl;
   gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));  // waits for the frame to be drawn
+  state.cost3D = performance.now() - began;  // Play draws the 3D view only when a frame leaves this long
   const timing = state.timings.find((t) => t.job === state.job);
   if (timing && timing.final !== null && timing.final3d === null) timing.final3d = performance.now();
   document.body.dataset.drawn3d = String(state.job);
@@ -450,7 +553,7 @@ function showSurface(lps, data) {
   state.shownLPS = lps;
   state.shown = displayVertices(lps);
   state.epicardium = null;  // it belonged to the surface shown before
-  if (data.final) showEpicardium(data);
+  if (data.final) { showEpicardium(data); showViews(); }
   drawOverlay();
   schedule3D();
   if (data.final) {  // the slices under it are drawn (a wait for the GPU: not for every intermediate)
@@ -465,13 +568,21 @@ function showSurface(lps, data) {
   }
   $('volume').textContent = `${data.volume_ml.toFixed(1)} mL`;
   if (data.final) {
+    const frame = state.frames > 1 ? `frame ${data.frame}: ` : '';
     $('detail').textContent = data.iterations !== undefined
-      ? `frame ${data.frame}: ${data.iterations} iterations, ${(1000 * data.seconds).toFixed(0)} ms ` +
-        `(${data.message})` : '';
+      ? `${frame}${data.iterations} iterations, ${(1000 * data.seconds).toFixed(0)} ms; ${data.message}` : '';
     showQuality(data);
     document.body.dataset.job = String(data.job);
+    state.doneJob = data.job;
+    state.donePoor = Boolean(data.poor);
+    // the points it was made from, when no newer ones are on their way
+    if (data.points && data.job === state.job && !state.drag && !state.sending && !samePoints(data.points, state.points)) {
+      state.points = copyPoints(data.points);
+      listPoints();
+      drawOverlay();
+    }
     if (data.job === state.job && !state.trackingRun && !state.drag) {
-      say(data.poor ? 'done: poor result' : 'done', 'done');
+      settle(data.poor ? 'done: poor result' : 'done', 'done');
     }
   } else {
     $('detail').textContent = `iteration ${data.iteration}, level ${data.level}`;
@@ -495,13 +606,73 @@ async function showEpicardium(data) {
   try { epi = await api(`/api/epicardium?frame=${data.frame}`); } catch (error) { return; }  // points changed since
   if (epi.frame !== state.frame || epi.job !== state.job || !state.shown) return;
   state.epicardium = displayVertices(decode(epi.vertices, Float32Array));
-  $('volume').textContent = `${data.volume_ml.toFixed(1)} mL, LV mass ${epi.lv_mass_g.toFixed(0)} g`;
+  $('volume').textContent = `${data.volume_ml.toFixed(1)} mL, LV mass ${epi.lv_mass_g.toFixed(0)} g*`;
+  $('caveats').textContent = `* LV mass: ${(epi.caveats || []).join('; ')}`;
   document.body.dataset.epicardium = String(epi.job);
   drawOverlay();
+  schedule3D();
+}
+
+// the standard views of the shown frame's final surface, asked for only while their box is ticked
+async function showViews() {
+  const box = $('standardviews');
+  if (!$('standard').checked || !state.shown) { box.replaceChildren(); state.views = null; return; }
+  let data;
+  try { data = await api(`/api/views?frame=${state.frame}`); } catch (error) { return; }  // points changed since
+  if (data.frame !== state.frame || data.job !== state.job || !state.shown) return;
+  state.views = data.views;
+  box.replaceChildren();
+  for (const view of data.views) {
+    const figure = document.createElement('figure');
+    const canvas = document.createElement('canvas');
+    canvas.width = view.cols;
+    canvas.height = view.rows;
+    const ctx = canvas.getContext('2d');
+    const grey = decode(view.image, Uint8Array);
+    const pixels = ctx.createImageData(view.cols, view.rows);
+    for (let i = 0; i < grey.length; i++) {
+      pixels.data.set([grey[i], grey[i], grey[i], 255], 4 * i);
+    }
+    ctx.putImageData(pixels, 0, 0);
+    ctx.strokeStyle = COLORS.contour;
+    ctx.lineWidth = 1.5;
+    ctx.beginPath();
+    const c = view.contour;
+    for (let k = 0; k < c.length; k += 4) { ctx.moveTo(c[k], c[k + 1]); ctx.lineTo(c[k + 2], c[k + 3]); }
+    ctx.stroke();
+    canvas.dataset.view = view.name;
+    canvas.onclick = (event) => clickView(view, canvas, event);
+    const caption = document.createElement('figcaption');
+    caption.textContent = view.name;
+    figure.append(canvas, caption);
+    box.append(figure);
+  }
+  document.body.dataset.views = String(data.job);
+}
+
+// a click on a standard view: the point it shows, placed as a click on a slice would
+function clickView(view, canvas, event) {
+  const r = canvas.getBoundingClientRect();
+  const col = ((event.clientX - r.left) * view.cols) / r.width;
+  const row = ((event.clientY - r.top) * view.rows) / r.height;
+  const a = (col - (view.cols - 1) / 2) * view.pixel_mm;
+  const b = ((view.rows - 1) / 2 - row) * view.pixel_mm;
+  const lps = [0, 1, 2].map((i) => view.centre[i] + a * view.u[i] + b * view.v[i]);
+  if (state.mode === 'navigate' && !event.shiftKey) {  // the slices go there
+    viewChanged();
+    nv.scene.crosshairPos = nv.mm2frac(toDisplay(lps));
+    drawSlices();
+    return;
+  }
+  if (!inImage(toDisplay(lps))) { note('outside the image: click inside the volume', 'error'); return; }
+  place(lps, event.shiftKey);
 }
 
 function hideSurface() {
+  $('standardviews').replaceChildren();
+  state.views = null;
   state.epicardium = null;
+  $('caveats').textContent = '';
   state.shown = null;
   state.shownLPS = null;
   drawOverlay();
@@ -526,6 +697,14 @@ function drawOverlay() {
   if (!nv || !nv.volumes.length) return;
   const cross = crosshairMM();
   const points = allPoints();
+  state.labels = [];
+  // the 3D tile's place (a drawing of the slices alone leaves it out of screenSlices)
+  const render = nv.screenSlices.find((q) => q.axCorSag > 2 && q.leftTopWidthHeight);
+  if (render) state.renderTile = [...render.leftTopWidthHeight];
+  if (state.renderTile && $('render3d').checked) {
+    const [l, t, w] = state.renderTile;
+    drawLabel(ctx, '3D', l + w - 6, t + 18, 'right', 3);
+  }
   for (const tile of sliceTiles()) {
     const plane = PLANE[tile.axCorSag];
     const level = cross[plane.w];
@@ -542,17 +721,32 @@ function drawOverlay() {
   }
 }
 
-// the LPS direction each screen edge points to, so a flipped view stays legible
+// a label readable on speckle: light text on a dark box
+function drawLabel(ctx, text, x, y, align, kind) {
+  ctx.font = 'bold 15px system-ui, sans-serif';
+  const width = ctx.measureText(text).width;
+  const left = align === 'left' ? x : align === 'right' ? x - width : x - width / 2;
+  ctx.fillStyle = 'rgba(0, 0, 0, 0.7)';
+  ctx.fillRect(left - 3, y - 14, width + 6, 19);
+  ctx.fillStyle = '#f2f5ff';
+  ctx.fillText(text, left, y);
+  state.labels.push([kind, text]);
+}
+
+// the LPS direction each screen edge points to, so a flipped view stays
+// legible, and the tile's name
 function drawDirections(ctx, tile, plane) {
   const names = [['R', 'L'], ['A', 'P'], ['I', 'S']];  // LPS axis: negative, positive end
   const s = SIGN[state.echo ? 'echo' : 'anatomical'];
   const [l, t, w, h] = tile.leftTopWidthHeight;
   const label = (axis, positive) => names[axis][(positive === (s[axis] > 0)) ? 1 : 0];
-  ctx.fillStyle = '#8ab';
-  ctx.font = '12px system-ui, sans-serif';
-  ctx.fillText(label(plane.v, true), l + w / 2 + 6, t + 14);
-  ctx.fillText(label(plane.u, false), l + 4, t + h / 2);
-  ctx.fillText(label(plane.u, true), l + w - 12, t + h / 2);
+  const kind = tile.axCorSag;
+  // on boxes: readable over speckle and over the crosshair's lines
+  drawLabel(ctx, label(plane.v, true), l + w / 2, t + 18, 'center', kind);
+  drawLabel(ctx, label(plane.v, false), l + w / 2, t + h - 6, 'center', kind);
+  drawLabel(ctx, label(plane.u, false), l + 6, t + h / 2, 'left', kind);
+  drawLabel(ctx, label(plane.u, true), l + w - 6, t + h / 2, 'right', kind);
+  drawLabel(ctx, TILE_NAMES[kind], l + 6, t + 18, 'left', kind);
 }
 
 function drawContour(ctx, tile, plane, level, v, color) {
@@ -642,13 +836,20 @@ function setColormap(name) {
 // -- sequences ----------------------------------------------------------------
 
 function setFrame(frame) {
+  viewChanged();
   state.frame = frame;
+  state.framesShown += 1;
   $('frame').value = String(frame);
   $('framelabel').textContent = `frame ${frame} (0-${state.frames - 1})`;
-  nv.setFrame4D(nv.volumes[0].id, frame);
+  if (state.playing && $('render3d').checked) {  // the slices now, the 3D view once below
+    nv.opts.multiplanarShowRender = niivue.SHOW_RENDER.NEVER;
+    try { nv.setFrame4D(nv.volumes[0].id, frame); } finally {
+      nv.opts.multiplanarShowRender = niivue.SHOW_RENDER.ALWAYS;
+    }
+  } else nv.setFrame4D(nv.volumes[0].id, frame);
   const cached = state.vertices.get(frame);
   if (cached) showSurface(cached.vertices, cached.data);
-  else if (complete(state.points) && !state.trackingRun) sendPoints(null);  // this frame from the same points
+  else if (complete(state.points) && !state.trackingRun && !state.playing) sendPoints();  // this frame, same points
   else hideSurface();
   drawCurve();
 }
@@ -661,7 +862,7 @@ function showTracking() {
   const t = state.tracking;
   $('indices').textContent = t
     ? `EDV ${t.edv_ml.toFixed(1)} mL (frame ${t.ed_frame}), ESV ${t.esv_ml.toFixed(1)} mL ` +
-      `(frame ${t.es_frame}), EF ${t.ef_percent.toFixed(1)} %`
+      `(frame ${t.es_frame}), EF ${t.ef_percent.toFixed(1)} %; tracked from frame ${t.start_frame}`
     : 'EDV - ESV - EF -';
   drawCurve();
 }
@@ -693,57 +894,84 @@ function drawCurve() {
     ctx.beginPath();
     ctx.arc(x(k), y(v[k]), 4, 0, 2 * Math.PI);
     ctx.fill();
-    // ED (the largest volume) is labelled above its point, ES below: never on the curve
-    ctx.fillText(label, Math.min(x(k) - 6, canvas.width - 16), k === t.ed_frame ? y(v[k]) - 7 : y(v[k]) + 14);
+    // ED (the largest volume) is labelled above its point, ES beside it (the frame numbers are below)
+    const ed = k === t.ed_frame;
+    ctx.fillText(label, ed ? Math.min(x(k) - 6, canvas.width - 16) : Math.min(x(k) + 6, canvas.width - 16),
+                 ed ? y(v[k]) - 7 : y(v[k]) - 4);
   }
   ctx.fillStyle = '#99a';
   ctx.fillText(`${hi.toFixed(0)} mL`, 0, 10);
-  ctx.fillText(`${lo.toFixed(0)}`, 0, canvas.height - 14);
-  ctx.fillText('frame', canvas.width - 30, canvas.height - 2);
+  ctx.fillText(`${lo.toFixed(0)} mL`, 0, canvas.height - 18);
+  // frame numbers under the curve, as many as fit (the first and the last always)
+  const every = Math.max(1, Math.ceil(v.length / 10));
+  ctx.textAlign = 'center';
+  for (let k = 0; k < v.length; k++) {
+    if (k % every === 0 || k === v.length - 1) ctx.fillText(String(k), x(k), canvas.height - 2);
+  }
+  ctx.textAlign = 'left';
+  state.curveTicks = v.length;
 }
 
 async function track() {
   state.trackingRun = true;
   say('tracking...', 'running');
   try {
-    const { job } = await api('/api/track', { frame: state.frame });
-    state.job = Math.max(state.job, job);
+    const reply = await api('/api/track', { frame: state.frame });
+    state.job = Math.max(state.job, reply.job);
+    adopt(reply.state);
   } catch (error) {
     state.trackingRun = null;
+    adopt(error.state);
     say(error.message, 'error');
   }
 }
 
+// one frame every PLAY_MS from when Play was pressed: a frame the browser is
+// too slow to draw in time is skipped, so the sequence plays at its rate; the
+// surfaces are decoded when they arrive, and the 3D view is drawn at most once a frame
 function play() {
   if (state.playing) {
-    clearInterval(state.playing);
+    clearTimeout(state.playing.timer);
     state.playing = null;
     $('play').textContent = 'Play';
+    schedule3D();
     return;
   }
   $('play').textContent = 'Pause';
-  state.playing = setInterval(() => stepFrame(1), 250);
+  const playing = { t0: performance.now(), first: state.frame, timer: null };
+  state.playing = playing;
+  const tick = () => {
+    if (state.playing !== playing) return;
+    const elapsed = performance.now() - playing.t0;
+    const frame = (playing.first + Math.floor(elapsed / PLAY_MS)) % state.frames;
+    if (frame !== state.frame) {
+      state.playLog.push([elapsed, frame, playing.first]);
+      setFrame(frame);
+      // the 3D view once for this frame, if it can be drawn before the next is due
+      const left = PLAY_MS - ((performance.now() - playing.t0) % PLAY_MS);
+      if ($('render3d').checked && state.cost3D < left) draw3D({ now: true });
+    }
+    playing.timer = setTimeout(tick, PLAY_MS - ((performance.now() - playing.t0) % PLAY_MS));
+  };
+  playing.timer = setTimeout(tick, PLAY_MS);
 }
 
 async function save() {
   const folder = $('folder').value;
+  viewChanged();
   const before = [$('status').textContent, state.status];
-  say('saving...', 'running');
+  show('saving...', 'running');
   try {
     const saved = await api('/api/save', { folder, frame: state.frame });
+    adopt(saved.state);  // what was saved is what the page lists
     $('saved').textContent = `${saved.files.length} files in ${saved.folder}`;
     document.body.dataset.saved = saved.folder;
     say('saved', 'done');
   } catch (error) {
-    $('saved').textContent = error.message;
-    say(error.message, 'error');
-    state.beforeSaveError = before;  // the next change of view says it again; the error stays beside Save
+    $('saved').textContent = error.message;  // the error stays beside Save; the status's goes at the next action
+    show(...before);
+    note(error.message, 'error');
   }
-}
-
-// after a refused save, a change of view puts back what the status said before it
-function viewChanged() {
-  if (state.beforeSaveError) say(...state.beforeSaveError);
 }
 
 // -- keys: the same whatever has the focus (except a text field) -----------------
@@ -757,10 +985,10 @@ function onKey(e) {
   if (ctrl && key === 'z' && !e.shiftKey) undo();
   else if (ctrl && (key === 'y' || (key === 'z' && e.shiftKey))) redo();
   else if (ctrl) done = false;
-  else if (e.key === '?') $('help').hidden = !$('help').hidden;
-  else if (key === 'Escape') { if (!$('help').hidden) $('help').hidden = true; else setMode('navigate'); }
-  else if ({ a: 1, b: 1, m: 1, l: 1 }[key]) setMode({ a: 'apex', b: 'base', m: 'annulus', l: 'landmark' }[key]);
-  else if (key === 'n') setMode('navigate');
+  else if (e.key === '?') toggleHelp();
+  else if (key === 'Escape') { if (!$('help').hidden) toggleHelp(); else userMode('navigate'); }
+  else if ({ a: 1, b: 1, m: 1, l: 1 }[key]) userMode({ a: 'apex', b: 'base', m: 'annulus', l: 'landmark' }[key]);
+  else if (key === 'n') userMode('navigate');
   else if (key === 'Delete' || key === 'Backspace') deleteSelected();
   else if (key === 'ArrowRight' || key === 'ArrowUp') stepFrame(1);
   else if (key === 'ArrowLeft' || key === 'ArrowDown') stepFrame(-1);
@@ -770,6 +998,11 @@ function onKey(e) {
   else if (key === '0') zoom(null);
   else done = false;
   if (done) { e.preventDefault(); e.stopPropagation(); }
+}
+
+function toggleHelp() {
+  viewChanged();
+  $('help').hidden = !$('help').hidden;
 }
 
 // -- start --------------------------------------------------------------------
@@ -788,15 +1021,16 @@ function listen() {
   events.addEventListener('cleared', () => hideSurface());
   events.addEventListener('progress', (e) => {
     const d = JSON.parse(e.data);
-    if (d.job >= state.job) say(`tracking: ${d.done}/${d.total} frames`, 'running');
+    if (d.job >= state.job) settle(`tracking: ${d.done}/${d.total} frames`, 'running');
   });
   events.addEventListener('tracked', (e) => {
     const d = JSON.parse(e.data);
     if (d.job < state.job) return;
     state.tracking = d;
     state.trackingRun = null;
+    adopt(d.state);
     showTracking();
-    say('tracked', 'done');
+    settle('tracked', 'done');
   });
   events.addEventListener('failure', (e) => {
     const d = JSON.parse(e.data);
@@ -826,14 +1060,23 @@ async function start() {
   const mesh = new niivue.NVMesh(new Float32Array(3 * count), state.faces, 'surface',
                                  new Uint8Array([255, 210, 60, 255]), 1.0, false, nv.gl);
   nv.addMesh(mesh);
+  const epicardium = new niivue.NVMesh(new Float32Array(3 * count), state.faces, 'epicardium',
+                                       new Uint8Array([255, 90, 210, 255]), 0.5, false, nv.gl);
+  epicardium.visible = false;
+  nv.addMesh(epicardium);
   await nv.loadVolumes([{ url: '/api/volume.nii', name: 'study.nii', colormap: 'gray' }]);
   state.affine = nv.volumes[0].getAffine();
   // the 3D view cut through the middle, facing the viewer: the wall and the
   // cavity around the surface rather than the speckle of the volume's faces
   nv.setClipPlane([0, 270, 0]);
   setOrientation(true);
-  const draw = nv.drawScene.bind(nv);
-  nv.drawScene = () => { const out = draw(); drawOverlay(); return out; };
+  const draw = nv.drawScene.bind(nv);  // eslint-disable-line
+  nv.drawScene = () => {
+    if (nv.opts.multiplanarShowRender !== niivue.SHOW_RENDER.NEVER) state.renders += 1;  // with the 3D view
+    const out = draw();
+    drawOverlay();
+    return out;
+  };
   if (state.frames > 1) {
     $('sequence').hidden = false;
     $('frame').max = String(state.frames - 1);
@@ -842,7 +1085,7 @@ async function start() {
   for (const name of ['gray', 'hot', 'copper', 'bone', 'inferno', 'viridis']) {
     if (nv.colormaps().includes(name)) $('colormap').add(new Option(name, name));
   }
-  for (const b of document.querySelectorAll('#modes button')) b.onclick = () => setMode(b.dataset.mode);
+  for (const b of document.querySelectorAll('#modes button')) b.onclick = () => userMode(b.dataset.mode);
   $('undo').onclick = undo;
   $('redo').onclick = redo;
   $('delete').onclick = deleteSelected;
@@ -852,22 +1095,27 @@ async function start() {
   $('zoomin').onclick = () => zoom(1.25);
   $('zoomout').onclick = () => zoom(0.8);
   $('colormap').onchange = () => setColormap($('colormap').value);
-  $('helpbutton').onclick = () => { $('help').hidden = !$('help').hidden; };
-  $('help').onclick = () => { $('help').hidden = true; };
+  $('helpbutton').onclick = toggleHelp;
+  $('help').onclick = () => { viewChanged(); $('help').hidden = true; };
   $('frame').oninput = () => setFrame(Number($('frame').value));
   $('play').onclick = play;
   $('track').onclick = track;
   $('save').onclick = save;
   $('myocardium').onchange = () => {
+    viewChanged();
     const cached = state.vertices.get(state.frame);
     if ($('myocardium').checked && cached && state.shown) showEpicardium(cached.data);
     else {
       state.epicardium = null;
+      $('caveats').textContent = '';
       if (cached && state.shown) $('volume').textContent = `${cached.data.volume_ml.toFixed(1)} mL`;
       drawOverlay();
+      schedule3D();
     }
   };
+  $('standard').onchange = () => { viewChanged(); showViews(); };
   $('render3d').onchange = () => {
+    viewChanged();
     nv.opts.multiplanarShowRender = $('render3d').checked ? niivue.SHOW_RENDER.ALWAYS : niivue.SHOW_RENDER.NEVER;
     if ($('render3d').checked) draw3D();
     else nv.drawScene();
@@ -877,9 +1125,7 @@ async function start() {
   window.addEventListener('pointermove', onMove, true);
   window.addEventListener('pointerup', onRelease, true);
   window.addEventListener('keydown', onKey, true);
-  const p = study.points;
-  state.points = { apex: p.apex, base: p.base, landmarks: p.landmarks, annulus: p.annulus };
-  listPoints();
+  adopt(study.state);
   if (study.tracking) { state.tracking = study.tracking; showTracking(); }
   if (complete(state.points)) {
     setMode('navigate');
@@ -892,5 +1138,6 @@ async function start() {
   drawOverlay();
 }
 
-window.viewer = { state, get nv() { return nv; }, crosshairMM, crosshairLPS, sliceTiles, toScreen, toDisplay };
+window.viewer = { state, get nv() { return nv; }, crosshairMM, crosshairLPS, sliceTiles, toScreen, toDisplay,
+                  TILE_NAMES };
 start().catch((error) => say(`could not start: ${error.message}`, 'error'));
