@@ -1,0 +1,407 @@
+"""Accuracy on echo formed by a matrix array (issue 53).
+
+    nice -n 19 python benchmarks/pulse_echo.py                 # the sweep below
+    nice -n 19 python benchmarks/pulse_echo.py --check         # point target: geometry, pymust, DAS
+
+The project's phantom and the development set form the image by convolution
+(speckle times a point-spread function).  Here the phantom's anatomy and
+echogenicity (:func:`spheroseg.synthetic.phantom.make_phantom`, its beam
+space and scan conversion) are imaged as a 3D probe does: a square matrix
+array (``MatrixArray``) fires a few diverging waves from virtual sources
+behind it, every element's echo is delayed and summed (delay-and-sum, DAS)
+and the transmits are compounded coherently, then envelope, attenuation,
+noise, TGC and log compression as :mod:`spheroseg.synthetic.echo` does.
+
+Two models of the same array:
+
+* ``point_echoes`` + ``delay_and_sum``: per-element complex baseband (IQ)
+  echoes of point scatterers, exact geometry (the echo of a scatterer at
+  ``s`` on element ``e`` for the transmit from virtual source ``v`` arrives
+  at ``(|s - v| - min_e |e - v| + |s - e|) / c``), a Gaussian pulse of the
+  array's bandwidth and the elements' directivity; DAS onto any points.
+  Checked against ``pymust.simus3`` (LGPL-3, the ``[bench]`` extra) on a
+  point target, and used to check the next.
+* ``array_envelope``: the volume's image, fast enough for a 3D phantom.
+  With dynamic receive focusing the DAS image of a scatterer at the same
+  range is, in the far field of the virtual sources, a function of the
+  angle difference only: the receive array factor
+  ``D(d) = sum_m w_m exp(i k x_m sin d)`` in azimuth and elevation times
+  the transmits' phases ``exp(i k a (s_n . d))`` summed over the
+  transmits (``a``: the virtual source's distance, ``s_n`` its tilt).  So
+  the image is the scatterers' field convolved (FFT, per beam-space
+  slice, in angle) with that kernel, and along the beam with the pulse's
+  envelope; unapodised, its side lobes (-13 dB in each direction) carry
+  the walls' echo into the blood pool.  Scatterers are complex Gaussian,
+  one per beam-space sample, of power the echogenicity (as the phantom's).
+  The kernel has unit energy: a uniform region keeps its mean intensity,
+  so the grey-level calibration is the convolution model's.
+
+Segmentation: ``spheroseg.segment`` with defaults from the true apex and
+base; volumes against the phantom's exact truth.  Writes nothing but stdout
+(figures copied into docs/benchmarks.md by hand, with this command).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from spheroseg.synthetic.echo import ImageFormation, log_compress
+from spheroseg.volumes.beamspace import BeamGeometry, BeamVolume
+
+SOUND_SPEED_MM_PER_US = 1.54
+
+
+@dataclass(frozen=True)
+class MatrixArray:
+    """A square 2D matrix array and its diverging-wave sequence.
+
+    Parameters
+    ----------
+    elements_per_side : int
+        ``n x n`` elements.
+    frequency_mhz : float
+        Centre frequency (MHz).
+    pitch_wavelengths : float
+        Element pitch in wavelengths (0.5: no grating lobes).
+    bandwidth : float
+        Pulse-echo fractional bandwidth at -6 dB.
+    transmits : int
+        Diverging waves compounded: 1 (untilted), 3 (azimuth tilts),
+        5 (cross: azimuth and elevation tilts) or 9 (3 x 3).
+    tilt_deg : float
+        Tilt of the outer diverging waves (degrees).
+    half_angle_deg : float
+        Half opening of the sector the diverging waves cover: the virtual
+        source lies ``a = (aperture / 2) / tan(half_angle)`` behind the array.
+    apodization : {"none", "hann"}
+        Receive apodisation.
+    """
+
+    elements_per_side: int = 32
+    frequency_mhz: float = 2.5
+    pitch_wavelengths: float = 0.5
+    bandwidth: float = 0.6
+    transmits: int = 5
+    tilt_deg: float = 15.0
+    half_angle_deg: float = 38.0
+    apodization: str = "none"
+
+    @property
+    def wavelength_mm(self) -> float:
+        return SOUND_SPEED_MM_PER_US / self.frequency_mhz
+
+    @property
+    def pitch_mm(self) -> float:
+        return self.pitch_wavelengths * self.wavelength_mm
+
+    @property
+    def aperture_mm(self) -> float:
+        return self.elements_per_side * self.pitch_mm
+
+    def positions(self) -> np.ndarray:
+        """Element centres ``(n*n, 3)`` mm, the array in the plane ``z = 0``."""
+        x = (np.arange(self.elements_per_side) - (self.elements_per_side - 1) / 2) * self.pitch_mm
+        gx, gy = np.meshgrid(x, x, indexing="ij")
+        return np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
+
+    def weights_1d(self) -> np.ndarray:
+        n = self.elements_per_side
+        return np.ones(n) if self.apodization == "none" else np.hanning(n + 2)[1:-1]
+
+    def tilts(self) -> np.ndarray:
+        """Tilt sines ``(transmits, 2)`` (azimuth, elevation)."""
+        s = np.sin(np.radians(self.tilt_deg))
+        sets = {1: [(0, 0)], 3: [(0, 0), (-s, 0), (s, 0)], 5: [(0, 0), (-s, 0), (s, 0), (0, -s), (0, s)],
+                9: [(a, b) for a in (-s, 0, s) for b in (-s, 0, s)]}
+        if self.transmits not in sets:
+            raise ValueError(f"transmits must be one of {sorted(sets)}, got {self.transmits!r}")
+        return np.array(sets[self.transmits], float)
+
+    @property
+    def virtual_source_mm(self) -> float:
+        return self.aperture_mm / 2 / np.tan(np.radians(self.half_angle_deg))
+
+    def virtual_sources(self) -> np.ndarray:
+        """``(transmits, 3)``: behind the array centre, opposite the tilt."""
+        t = self.tilts()
+        direction = np.column_stack([t, np.sqrt(1 - (t**2).sum(1))])
+        return -self.virtual_source_mm * direction
+
+    @property
+    def pulse_sigma_us(self) -> float:
+        """Std of the pulse-echo envelope (Gaussian spectrum of -6 dB
+        fractional bandwidth ``bandwidth``), microseconds."""
+        sigma_f = self.bandwidth * self.frequency_mhz / 2 / np.sqrt(2 * np.log(2))
+        return 1 / (2 * np.pi * sigma_f)
+
+    @property
+    def axial_fwhm_mm(self) -> float:
+        return 2 * np.sqrt(2 * np.log(2)) * self.pulse_sigma_us * SOUND_SPEED_MM_PER_US / 2
+
+    def directivity(self, sine) -> np.ndarray:
+        """One element's amplitude at direction sine ``sine`` (an element as
+        wide as the pitch, baffled): ``sinc(w sin / lambda) cos``."""
+        sine = np.asarray(sine, float)
+        return np.sinc(self.pitch_mm * sine / self.wavelength_mm) * np.sqrt(np.clip(1 - sine**2, 0, 1))
+
+    def formation(self, **changes) -> ImageFormation:
+        """The phantom's formation (attenuation, TGC, noise, levels, dynamic
+        range), its PSF fields set so that the beam space is sampled at half
+        this array's axial and lateral resolution; no clutter (the side
+        lobes are this image's haze)."""
+        lateral = 0.886 * self.wavelength_mm / self.aperture_mm * 80.0
+        base = dict(axial_psf_mm=self.axial_fwhm_mm, lateral_psf_mm=lateral, elevation_psf_mm=lateral,
+                    focus_depth_mm=80.0, depth_of_field_mm=1e6, clutter_db=None)
+        return ImageFormation(**{**base, **changes})
+
+
+# -- exact per-element model (point targets) --------------------------------------------------------------------
+
+def transmit_times(array: MatrixArray, points, transmit: int) -> np.ndarray:
+    """Arrival time (us) of diverging wave ``transmit`` at ``points``
+    ``(..., 3)`` mm: the elements fire at ``(|e - v| - min |e - v|) / c``."""
+    v = array.virtual_sources()[transmit]
+    first = np.linalg.norm(array.positions() - v, axis=1).min()
+    return (np.linalg.norm(np.asarray(points, float) - v, axis=-1) - first) / SOUND_SPEED_MM_PER_US
+
+
+def transmit_delays(array: MatrixArray, transmit: int) -> np.ndarray:
+    """Firing delay of every element (us) for diverging wave ``transmit``."""
+    return transmit_times(array, array.positions(), transmit)
+
+
+def point_echoes(array: MatrixArray, scatterers, amplitudes, times_us, transmit: int) -> np.ndarray:
+    """Complex baseband echoes ``(elements, times)`` of point scatterers
+    ``(m, 3)`` mm with complex ``amplitudes`` for one diverging wave: each a
+    Gaussian envelope at ``transmit_times + |s - e| / c`` with the carrier's
+    phase ``exp(-i 2 pi f0 tau)``, times both directivities (1/r spreading
+    left to the TGC)."""
+    s = np.atleast_2d(np.asarray(scatterers, float))
+    a = np.asarray(amplitudes, complex).ravel()
+    e = array.positions()
+    t_tx = transmit_times(array, s, transmit)                                  # (m,)
+    rx = s[None, :, :] - e[:, None, :]
+    d_rx = np.linalg.norm(rx, axis=-1)                                         # (E, m)
+    tau = t_tx[None, :] + d_rx / SOUND_SPEED_MM_PER_US
+    gain = array.directivity(np.hypot(rx[..., 0], rx[..., 1]) / d_rx)
+    gain = gain * array.directivity(np.hypot(s[:, 0], s[:, 1]) / np.linalg.norm(s, axis=1))[None, :]
+    t = np.asarray(times_us, float)
+    out = np.zeros((e.shape[0], t.size), complex)
+    for j in range(s.shape[0]):
+        env = np.exp(-((t[None, :] - tau[:, j:j + 1]) ** 2) / (2 * array.pulse_sigma_us**2))
+        out += (a[j] * gain[:, j:j + 1] * np.exp(-2j * np.pi * array.frequency_mhz * tau[:, j:j + 1])) * env
+    return out
+
+
+def delay_and_sum(array: MatrixArray, echoes, times_us, points, transmit: int) -> np.ndarray:
+    """DAS of baseband ``echoes`` ``(elements, times)`` onto ``points``
+    ``(p, 3)`` mm: each element's echo at the point's two-way delay,
+    phase-rotated back by the carrier, apodised and summed."""
+    p = np.atleast_2d(np.asarray(points, float))
+    e = array.positions()
+    tau = transmit_times(array, p, transmit)[None, :] + np.linalg.norm(p[None] - e[:, None], axis=-1) / SOUND_SPEED_MM_PER_US
+    w = np.outer(array.weights_1d(), array.weights_1d()).ravel()
+    t = np.asarray(times_us, float)
+    out = np.zeros(p.shape[0], complex)
+    for i in range(e.shape[0]):
+        re = np.interp(tau[i], t, echoes[i].real)
+        im = np.interp(tau[i], t, echoes[i].imag)
+        out += w[i] * (re + 1j * im) * np.exp(2j * np.pi * array.frequency_mhz * tau[i])
+    return out
+
+
+# -- the volume's image ---------------------------------------------------------------------------------------
+
+def lateral_kernel(array: MatrixArray, step_az: float, step_el: float, half_width: int) -> np.ndarray:
+    """Complex DAS kernel over angle offsets ``(2h+1, 2h+1)`` samples
+    ``[elevation, azimuth]`` (steps in radians), compounded over the
+    transmits, unit energy."""
+    k = 2 * np.pi / array.wavelength_mm
+    x = (np.arange(array.elements_per_side) - (array.elements_per_side - 1) / 2) * array.pitch_mm
+    w = array.weights_1d()
+    offsets = np.arange(-half_width, half_width + 1)
+
+    def factor(step):
+        sine = np.sin(offsets * step)
+        return (w[None, :] * np.exp(1j * k * np.outer(sine, x))).sum(1), sine
+
+    d_az, s_az = factor(step_az)
+    d_el, s_el = factor(step_el)
+    a = array.virtual_source_mm
+    kernel = np.zeros((offsets.size, offsets.size), complex)
+    for tx, ty in array.tilts():
+        kernel += np.outer(d_el * np.exp(1j * k * a * ty * s_el), d_az * np.exp(1j * k * a * tx * s_az))
+    return kernel / np.sqrt((np.abs(kernel) ** 2).sum())
+
+
+def array_envelope(echogenicity, geometry: BeamGeometry, formation: ImageFormation, rng, array: MatrixArray,
+                   *, kernel_half_width: int | None = None) -> np.ndarray:
+    """Envelope of the scene in beam space as ``array`` forms it (module
+    docstring), with the formation's attenuation, noise, TGC and gain."""
+    e = np.asarray(echogenicity, np.float32)
+    nr, ne, na = geometry.shape
+    da, de = geometry.azimuth_angular_separation, geometry.elevation_angular_separation
+    # the kernel reaches the array factor's far side lobes: four main-lobe widths
+    h = kernel_half_width or int(np.ceil(4 * array.wavelength_mm / array.aperture_mm / min(da, de)))
+    kernel = lateral_kernel(array, da, de, h)
+    az = (np.arange(na) - (na - 1) / 2) * da
+    el = (np.arange(ne) - (ne - 1) / 2) * de
+    gain = np.outer(array.directivity(np.sin(el)), array.directivity(np.sin(az))) ** 2
+    field = ((rng.standard_normal(e.shape, dtype=np.float32) + 1j * rng.standard_normal(e.shape, dtype=np.float32))
+             / np.sqrt(2)).astype(np.complex64) * np.sqrt(e)
+    field *= gain.astype(np.float32)[None]
+    shape = (ne + 2 * h, na + 2 * h)
+    khat = np.fft.fft2(np.pad(kernel, ((0, shape[0] - kernel.shape[0]), (0, shape[1] - kernel.shape[1]))))
+    out = np.empty_like(field)
+    for i in range(nr):  # slice by slice: memory
+        f = np.fft.ifft2(np.fft.fft2(field[i], s=shape) * khat)
+        out[i] = f[h:h + ne, h:h + na]
+    from scipy import ndimage
+    sigma = array.axial_fwhm_mm / (2 * np.sqrt(2 * np.log(2))) / geometry.radius_sample_size
+    half = max(1, int(np.ceil(4 * sigma)))
+    ax = np.exp(-np.arange(-half, half + 1) ** 2 / (2 * sigma**2))
+    ax /= np.sqrt((ax**2).sum())
+    out = (ndimage.correlate1d(out.real, ax, axis=0, mode="constant")
+           + 1j * ndimage.correlate1d(out.imag, ax, axis=0, mode="constant")).astype(np.complex64)
+    radius = geometry.first_sample_distance + np.arange(nr) * geometry.radius_sample_size
+    cm = (radius / 10.0)[:, None, None]
+    out *= (10 ** (-formation.attenuation_db_per_cm * cm / 20)).astype(np.float32)
+    noise = ((rng.standard_normal(e.shape, dtype=np.float32) + 1j * rng.standard_normal(e.shape, dtype=np.float32))
+             / np.sqrt(2))
+    out += np.float32(10 ** (formation.noise_db / 20)) * noise
+    out *= (10 ** ((formation.tgc_db_per_cm * cm + formation.gain_db) / 20)).astype(np.float32)
+    return np.abs(out).astype(np.float32)
+
+
+def array_former(array: MatrixArray):
+    """A ``former`` for ``make_phantom(_former=...)``: the beam-space image."""
+    def former(echogenicity, geometry, formation, rng):
+        return BeamVolume(log_compress(array_envelope(echogenicity, geometry, formation, rng, array), formation),
+                          geometry)
+    return former
+
+
+# -- checks and the sweep ---------------------------------------------------------------------------------------
+
+def fwhm(profile, step) -> float:
+    """Full width at half maximum of a sampled amplitude profile (linear interpolation)."""
+    p = np.abs(profile) / np.abs(profile).max()
+    i = int(np.argmax(p))
+    left = i - np.argmax(p[i::-1] < 0.5)
+    right = i + np.argmax(p[i:] < 0.5)
+    xl = left + (0.5 - p[left]) / (p[left + 1] - p[left])
+    xr = right - 1 + (p[right - 1] - 0.5) / (p[right - 1] - p[right])
+    return float((xr - xl) * step)
+
+
+def point_target_check(array: MatrixArray, depth_mm: float = 60.0) -> dict:
+    """One scatterer on the axis at ``depth_mm``: the lateral DAS profile
+    (exact model, all transmits compounded) against ``lateral_kernel``."""
+    fs = 4 * array.frequency_mhz * 4
+    t = np.arange(0, 2.2 * depth_mm / SOUND_SPEED_MM_PER_US + 10, 1 / fs)
+    step = np.radians(0.25)
+    angles = np.arange(-60, 61) * step
+    points = depth_mm * np.column_stack([np.sin(angles), np.zeros_like(angles), np.cos(angles)])
+    image = np.zeros(angles.size, complex)
+    for n in range(array.transmits):
+        image += delay_and_sum(array, point_echoes(array, [[0, 0, depth_mm]], [1.0], t, n), t, points, n)
+    kernel = lateral_kernel(array, step, step, 60)[60]
+    das = np.abs(image) / np.abs(image).max()
+    fast = np.abs(kernel) / np.abs(kernel).max()
+    return dict(depth_mm=depth_mm, das_fwhm_deg=np.degrees(fwhm(das, step)), kernel_fwhm_deg=np.degrees(fwhm(fast, step)),
+                das_fwhm_mm=fwhm(das, step) * depth_mm, max_profile_difference=float(np.abs(das - fast).max()))
+
+
+def pymust_arrival_check(array: MatrixArray, scatterer=(5.0, 3.0, 40.0)) -> dict:
+    """``pymust.simus3``'s echo of one scatterer for diverging wave 0 (our
+    delays): its envelope's peak on every element against the geometric
+    arrival time of ``point_echoes``."""
+    import pymust
+    from pymust import utils
+    from scipy.signal import hilbert
+    param = utils.Param()
+    param.fc = array.frequency_mhz * 1e6
+    param.bandwidth = array.bandwidth * 100
+    param.width = param.height = array.pitch_mm * 1e-3 * 0.95
+    param.elements = array.positions()[:, :2].T * 1e-3
+    param.c = SOUND_SPEED_MM_PER_US * 1e3
+    param.fs = 16 * param.fc
+    options = utils.Options()
+    options.ParPool = False
+    delays = transmit_delays(array, 0)[None, :] * 1e-6
+    s = np.asarray(scatterer, float)
+    rf, _ = pymust.simus3(np.array([s[0]]) * 1e-3, np.array([s[1]]) * 1e-3, np.array([s[2]]) * 1e-3, np.array([1.0]),
+                          delays, param, options)
+    peak_us = np.argmax(np.abs(hilbert(rf, axis=0)), axis=0) / param.fs * 1e6
+    geometric = transmit_times(array, s, 0) + np.linalg.norm(array.positions() - s, axis=1) / SOUND_SPEED_MM_PER_US
+    error = peak_us - geometric
+    return dict(median_error_us=float(np.median(error)), max_abs_error_us=float(np.abs(error).max()),
+                sample_us=1e6 / param.fs, pulse_sigma_us=array.pulse_sigma_us)
+
+
+def segment_case(array: MatrixArray, *, seed: int, spacing: float, papillary: bool, formation_changes=None,
+                 options=None):
+    """ED and ES phantoms (``make_sequence(n_frames=2)``) imaged by ``array``,
+    each segmented with defaults from the true apex and base."""
+    import spheroseg
+    from spheroseg.synthetic.phantom import make_sequence
+    formation = array.formation(**(formation_changes or {}))
+    seq = make_sequence(n_frames=2, seed=seed, formation=formation, spacing=spacing, papillary=papillary,
+                        _former=array_former(array), workers=1)
+    rows = []
+    for phase, ph in zip(("ED", "ES"), seq.frames):
+        t0 = time.perf_counter()
+        res = spheroseg.segment(ph.volume, apex=ph.apex, base=ph.base, **(options or {}))
+        mask = res.mask(ph.volume) if hasattr(res, "mask") else None
+        dice = None
+        if mask is not None:
+            dice = 2 * (mask & ph.truth_mask).sum() / (mask.sum() + ph.truth_mask.sum())
+        rows.append(dict(phase=phase, truth_ml=ph.truth_volume_ml, ml=res.volume_ml,
+                         error_pct=100 * (res.volume_ml / ph.truth_volume_ml - 1), dice=dice,
+                         log_compression=res.log_compression, flags=(res.quality or {}).get("warnings"),
+                         seconds=time.perf_counter() - t0, result=res, phantom=ph))
+    return rows
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--check", action="store_true", help="point-target checks only")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--spacing", type=float, default=1.5)
+    parser.add_argument("--papillary", action="store_true")
+    parser.add_argument("--elements", type=int, default=32)
+    parser.add_argument("--frequency", type=float, default=2.5)
+    parser.add_argument("--transmits", type=int, default=5)
+    parser.add_argument("--dynamic-range", type=float, default=55.0)
+    parser.add_argument("--blood-db", type=float, default=None, help="blood level (dB), the myocardium kept")
+    parser.add_argument("--apodization", default="none")
+    args = parser.parse_args(argv)
+    array = MatrixArray(elements_per_side=args.elements, frequency_mhz=args.frequency, transmits=args.transmits,
+                        apodization=args.apodization)
+    if args.check:
+        print("point target (DAS vs kernel):", point_target_check(array))
+        try:
+            print("pymust arrival:", pymust_arrival_check(replace(array, elements_per_side=16)))
+        except ImportError:
+            print("pymust not installed (pip install spheroseg[bench])")
+        return
+    changes = dict(dynamic_range_db=args.dynamic_range)
+    if args.blood_db is not None:
+        default = ImageFormation()
+        changes.update(blood_db=args.blood_db, contrast_db=default.blood_db + default.contrast_db - args.blood_db)
+    print(f"array {array}  formation changes {changes}")
+    for seed in args.seeds:
+        for row in segment_case(array, seed=seed, spacing=args.spacing, papillary=args.papillary,
+                                formation_changes=changes):
+            print(f"seed {seed} {row['phase']}: truth {row['truth_ml']:.1f} mL  seg {row['ml']:.1f} mL  "
+                  f"error {row['error_pct']:+.1f} %  dice {row['dice'] if row['dice'] is None else round(row['dice'], 3)}  "
+                  f"log_compression {row['log_compression']}  warnings {row['flags']}  {row['seconds']:.0f} s",
+                  flush=True)
+
+
+if __name__ == "__main__":
+    main()
