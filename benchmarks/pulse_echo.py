@@ -79,6 +79,10 @@ class MatrixArray:
         source lies ``a = (aperture / 2) / tan(half_angle)`` behind the array.
     apodization : {"none", "hann"}
         Receive apodisation.
+    side_lobes : bool
+        False: the volume's kernel (``lateral_kernel``) is a Gaussian of the
+        DAS kernel's main-lobe widths, without its side lobes (to tell the
+        haze from the lateral blur).
     """
 
     elements_per_side: int = 32
@@ -89,6 +93,7 @@ class MatrixArray:
     tilt_deg: float = 15.0
     half_angle_deg: float = 38.0
     apodization: str = "none"
+    side_lobes: bool = True
 
     @property
     def wavelength_mm(self) -> float:
@@ -153,6 +158,7 @@ class MatrixArray:
         range), its PSF fields set so that the beam space is sampled at half
         this array's axial and lateral resolution; no clutter (the side
         lobes are this image's haze)."""
+        # the -3 dB width of the receive sinc (its amplitude's FWHM is 1.207 lambda / D): sampled finely
         lateral = 0.886 * self.wavelength_mm / self.aperture_mm * 80.0
         base = dict(axial_psf_mm=self.axial_fwhm_mm, lateral_psf_mm=lateral, elevation_psf_mm=lateral,
                     focus_depth_mm=80.0, depth_of_field_mm=1e6, clutter_db=None)
@@ -235,6 +241,10 @@ def lateral_kernel(array: MatrixArray, step_az: float, step_el: float, half_widt
     kernel = np.zeros((offsets.size, offsets.size), complex)
     for tx, ty in array.tilts():
         kernel += np.outer(d_el * np.exp(1j * k * a * ty * s_el), d_az * np.exp(1j * k * a * tx * s_az))
+    if not array.side_lobes:
+        c = half_width
+        sig = [fwhm(profile, 1.0) / (2 * np.sqrt(2 * np.log(2))) for profile in (kernel[:, c], kernel[c, :])]
+        kernel = np.outer(*(np.exp(-offsets**2 / (2 * s**2)) for s in sig)).astype(complex)
     return kernel / np.sqrt((np.abs(kernel) ** 2).sum())
 
 
@@ -343,15 +353,19 @@ def pymust_arrival_check(array: MatrixArray, scatterer=(5.0, 3.0, 40.0)) -> dict
                 sample_us=1e6 / param.fs, pulse_sigma_us=array.pulse_sigma_us)
 
 
-def segment_case(array: MatrixArray, *, seed: int, spacing: float, papillary: bool, formation_changes=None,
+def segment_case(array: MatrixArray | None, *, seed: int, spacing: float, papillary: bool, formation_changes=None,
                  options=None):
-    """ED and ES phantoms (``make_sequence(n_frames=2)``) imaged by ``array``,
+    """ED and ES phantoms (``make_sequence(n_frames=2)``) imaged by ``array``
+    (``None``: the phantom's convolution formation, the same changes),
     each segmented with defaults from the true apex and base."""
     import spheroseg
     from spheroseg.synthetic.phantom import make_sequence
-    formation = array.formation(**(formation_changes or {}))
+    if array is None:
+        formation, former = replace(ImageFormation(), **(formation_changes or {})), None
+    else:
+        formation, former = array.formation(**(formation_changes or {})), array_former(array)
     seq = make_sequence(n_frames=2, seed=seed, formation=formation, spacing=spacing, papillary=papillary,
-                        _former=array_former(array), workers=1)
+                        _former=former, workers=1)
     rows = []
     for phase, ph in zip(("ED", "ES"), seq.frames):
         t0 = time.perf_counter()
@@ -367,6 +381,42 @@ def segment_case(array: MatrixArray, *, seed: int, spacing: float, papillary: bo
     return rows
 
 
+def diagnose(row, formation: ImageFormation) -> dict:
+    """Where the segmented wall sits and what the image's levels are:
+    the signed distance (mm, + outside) of the segmented surface from the
+    true one at the mask's boundary voxels (median; walls facing the beam,
+    normal within 45 degrees of it, and walls along it); the grey levels
+    (median) of the cavity's core (over 5 mm inside the truth), of the
+    shell 2-5 mm outside it (the myocardium) and their difference in dB
+    (``dynamic_range / 254`` dB a grey level)."""
+    from scipy import ndimage
+    ph, res = row["phantom"], row["result"]
+    spacing = ph.volume.spacing[0]
+    truth = ph.truth_mask
+    grey = ph.volume.array.astype(float)
+    inside = ndimage.distance_transform_edt(truth) * spacing
+    outside = ndimage.distance_transform_edt(~truth) * spacing
+    signed = np.where(truth, -inside + spacing / 2, outside - spacing / 2)
+    mask = res.mask(ph.volume)
+    edge = mask & ~ndimage.binary_erosion(mask)
+    # the beam from the probe (top centre) against the truth's normal
+    gz, gy, gx = np.gradient(ndimage.gaussian_filter(truth.astype(float), 1.5))
+    k, j, i = np.nonzero(edge)
+    probe = np.array([(truth.shape[2] - 1) / 2, (truth.shape[1] - 1) / 2, 0.0])
+    beam = np.column_stack([i, j, k]) - probe
+    normal = np.column_stack([gx[edge], gy[edge], gz[edge]])
+    cos = np.abs((beam * normal).sum(1)) / (np.linalg.norm(beam, axis=1) * np.linalg.norm(normal, axis=1) + 1e-12)
+    d = signed[edge]
+    core = truth & (inside > 5)
+    shell = (outside > 2) & (outside < 5) & (grey > 0)
+    step = formation.dynamic_range_db / 254
+    return dict(offset_mm=float(np.median(d)), offset_facing_mm=float(np.median(d[cos > 0.707])),
+                offset_along_mm=float(np.median(d[cos <= 0.707])), core_grey=float(np.median(grey[core])),
+                wall_grey=float(np.median(grey[shell])),
+                contrast_db=float((np.median(grey[shell]) - np.median(grey[core])) * step),
+                true_log_compression=254 * 10 / np.log(10) / formation.dynamic_range_db)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--check", action="store_true", help="point-target checks only")
@@ -379,9 +429,11 @@ def main(argv=None):
     parser.add_argument("--dynamic-range", type=float, default=55.0)
     parser.add_argument("--blood-db", type=float, default=None, help="blood level (dB), the myocardium kept")
     parser.add_argument("--apodization", default="none")
+    parser.add_argument("--convolution", action="store_true", help="the phantom's own formation (baseline)")
+    parser.add_argument("--no-side-lobes", action="store_true", help="a Gaussian kernel of the DAS main lobe")
     args = parser.parse_args(argv)
     array = MatrixArray(elements_per_side=args.elements, frequency_mhz=args.frequency, transmits=args.transmits,
-                        apodization=args.apodization)
+                        apodization=args.apodization, side_lobes=not args.no_side_lobes)
     if args.check:
         print("point target (DAS vs kernel):", point_target_check(array))
         try:
@@ -394,13 +446,14 @@ def main(argv=None):
         default = ImageFormation()
         changes.update(blood_db=args.blood_db, contrast_db=default.blood_db + default.contrast_db - args.blood_db)
     print(f"array {array}  formation changes {changes}")
+    formation = (replace(ImageFormation(), **changes) if args.convolution else array.formation(**changes))
     for seed in args.seeds:
-        for row in segment_case(array, seed=seed, spacing=args.spacing, papillary=args.papillary,
-                                formation_changes=changes):
+        for row in segment_case(None if args.convolution else array, seed=seed, spacing=args.spacing,
+                                papillary=args.papillary, formation_changes=changes):
             print(f"seed {seed} {row['phase']}: truth {row['truth_ml']:.1f} mL  seg {row['ml']:.1f} mL  "
                   f"error {row['error_pct']:+.1f} %  dice {row['dice'] if row['dice'] is None else round(row['dice'], 3)}  "
-                  f"log_compression {row['log_compression']}  warnings {row['flags']}  {row['seconds']:.0f} s",
-                  flush=True)
+                  f"log_compression {row['log_compression']:.2f}  warnings {row['flags']}", flush=True)
+            print("    " + "  ".join(f"{k} {v:.2f}" for k, v in diagnose(row, formation).items()), flush=True)
 
 
 if __name__ == "__main__":
