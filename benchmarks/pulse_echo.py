@@ -37,14 +37,23 @@ Two models of the same array:
   so the grey-level calibration is the convolution model's.
 
 Segmentation: ``spheroseg.segment`` with defaults from the true apex and
-base; volumes against the phantom's exact truth.  Writes nothing but stdout
-(figures copied into docs/benchmarks.md by hand, with this command).
+base; volumes against the phantom's exact truth.  ``--name NAME`` stores the
+run's rows under that name in docs/pulse_echo.json (the other names kept)
+and regenerates docs/benchmarks.md; each run is a minute or two:
+
+    nice -n 19 python benchmarks/pulse_echo.py --name convolution --convolution
+    nice -n 19 python benchmarks/pulse_echo.py --name array
+    nice -n 19 python benchmarks/pulse_echo.py --name "16 elements" --elements 16
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import sys
+import tempfile
 import time
+from pathlib import Path
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -83,6 +92,11 @@ class MatrixArray:
         False: the volume's kernel (``lateral_kernel``) is a Gaussian of the
         DAS kernel's main-lobe widths, without its side lobes (to tell the
         haze from the lateral blur).
+    anisotropy_db : float
+        Not the array's but the scene's: the echo of tissue whose
+        boundary runs along the beam is this much weaker than where the beam
+        meets it face on (the myocardium's backscatter anisotropy, 10-15 dB
+        between parallel and perpendicular insonation; ``angular_echogenicity``).
     """
 
     elements_per_side: int = 32
@@ -94,6 +108,7 @@ class MatrixArray:
     half_angle_deg: float = 38.0
     apodization: str = "none"
     side_lobes: bool = True
+    anisotropy_db: float = 0.0
 
     @property
     def wavelength_mm(self) -> float:
@@ -287,9 +302,38 @@ def array_envelope(echogenicity, geometry: BeamGeometry, formation: ImageFormati
     return np.abs(out).astype(np.float32)
 
 
+def angular_echogenicity(echogenicity, geometry: BeamGeometry, anisotropy_db: float, *, blood_db: float,
+                         scale_mm: float = 2.0) -> np.ndarray:
+    """Echogenicity of the non-blood samples (over ``blood_db + 3`` dB)
+    lowered by ``anisotropy_db (1 - cos^2)``, ``cos`` the angle between the
+    beam and the gradient of the log echogenicity smoothed over
+    ``scale_mm`` (a wall's orientation across its thickness); uniform
+    regions (gradient under 0.05 neper/mm) keep theirs."""
+    from scipy import ndimage
+    e = np.asarray(echogenicity, np.float32)
+    nr = geometry.shape[0]
+    dr = geometry.radius_sample_size
+    radius = geometry.first_sample_distance + np.arange(nr) * dr
+    mid = radius[nr // 2]
+    le = ndimage.gaussian_filter(np.log(np.maximum(e, 1e-12)), (scale_mm / dr,
+                                 scale_mm / (mid * geometry.elevation_angular_separation),
+                                 scale_mm / (mid * geometry.azimuth_angular_separation)))
+    r = np.maximum(radius, dr)[:, None, None]
+    gr = np.gradient(le, dr, axis=0)
+    ge = np.gradient(le, axis=1) / (r * geometry.elevation_angular_separation)
+    ga = np.gradient(le, axis=2) / (r * geometry.azimuth_angular_separation)
+    eps = 0.05**2
+    cos2 = (gr**2 + eps) / (gr**2 + ge**2 + ga**2 + eps)
+    tissue = e > 10 ** ((blood_db + 3) / 10)
+    return np.where(tissue, e * 10 ** (-anisotropy_db * (1 - cos2) / 10), e).astype(np.float32)
+
+
 def array_former(array: MatrixArray):
     """A ``former`` for ``make_phantom(_former=...)``: the beam-space image."""
     def former(echogenicity, geometry, formation, rng):
+        if array.anisotropy_db:
+            echogenicity = angular_echogenicity(echogenicity, geometry, array.anisotropy_db,
+                                                blood_db=formation.blood_db)
         return BeamVolume(log_compress(array_envelope(echogenicity, geometry, formation, rng, array), formation),
                           geometry)
     return former
@@ -360,8 +404,14 @@ def segment_case(array: MatrixArray | None, *, seed: int, spacing: float, papill
     each segmented with defaults from the true apex and base."""
     import spheroseg
     from spheroseg.synthetic.phantom import make_sequence
-    if array is None:
+    if array is None or array.elements_per_side == 0:
         formation, former = replace(ImageFormation(), **(formation_changes or {})), None
+        if array is not None and array.anisotropy_db:  # the convolution's image of the angular echogenicity
+            from spheroseg.synthetic.echo import form_image
+
+            def former(echogenicity, geometry, formation, rng):
+                e = angular_echogenicity(echogenicity, geometry, array.anisotropy_db, blood_db=formation.blood_db)
+                return form_image(e, geometry, formation, rng)
     else:
         formation, former = array.formation(**(formation_changes or {})), array_former(array)
     seq = make_sequence(n_frames=2, seed=seed, formation=formation, spacing=spacing, papillary=papillary,
@@ -396,17 +446,20 @@ def diagnose(row, formation: ImageFormation) -> dict:
     grey = ph.volume.array.astype(float)
     inside = ndimage.distance_transform_edt(truth) * spacing
     outside = ndimage.distance_transform_edt(~truth) * spacing
+    # the true wall half a voxel from the centres either side of it
     signed = np.where(truth, -inside + spacing / 2, outside - spacing / 2)
-    mask = res.mask(ph.volume)
-    edge = mask & ~ndimage.binary_erosion(mask)
-    # the beam from the probe (top centre) against the truth's normal
-    gz, gy, gx = np.gradient(ndimage.gaussian_filter(truth.astype(float), 1.5))
-    k, j, i = np.nonzero(edge)
+    points, _ = res.mesh(closed=False)
+    index = (points - np.asarray(ph.volume.grid.origin)) / spacing  # identity direction: (x, y, z) voxel index
+    d = ndimage.map_coordinates(signed, index[:, ::-1].T, order=1, mode="nearest")
+    # the beam from the probe (top centre of the grid) against the truth's normal there
+    smooth = ndimage.gaussian_filter(truth.astype(float), 1.5)
+    normal = np.column_stack([ndimage.map_coordinates(g, index[:, ::-1].T, order=1, mode="nearest")
+                              for g in np.gradient(smooth)[::-1]])
     probe = np.array([(truth.shape[2] - 1) / 2, (truth.shape[1] - 1) / 2, 0.0])
-    beam = np.column_stack([i, j, k]) - probe
-    normal = np.column_stack([gx[edge], gy[edge], gz[edge]])
+    beam = index - probe
     cos = np.abs((beam * normal).sum(1)) / (np.linalg.norm(beam, axis=1) * np.linalg.norm(normal, axis=1) + 1e-12)
-    d = signed[edge]
+    below = (points - ph.base) @ (ph.apex - ph.base) / np.linalg.norm(ph.apex - ph.base) > 3.0  # off the base plane
+    d, cos = d[below], cos[below]
     core = truth & (inside > 5)
     shell = (outside > 2) & (outside < 5) & (grey > 0)
     step = formation.dynamic_range_db / 254
@@ -421,7 +474,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--check", action="store_true", help="point-target checks only")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--spacing", type=float, default=1.5)
+    parser.add_argument("--spacing", type=float, default=1.0)
     parser.add_argument("--papillary", action="store_true")
     parser.add_argument("--elements", type=int, default=32)
     parser.add_argument("--frequency", type=float, default=2.5)
@@ -430,10 +483,13 @@ def main(argv=None):
     parser.add_argument("--blood-db", type=float, default=None, help="blood level (dB), the myocardium kept")
     parser.add_argument("--apodization", default="none")
     parser.add_argument("--convolution", action="store_true", help="the phantom's own formation (baseline)")
+    parser.add_argument("--anisotropy", type=float, default=0.0, help="the myocardium's anisotropy (dB)")
+    parser.add_argument("--name", help="store the rows under this name in docs/pulse_echo.json")
     parser.add_argument("--no-side-lobes", action="store_true", help="a Gaussian kernel of the DAS main lobe")
     args = parser.parse_args(argv)
     array = MatrixArray(elements_per_side=args.elements, frequency_mhz=args.frequency, transmits=args.transmits,
-                        apodization=args.apodization, side_lobes=not args.no_side_lobes)
+                        apodization=args.apodization, side_lobes=not args.no_side_lobes,
+                        anisotropy_db=args.anisotropy)
     if args.check:
         print("point target (DAS vs kernel):", point_target_check(array))
         try:
@@ -447,13 +503,39 @@ def main(argv=None):
         changes.update(blood_db=args.blood_db, contrast_db=default.blood_db + default.contrast_db - args.blood_db)
     print(f"array {array}  formation changes {changes}")
     formation = (replace(ImageFormation(), **changes) if args.convolution else array.formation(**changes))
+    stored, start = [], time.perf_counter()
     for seed in args.seeds:
-        for row in segment_case(None if args.convolution else array, seed=seed, spacing=args.spacing,
+        for row in segment_case(replace(array, elements_per_side=0) if args.convolution else array, seed=seed, spacing=args.spacing,
                                 papillary=args.papillary, formation_changes=changes):
+            diagnosis = diagnose(row, formation)
+            stored.append(dict(seed=seed, **{k: row[k] for k in ("phase", "truth_ml", "ml", "error_pct", "dice",
+                                                               "log_compression", "flags")}, **diagnosis,
+                               quality={k: v for k, v in row["result"].quality.items()
+                                        if isinstance(v, (int, float)) and not isinstance(v, bool)}))
             print(f"seed {seed} {row['phase']}: truth {row['truth_ml']:.1f} mL  seg {row['ml']:.1f} mL  "
                   f"error {row['error_pct']:+.1f} %  dice {row['dice'] if row['dice'] is None else round(row['dice'], 3)}  "
                   f"log_compression {row['log_compression']:.2f}  warnings {row['flags']}", flush=True)
-            print("    " + "  ".join(f"{k} {v:.2f}" for k, v in diagnose(row, formation).items()), flush=True)
+            print("    " + "  ".join(f"{k} {v:.2f}" for k, v in diagnosis.items()), flush=True)
+    if args.name:
+        here = Path(__file__).resolve().parent
+        sys.path.insert(0, str(here))
+        from common import DOCS, machine, write_json
+        from report import write_markdown
+        import fcntl
+        path = DOCS / "pulse_echo.json"
+        lock = open(Path(tempfile.gettempdir()) / "spheroseg-pulse_echo.lock", "w")  # runs side by side: one file
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        data = json.loads(path.read_text()) if path.exists() else {"runs": {}}
+        data["machine"] = machine()
+        data["runs"][args.name] = dict(
+            command="nice -n 19 python benchmarks/pulse_echo.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+            array=None if args.convolution else vars(array) if hasattr(array, "__dict__") else None,
+            formation={k: getattr(formation, k) for k in ("dynamic_range_db", "blood_db", "contrast_db",
+                                                          "axial_psf_mm", "lateral_psf_mm")},
+            spacing=args.spacing, papillary=args.papillary, wall_seconds=time.perf_counter() - start, rows=stored)
+        write_json("pulse_echo.json", data)
+        print("wrote", write_markdown())
+        fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 if __name__ == "__main__":

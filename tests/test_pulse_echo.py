@@ -79,3 +79,14 @@ def test_uniform_region_keeps_its_mean_intensity(pe):
                             np.random.default_rng(0), array)
     inner = env[20:-20, 12:-12, 12:-12]
     assert np.mean(inner.astype(float) ** 2) == pytest.approx(0.5, rel=0.06)
+
+
+def test_array_formed_phantom_is_segmented_within_8_percent(pe):
+    """The phantom's end-diastole and end-systole (seed 0, 1 mm voxels)
+    imaged by the 32 x 32 array with 5 diverging waves, segmented with the
+    defaults from the true apex and base (docs/benchmarks.md, "Echo formed
+    by an array"), against the exact truth."""
+    rows = pe.segment_case(pe.MatrixArray(), seed=0, spacing=1.0, papillary=False)
+    for row in rows:
+        assert abs(row["error_pct"]) < 8.0, (row["phase"], row["error_pct"])
+        assert not row["flags"], (row["phase"], row["flags"])
