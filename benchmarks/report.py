@@ -1669,7 +1669,8 @@ def _pulse_echo(data) -> list[str]:
            "on receive, coherent compounding, envelope, the phantom's attenuation, TGC and noise, 55 dB log "
            "compression, scan conversion (no clutter: the side lobes are the haze). The point-target checks "
            "(`--check`, tests/test_pulse_echo.py): per-element echoes arrive at the geometric delay (pymust "
-           "`simus3` on the same array and delays: within 0.045 us, a pulse envelope's std is 0.25 us); DAS of "
+           "`simus3`, 16 x 16 elements of the same pitch, the same delays, a scatterer at (5, 3, 40) mm: within "
+           "0.045 us of it, a pulse envelope's std being 0.25 us); DAS of "
            "one scatterer at 60 mm, 4.16 degrees FWHM (amplitude), the volumes' far-field kernel 4.12 (1 "
            "untilted wave: 4.31, the aperture's 1.207 lambda / D). `pymust.simus3` itself takes 24 s for 500 "
            "scatterers on 1024 elements, one transmit (a volume needs 10^6): the volumes use the kernel.", "",
