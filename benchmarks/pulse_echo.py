@@ -491,6 +491,8 @@ def main(argv=None):
     parser.add_argument("--convolution", action="store_true", help="the phantom's own formation (baseline)")
     parser.add_argument("--anisotropy", type=float, default=0.0, help="the myocardium's anisotropy (dB)")
     parser.add_argument("--anisotropy-scale", type=float, default=2.0, help="mm over which the wall's angle is read")
+    parser.add_argument("--no-profile-blur", action="store_true",
+                        help="diagnosis: the intensity interface never reads a wider blur from the outer band's profile")
     parser.add_argument("--name", help="store the rows under this name in docs/pulse_echo.json")
     parser.add_argument("--no-side-lobes", action="store_true", help="a Gaussian kernel of the DAS main lobe")
     args = parser.parse_args(argv)
@@ -504,6 +506,9 @@ def main(argv=None):
         except ImportError:
             print("pymust not installed (pip install spheroseg[bench])")
         return
+    if args.no_profile_blur:  # the blur the speckle's correlation gives, never more (spheroseg.descent.speckle)
+        from spheroseg.descent import dataterms
+        dataterms.profile_blur_mm = lambda profile, *, sigma_mm, **options: sigma_mm
     changes = dict(dynamic_range_db=args.dynamic_range)
     if args.blood_db is not None:
         default = ImageFormation()
