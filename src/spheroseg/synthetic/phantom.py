@@ -271,10 +271,12 @@ def _texture(shape, spacing, rng):
     return texture / (texture.std() + 1e-12)
 
 
-def _formed_image(formation, *, grid, probe, seed, speckle_seed, half_angle_deg, scene):
+def _formed_image(formation, *, grid, probe, seed, speckle_seed, half_angle_deg, scene, former=None):
     """The scene imaged by ``formation`` in beam space from a probe at world
     point ``probe`` (centre beam along +z), scan-converted to the Cartesian
-    ``grid``: ``(grey levels, BeamVolume)``."""
+    ``grid``: ``(grey levels, BeamVolume)``.  ``former``: called as
+    :func:`~spheroseg.synthetic.echo.form_image` is (default), to image the
+    same echogenicity another way (``benchmarks/pulse_echo.py``)."""
     # the probe is at the top centre of the grid: its far corner is the farthest point
     corner = grid.index_to_world(np.array(grid.shape[::-1]) - 1.0) - probe
     to_world = np.eye(4)
@@ -307,7 +309,7 @@ def _formed_image(formation, *, grid, probe, seed, speckle_seed, half_angle_deg,
         depth = np.linalg.norm(points - probe, axis=-1)
         haze = np.exp(-(((depth - f.clutter_depth_mm) / 12.0) ** 2)) * 10 ** ((f.clutter_db + 3.0 * texture) / 10)
         echo = echo + haze
-    beam = form_image(echo.astype(np.float32), geometry, f, np.random.default_rng(speckle_seed))
+    beam = (former or form_image)(echo.astype(np.float32), geometry, f, np.random.default_rng(speckle_seed))
     image = np.round(scan_convert(beam, grid).array).astype(np.uint8)
     return image, beam
 
@@ -344,6 +346,7 @@ def make_phantom(
     _speckle_seed: int | None = None,
     _base_descent: float = 0.0,
     epicardium: bool = False,
+    _former=None,
 ) -> Phantom:
     """Synthetic apical 3D echo volume of a left ventricle.
 
@@ -479,11 +482,12 @@ def make_phantom(
         grid = ImageGrid((nz, ny, nx), (spacing,) * 3, (0.0, 0.0, 0.0), np.eye(3))
         image, beam = _formed_image(formation, grid=grid, probe=probe, seed=seed,
                                     speckle_seed=seed if _speckle_seed is None else _speckle_seed,
-                                    half_angle_deg=38.0 + tilt_deg * 0.6,
+                                    half_angle_deg=38.0 + tilt_deg * 0.6, former=_former,
                                     scene=dict(base=base, frame=frame, shape_fn=shape_fn, wall=wall, length=length,
                                                radius=radius, azimuth=azimuth, **inner_options))
         if postprocessing is not None and postprocessing.persistence > 1:
             image = _persistence(image, postprocessing.persistence, formation, grid=grid, probe=probe, seed=seed,
+                                 former=_former,
                                  speckle_seed=seed if _speckle_seed is None else _speckle_seed,
                                  half_angle_deg=38.0 + tilt_deg * 0.6,
                                  scene=dict(base=base, frame=frame, shape_fn=shape_fn, wall=wall, length=length,
