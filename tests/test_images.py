@@ -158,7 +158,9 @@ def test_image_files_are_the_files_an_image_reads(tmp_path, rng):
     assert image_files(str(tmp_path / "c.mha")) == [tmp_path / "c.mha"]
     assert image_files(str(tmp_path / "missing.mhd")) == [tmp_path / "missing.mhd"]
     # a glob's matches in name order, each with its data file once
-    assert image_files(str(tmp_path / "[ab].*")) == [tmp_path / n for n in ("a.mhd", "a.zraw", "b.nhdr", "b.raw.gz")]
+    assert image_files(str(tmp_path / "[ab].*"), glob=True) == [tmp_path / n for n in ("a.mhd", "a.zraw", "b.nhdr",
+                                                                                      "b.raw.gz")]
+    assert image_files(str(tmp_path / "[ab].*")) == [tmp_path / "[ab].*"]  # a name is a name unless asked
     (tmp_path / "frames" / "deep").mkdir(parents=True)
     save_volume(tmp_path / "frames" / "f0.mha", v)
     save_volume(tmp_path / "frames" / "deep" / "f1.mha", v)
@@ -167,11 +169,13 @@ def test_image_files_are_the_files_an_image_reads(tmp_path, rng):
 
 
 def test_check_image_size_at_the_budget(monkeypatch):
-    monkeypatch.setenv(BUDGET_VARIABLE, "0.0024")  # 2.4e6 bytes: 600000 float32 voxels
+    from spheroseg.io.images import VOXEL_BYTES
+
+    monkeypatch.setenv(BUDGET_VARIABLE, str(600000 * VOXEL_BYTES / 1e9))  # 600000 voxels as a volume holds them
     check_image_size("v.mha", (100, 100, 60))  # exactly the budget
     check_image_size("v.mha", (100, 100, 20), components=3)
-    with pytest.raises(ImageFileError, match=r"^v\.mha: declares 100 x 100 x 61 voxels, 0\.00244 GB as float32, "
-                                             r"over the memory budget of 0\.0024 GB \(set SPHEROSEG_MAX_IMAGE_GB"):
+    with pytest.raises(ImageFileError, match=rf"^v\.mha: declares 100 x 100 x 61 voxels, .*{VOXEL_BYTES} bytes a "
+                                             r"voxel.*over the memory budget of .* \(set SPHEROSEG_MAX_IMAGE_GB"):
         check_image_size("v.mha", (100, 100, 61))
     with pytest.raises(ImageFileError, match=r"100 x 100 x 20 x 4 components voxels"):
         check_image_size("v.mha", (100, 100, 20), components=4)
@@ -180,6 +184,7 @@ def test_check_image_size_at_the_budget(monkeypatch):
         with pytest.raises(ValueError, match=f"^SPHEROSEG_MAX_IMAGE_GB must be a positive number of GB, got '{bad}'$"):
             check_image_size("v.mha", (1, 1, 1))
     monkeypatch.setenv(BUDGET_VARIABLE, " ")  # blank: the default, 4 GB
-    check_image_size("v.mha", (1000, 1000, 1000))
+    most = int(4e9 // VOXEL_BYTES) // 10 ** 6
+    check_image_size("v.mha", (1000, 1000, most))
     with pytest.raises(ImageFileError, match="over the memory budget of 4 GB"):
-        check_image_size("v.mha", (1000, 1000, 1001))
+        check_image_size("v.mha", (1000, 1000, most + 1))

@@ -62,7 +62,8 @@ def test_as_entry_reads_back_as_the_same_study(tmp_path):
                                 "spacing": [1, 1, 2], "track": False}])
     (study,) = read_manifest(path)
     entry = study.as_entry()
-    assert set(entry) == set(MANIFEST_KEYS)
+    assert set(entry) == set(MANIFEST_KEYS) - {"glob"}  # glob only when true (the checksums of earlier cohorts)
+    assert read_manifest(manifest(tmp_path, [{**entry, "glob": True}], "pattern.json"))[0].as_entry()["glob"] is True
     assert json.loads(json.dumps(entry)) == entry  # JSON values
     assert entry["annulus"] == [[1.0, 0.0, 9.0], [0.0, 1.0, 9.0], [-1.0, 0.0, 9.0]]
     assert read_manifest(manifest(tmp_path, [entry], "again.json")) == [study]
@@ -111,7 +112,7 @@ def test_a_bad_json_manifest_is_one_precise_error(tmp_path, entries, message):
      "row 3 (b): give apex and base (x y z, mm) or apex and annulus, not the apex alone"),
     ("id,image,apex,base\na,a.mha,0 0 0,0 0 9\nA,b.mha,0 0 0,0 0 9\n", "row 3: id 'A' appears twice"),
     ("id,image,colour\na,a.mha,red\n", "row 2 (a): unknown key(s) colour"),
-    ("", "empty CSV manifest (expected a header: id,image,apex,base,annulus,landmarks,points,spacing,track)"),
+    ("", "empty CSV manifest (expected a header: id,image,apex,base,annulus,landmarks,points,spacing,track,glob)"),
     ("id,image\n", "no studies"),
 ])
 def test_a_bad_csv_manifest_names_its_row(tmp_path, rows, message):

@@ -560,7 +560,7 @@ def test_the_myocardium_box_draws_the_epicardium_outside(browser, phantom_file, 
         assert "LV mass" in page.text_content("#volume")
         assert "phantoms only" in page.text_content("#caveats")  # round-4 defect 9
         # the 3D view draws the epicardium too
-        page.wait_for_function(f"Number(document.body.dataset.drawn3d) >= {session._generation} && "
+        page.wait_for_function(f"Number(document.body.dataset.drawn3d) >= {session.state()['job']} && "
                                "viewer.nv.meshes[1].visible && viewer.nv.meshes[1].pts === viewer.state.epicardium",
                                polling=100, timeout=TIMEOUT_MS)
         _shot(page, "myocardium-3d.png")

@@ -487,8 +487,10 @@ def _located(result) -> str:
 def _warn_quality(frames, args) -> int:
     """One line on stderr when a result is poor (results.json has the
     report); the exit status: :data:`EXIT_POOR` then, unless ``--allow-poor``."""
-    from ..descent.quality import quality_warning
+    from ..descent.quality import quality_notes, quality_warning
 
+    for note in quality_notes(frames):
+        print(f"spheroseg: note: {note}", file=sys.stderr)
     line = quality_warning(frames)
     if line:
         print(f"spheroseg: warning: {line}", file=sys.stderr)

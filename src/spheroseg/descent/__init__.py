@@ -9,12 +9,15 @@ returns) and :mod:`.quality` (how far a result can be trusted).
 
 
 def __getattr__(name: str):
-    # 0.1's module ``spheroseg.descent`` is this folder's ``descent`` now
-    from . import descent as iteration
+    # 0.1's module ``spheroseg.descent`` is this folder's ``descent`` now: its
+    # public names (not the submodules, which the import system looks up
+    # here before it imports them) are read from it, with a warning
+    import importlib
+
     from .._moved import warn_moved
 
-    if name in iteration.__all__:
+    if not name.startswith("_") and name in ("Descent", "LevelRun"):
+        value = globals()[name] = getattr(importlib.import_module(f"{__name__}.descent"), name)  # warned once
         warn_moved(f"spheroseg.descent.{name}", f"spheroseg.descent.descent.{name}")
-        value = globals()[name] = getattr(iteration, name)  # warned once
         return value
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

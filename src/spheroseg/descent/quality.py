@@ -244,6 +244,17 @@ def wall_report(thickness_mm, *, min_thickness_mm: float, settled: bool = True) 
             "warnings": warnings, "poor": bool(warnings)}
 
 
+def quality_notes(frames) -> list[str]:
+    """What a user is told that does not make a result poor (the
+    ``notes`` of the reports: checks that could not be made), each once."""
+    notes = []
+    for frame in frames:
+        for note in (frame.quality or {}).get("notes", []):
+            if note not in notes:
+                notes.append(note)
+    return notes
+
+
 def quality_warning(frames) -> str | None:
     """One line for a user about results whose report is poor (None if none
     is): the first one's warnings, and which frames of a sequence."""

@@ -1009,11 +1009,14 @@ def annotate(result, initialisation: dict, located: Located | None) -> None:
             "give the apex and base"]
     elif checked is None:  # not asked to check
         warnings = []
-    elif located is None:
-        warnings = [f"the clicked points could not be checked: {checked}"]
-    elif not located.confidence >= CHECK_CONFIDENCE:
-        warnings = [f"the clicked points could not be checked: the ventricle was found with low confidence "
-                    f"({located.confidence:.2f}: {located.reason})"]
+    elif located is None or not located.confidence >= CHECK_CONFIDENCE:
+        # said, not flagged: the clicks may well be right (a real scan whose ventricle the coarse look cannot
+        # find with confidence); the result is poor only by what the image says of it
+        why = checked if located is None else (f"the ventricle was found with low confidence "
+                                               f"({located.confidence:.2f}: {located.reason})")
+        result.quality["notes"] = list(result.quality.get("notes", [])) + [
+            f"the clicked points could not be checked: {why}"]
+        warnings = []
     else:
         base = result.surface.pose.origin if initialisation["base"] is None else initialisation["base"]
         warnings = check_points(located, initialisation["apex"], base)

@@ -524,7 +524,7 @@ class Session:
         if result is not None:
             quality = result.quality or {}
             data.update(status=result.status, message=result.message, iterations=result.iterations,
-                        seconds=result.seconds, warnings=list(quality.get("warnings", [])),
+                        seconds=result.seconds, warnings=list(quality.get("warnings", [])) + list(quality.get("notes", [])),
                         poor=bool(quality.get("poor", False)))
         return data
 
