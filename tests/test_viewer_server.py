@@ -597,7 +597,8 @@ def test_find_with_low_confidence_is_poor_as_the_api_says(server, phantom, monke
     """A location the locator is not confident of: Find's answer says poor
     with the API's warning at once, and the segmentation from its points is
     poor with it (as ``spheroseg.segment`` of the volume alone: locate.annotate),
-    round-4 defect 3; the points dragged, they are checked as given ones."""
+    round-4 defect 3; the points dragged, they are given ones, which such a
+    location cannot check: said on the banner, not poor."""
     import spheroseg.apps.viewer.session as session_module
     from spheroseg.tracking.locate import Located
     from spheroseg.tracking.segment import add_checks
@@ -625,7 +626,10 @@ def test_find_with_low_confidence_is_poor_as_the_api_says(server, phantom, monke
     while (event := wait_for(server))["points"]["apex"] != moved["apex"]:
         assert time.monotonic() < end
         time.sleep(0.05)
-    assert not any("low confidence" in w for w in event["warnings"])
+    # not poor: only said, on the banner, that a location without confidence could not check them
+    assert not event["poor"]
+    assert [w for w in event["warnings"] if "low confidence" in w] == [
+        w for w in event["warnings"] if w.startswith("the clicked points could not be checked")]
 
 
 def test_the_lv_mass_carries_its_caveats(phantom, tmp_path):
