@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-from spheroseg._compiled import _kernels
 from spheroseg.descent.backends import MIN_COS, CompiledBackend, NumpyBackend, Observation
 from spheroseg.volumes.beamspace import to_beam_space
 from spheroseg.geometry.discretisation import discretise
@@ -11,14 +10,15 @@ from spheroseg.geometry.energy import SampledSurface
 from spheroseg.synthetic.phantom import make_phantom, probe_sector
 from spheroseg.surfaces.surface import Surface
 
-pytestmark = pytest.mark.skipif(not _kernels.AVAILABLE, reason="numba not installed")
+# not built (a source tree on PYTHONPATH): nothing to test here; that an
+# installed package has them is tests/test_warmup.py's
+_kernels = pytest.importorskip("spheroseg._compiled._kernels", reason="the compiled kernels are not built")
 
 
 
 def read_only(rows):
-    """A row index read-only, as a segmentation's band rows: the kernels'
-    signature of a real run (a writable one is another specialisation,
-    compiled for the test alone)."""
+    """A row index read-only, as a segmentation's band rows: the kernels
+    take both."""
     rows.flags.writeable = False
     return rows
 

@@ -101,13 +101,11 @@ def _own_running_threads() -> int:
 
 def default_threads() -> int:
     """The kernels' thread count outside :func:`kernel_threads`: that of
-    :func:`set_default_threads`, else ``OMP_NUM_THREADS`` when set, else
-    the :func:`usable_cores`."""
+    :func:`set_default_threads`, else the :func:`usable_cores`
+    (``OMP_NUM_THREADS``, which ``spheroseg batch`` sets to 1 for BLAS,
+    does not apply)."""
     if _DEFAULT[0] is None:
-        try:
-            _DEFAULT[0] = max(1, int(os.environ.get("OMP_NUM_THREADS", "").split(",")[0]))
-        except ValueError:
-            _DEFAULT[0] = usable_cores()
+        _DEFAULT[0] = usable_cores()
     return _DEFAULT[0]
 
 

@@ -3,7 +3,7 @@
 :class:`NumpyBackend` is the readable reference: it calls
 :meth:`SampledSurface.geometry`, :meth:`Volume.sample` and
 :func:`spheroseg.energy.normal_speed` and restates none of them.
-:class:`CompiledBackend` does the same work in the numba kernels of
+:class:`CompiledBackend` does the same work in the compiled kernels of
 :mod:`spheroseg._kernels` (prolate spheroidal system only), writing into
 arrays allocated once (a :class:`~spheroseg.beamspace.BeamVolume` too: the
 kernels take either's arrays); the tests require both to give
@@ -242,7 +242,7 @@ class NumpyBackend:
 
 
 class CompiledBackend(NumpyBackend):
-    """The same work in numba kernels (prolate spheroidal system); falls back
+    """The same work in the compiled kernels (prolate spheroidal system); falls back
     to the reference for what they do not compute (the full geometry that
     the area term needs)."""
 
@@ -395,7 +395,7 @@ class CompiledBackend(NumpyBackend):
 
 
 def select_backend(model: SampledSurface, *, compiled: bool = True) -> NumpyBackend:
-    """The compiled backend where it applies (numba installed, prolate
+    """The compiled backend where it applies (the package built, prolate
     spheroidal system, ``compiled``), else the numpy reference."""
     if compiled and isinstance(model.system, ProlateSpheroidal) and compiled_available():
         return CompiledBackend(model)
@@ -404,7 +404,7 @@ def select_backend(model: SampledSurface, *, compiled: bool = True) -> NumpyBack
 
 def sample_points(volume, points, *, order: int = 1) -> np.ndarray:
     """``volume.sample(points, order=order)`` (world mm, shape ``(..., 3)``),
-    in the compiled sampler where it applies (numba installed, a Cartesian
+    in the compiled sampler where it applies (the package built, a Cartesian
     volume, ``order`` 0 or 1): equal to rounding, without the reference's
     temporary arrays."""
     points = np.asarray(points, dtype=float)
