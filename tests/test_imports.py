@@ -7,12 +7,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
-
-SRC = str(Path(__file__).resolve().parents[1] / "src")
 from conftest import SUBPROCESS_PATH
 
+SRC = str(Path(__file__).resolve().parents[1] / "src")
 #: numba is no dependency any more: nothing may load it
 HEAVY = ("numba", "matplotlib", "spheroseg._compiled._raster")
 NONE_LOADED = dict.fromkeys(HEAVY, False)

@@ -6,29 +6,39 @@ import json
 import os
 import subprocess
 import sys
-import threading
 import time
 
 import pytest
 from conftest import SUBPROCESS_PATH
 
-from spheroseg.apps import warmup
 
 
-def test_load_kernels_loads_once_from_two_threads(monkeypatch):
-    monkeypatch.setattr(warmup, "_LOADED", {})
-    calls = []
-    load = warmup._load
-    monkeypatch.setattr(warmup, "_load", lambda: (calls.append(1), load())[1])
-    results = []
-    threads = [threading.Thread(target=lambda: results.append(warmup.load_kernels())) for _ in range(2)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
-    assert len(calls) == 1 and len(results) == 2
-    assert all(set(r) == {"seconds"} and r["seconds"] >= 0 for r in results)
-    assert warmup.load_kernels()["seconds"] < max(r["seconds"] for r in results)  # loaded: no second run
+TWO_THREADS = """
+import json, threading
+import spheroseg.tracking.segment as module
+from spheroseg.apps.warmup import load_kernels
+calls, segment = [], module.segment
+module.segment = lambda *args, **kwargs: (calls.append(1), segment(*args, **kwargs))[1]
+results = []
+threads = [threading.Thread(target=lambda: results.append(load_kernels())) for _ in range(2)]
+for thread in threads:
+    thread.start()
+for thread in threads:
+    thread.join()
+print(json.dumps({"calls": len(calls), "results": results, "again": load_kernels()}))
+"""
+
+
+def test_load_kernels_loads_once_from_two_threads():
+    """The viewer's worker and its command at once, in a fresh process: one
+    segmentation runs, both calls return, and a later call only looks."""
+    env = {**os.environ, "PYTHONPATH": SUBPROCESS_PATH, "PYTHONWARNINGS": "ignore"}
+    run = subprocess.run([sys.executable, "-c", TWO_THREADS], capture_output=True, text=True, env=env, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    found = json.loads(run.stdout.strip().splitlines()[-1])
+    assert found["calls"] == 1 and len(found["results"]) == 2
+    assert all(set(r) == {"seconds"} and r["seconds"] >= 0 for r in found["results"])
+    assert found["again"]["seconds"] < max(r["seconds"] for r in found["results"])
 
 
 FRESH = """

@@ -255,7 +255,6 @@ class CompiledBackend(NumpyBackend):
         self.kernels = _kernels
         n, nb = model.n_samples, len(self.discretisation.band_rows)
         self._all_rows = np.arange(n)
-        self._all_rows.flags.writeable = False  # as the band rows: one kernel signature for both
         self._buffers = dict(f=np.empty(n), h0=np.empty(n), cos=np.empty(n), area=np.empty(n),
                              world=np.empty((3, n)), normal=np.empty((3, n)), u=np.empty(n),
                              inside=np.empty(nb), outside=np.empty(nb))
@@ -310,9 +309,6 @@ class CompiledBackend(NumpyBackend):
             rows = self._all_rows
         if isinstance(volume, BeamVolume) or exponent or isinstance(rows, slice) or order not in (0, 1):
             return super().samples_along(volume, obs, offsets, rows, exponent=exponent, order=order)
-        if rows.flags.writeable:  # read-only as the band rows: one kernel signature whoever calls
-            rows = rows.view()
-            rows.flags.writeable = False
         offsets = np.ascontiguousarray(offsets, dtype=float)
         out = np.empty((len(rows), len(offsets)))
         image = self._sampling(volume)
@@ -415,7 +411,6 @@ def sample_points(volume, points, *, order: int = 1) -> np.ndarray:
 
     world = np.ascontiguousarray(points.reshape(-1, 3).T)
     rows = np.arange(world.shape[1])
-    rows.flags.writeable = False  # as the band rows: one kernel signature for both
     out = np.empty((world.shape[1], 1))
     _kernels.samples_at(*_kernels.sampler(volume.sampling_view()), world, np.zeros_like(world), rows,
                         _SURFACE_OFFSETS, order == 0, out)
