@@ -112,6 +112,11 @@ cdef Sampler _sampler(const float[::1] image, const int64_t[::1] strides, const 
     return s
 
 
+def _c_order(a):
+    """``a`` as a C-order float64 array (itself when it is one)."""
+    return np.ascontiguousarray(a, dtype=float)
+
+
 cdef inline double _sample(const Sampler* s, double fi, double fj, double fk) noexcept nogil:
     """Trilinear sample of the flat image at the continuous voxel index
     ``(fi, fj, fk)`` (x, y, z), as :meth:`spheroseg.Volume.sample` (the
@@ -195,19 +200,21 @@ cdef inline (double, double, double) _index(const double* m, double ox, double o
     return (m[0] * x + m[1] * y + m[2] * z, m[3] * x + m[4] * y + m[5] * z, m[6] * x + m[7] * y + m[8] * z)
 
 
-cdef inline void _patch(const double[:, :, ::1] coefficients, Py_ssize_t i1, Py_ssize_t i2,
+cdef inline void _patch(const double* coefficients, Py_ssize_t n1, Py_ssize_t i1, Py_ssize_t i2,
                         double* out) noexcept nogil:
-    """The 16 coefficients of patch ``(i1, i2)`` from ``(n2+1, n1, 4)`` as
-    ``out[4 (2 a1 + e1) + 2 a2 + e2]`` (node ``a`` and derivative ``e``
-    along v1, v2), so that ``f = sum_jm basis1[a, j] out[j, m] basis2[b, m]``."""
-    cdef Py_ssize_t n1 = coefficients.shape[1], node1
+    """The 16 coefficients of patch ``(i1, i2)`` from ``(n2+1, n1, 4)``
+    (C order) as ``out[4 (2 a1 + e1) + 2 a2 + e2]`` (node ``a`` and
+    derivative ``e`` along v1, v2), so that ``f = sum_jm basis1[a, j]
+    out[j, m] basis2[b, m]``.  (Pointers, not memoryviews, in the loops'
+    helpers: passing a memoryview counts a reference, atomically.)"""
+    cdef Py_ssize_t node1
     cdef int a1, e1, a2, e2
     for a1 in range(2):
         node1 = i1 + a1 if i1 + a1 < n1 else 0  # theta is periodic
         for e1 in range(2):
             for a2 in range(2):
                 for e2 in range(2):
-                    out[4 * (2 * a1 + e1) + 2 * a2 + e2] = coefficients[i2 + a2, node1, e1 + 2 * e2]
+                    out[4 * (2 * a1 + e1) + 2 * a2 + e2] = coefficients[((i2 + a2) * n1 + node1) * 4 + e1 + 2 * e2]
 
 
 cdef inline void _contract(const double* patch, const double* basis, double* out) noexcept nogil:
@@ -230,26 +237,28 @@ cdef inline double _dot4(const double* basis, const double* line) noexcept nogil
 # ((i2 order + b) n1 + i1) order + a (v2-major, as HermiteGrid.quadrature).
 
 
-cdef void _gather_patch(const double[:, :, :, ::1] coefficients, int order, const double[:, :, ::1] basis1,
-                        const double[:, :, ::1] basis2, double[:, ::1] out, Py_ssize_t k, Py_ssize_t i1,
-                        Py_ssize_t i2) noexcept nogil:
+cdef void _gather_patch(const double* coefficients, Py_ssize_t n1, int order, const double* basis1,
+                        const double* basis2, double* out, Py_ssize_t i1, Py_ssize_t i2) noexcept nogil:
+    # basis[0, b, :] at basis + 4 b (tables (2, order, 4), C order)
     cdef double patch[16]
     cdef double line[4]
-    cdef Py_ssize_t n1 = coefficients.shape[2], q
+    cdef Py_ssize_t q
     cdef int a, b
-    _patch(coefficients[k], i1, i2, patch)
+    _patch(coefficients, n1, i1, i2, patch)
     for b in range(order):
-        _contract(patch, &basis2[0, b, 0], line)
+        _contract(patch, basis2 + 4 * b, line)
         q = ((i2 * order + b) * n1 + i1) * order
         for a in range(order):
-            out[k, q + a] = _dot4(&basis1[0, a, 0], line)
+            out[q + a] = _dot4(basis1 + 4 * a, line)
 
 
 cdef void _gather(const double[:, :, :, ::1] coefficients, int order, const double[:, :, ::1] basis1,
                   const double[:, :, ::1] basis2, double[:, ::1] out, int threads) noexcept nogil:
-    cdef Py_ssize_t n2 = coefficients.shape[1] - 1, n1 = coefficients.shape[2], i
+    cdef Py_ssize_t n2 = coefficients.shape[1] - 1, n1 = coefficients.shape[2], i, k
     for i in prange(out.shape[0] * n2 * n1, schedule="static", num_threads=threads):  # disjoint points
-        _gather_patch(coefficients, order, basis1, basis2, out, i // (n2 * n1), i % n1, i // n1 % n2)
+        k = i // (n2 * n1)
+        _gather_patch(&coefficients[k, 0, 0, 0], n1, order, &basis1[0, 0, 0], &basis2[0, 0, 0], &out[k, 0], i % n1,
+                      i // n1 % n2)
 
 
 def gather(const double[:, :, :, ::1] coefficients, int order, const double[:, :, ::1] basis1,
@@ -298,35 +307,37 @@ def scatter(const double[:, :] values, int order, const double[:, :, ::1] basis1
         _scatter(values, order, basis1, basis2, out)
 
 
-cdef void _surface_patch(const double[:, :, ::1] coefficients, int order, const double[:, :, ::1] basis1,
-                         const double[:, :, ::1] basis2, Py_ssize_t i1, Py_ssize_t i2, double[::1] out_f,
-                         double[::1] out_h0, double[::1] out_cos, double[::1] out_area) noexcept nogil:
+cdef void _surface_patch(const double* coefficients, Py_ssize_t n1, int order, const double* basis1,
+                         const double* basis2, Py_ssize_t i1, Py_ssize_t i2, double* out_f, double* out_h0,
+                         double* out_cos, double* out_area) noexcept nogil:
+    # basis[0, b, :] at basis + 4 b, basis[1, b, :] at basis + 4 (order + b)
     cdef double patch[16]
     cdef double line[4]
     cdef double line_mu[4]
-    cdef Py_ssize_t n1 = coefficients.shape[1], q
+    cdef Py_ssize_t q
     cdef int a, b
-    _patch(coefficients, i1, i2, patch)
+    _patch(coefficients, n1, i1, i2, patch)
     for b in range(order):
-        _contract(patch, &basis2[0, b, 0], line)
-        _contract(patch, &basis2[1, b, 0], line_mu)
+        _contract(patch, basis2 + 4 * b, line)
+        _contract(patch, basis2 + 4 * (order + b), line_mu)
         q = ((i2 * order + b) * n1 + i1) * order
         for a in range(order):
-            out_f[q + a] = _dot4(&basis1[0, a, 0], line)
-            out_h0[q + a] = _dot4(&basis1[1, a, 0], line)  # df/dtheta until the loop below
-            out_cos[q + a] = _dot4(&basis1[0, a, 0], line_mu)  # df/dmu until the loop below
+            out_f[q + a] = _dot4(basis1 + 4 * a, line)
+            out_h0[q + a] = _dot4(basis1 + 4 * (order + a), line)  # df/dtheta until the loop below
+            out_cos[q + a] = _dot4(basis1 + 4 * a, line_mu)  # df/dmu until the loop below
             out_area[q + a] = exp(out_f[q + a])  # e^lambda until the loop below
 
 
 cdef void _prolate_surface(const double[:, :, ::1] coefficients, int order, const double[:, :, ::1] basis1,
-                           const double[:, :, ::1] basis2, const double[:] cos_th, const double[:] sin_th,
-                           const double[:] cos_mu, const double[:] sin_mu, double d, const double[:, :] rotation,
+                           const double[:, :, ::1] basis2, const double[::1] cos_th, const double[::1] sin_th,
+                           const double[::1] cos_mu, const double[::1] sin_mu, double d, const double[:, :] rotation,
                            const double[:] origin, double[::1] out_f, double[::1] out_h0, double[::1] out_cos,
                            double[::1] out_area, double[:, ::1] out_world, double[:, ::1] out_normal,
                            int threads) noexcept nogil:
     cdef Py_ssize_t n2 = coefficients.shape[0] - 1, n1 = coefficients.shape[1], i, q
     for i in prange(n2 * n1, schedule="static", num_threads=threads):  # the patches write disjoint points
-        _surface_patch(coefficients, order, basis1, basis2, i % n1, i // n1, out_f, out_h0, out_cos, out_area)
+        _surface_patch(&coefficients[0, 0, 0], n1, order, &basis1[0, 0, 0], &basis2[0, 0, 0], i % n1, i // n1,
+                       &out_f[0], &out_h0[0], &out_cos[0], &out_area[0])
     cdef double r00 = rotation[0, 0], r01 = rotation[0, 1], r02 = rotation[0, 2]
     cdef double r10 = rotation[1, 0], r11 = rotation[1, 1], r12 = rotation[1, 2]
     cdef double r20 = rotation[2, 0], r21 = rotation[2, 1], r22 = rotation[2, 2]
@@ -366,8 +377,8 @@ cdef void _prolate_surface(const double[:, :, ::1] coefficients, int order, cons
 
 
 def prolate_surface(const double[:, :, ::1] coefficients, int order, const double[:, :, ::1] basis1,
-                    const double[:, :, ::1] basis2, const double[:] cos_th, const double[:] sin_th,
-                    const double[:] cos_mu, const double[:] sin_mu, double d, const double[:, :] rotation,
+                    const double[:, :, ::1] basis2, const double[::1] cos_th, const double[::1] sin_th,
+                    const double[::1] cos_mu, const double[::1] sin_mu, double d, const double[:, :] rotation,
                     const double[:] origin, double[::1] out_f, double[::1] out_h0, double[::1] out_cos,
                     double[::1] out_area, double[:, ::1] out_world, double[:, ::1] out_normal):
     """The surface ``lambda = f(theta, mu)`` at every sample point (eq. 1 for
@@ -382,59 +393,63 @@ def prolate_surface(const double[:, :, ::1] coefficients, int order, const doubl
                          out_f, out_h0, out_cos, out_area, out_world, out_normal, threads)
 
 
-cdef double _mean_along(const Sampler* s, const double[:, :] world, const double[:, :] normal, Py_ssize_t q,
-                        const double[:] offsets, double exponent, int64_t* count) noexcept nogil:
+cdef double _mean_along(const Sampler* s, const double* world, const double* normal, Py_ssize_t n, Py_ssize_t q,
+                        const double* offsets, Py_ssize_t n_offsets, double exponent,
+                        int64_t* count) noexcept nogil:
     # the point and the normal in the sampler's frame: the samples are a line there
     cdef double pi, pj, pk, ni, nj, nk, v, t, total = 0.0
-    cdef int64_t n = 0
+    cdef int64_t found = 0
     cdef Py_ssize_t k
-    pi, pj, pk = _index(s.to_index, s.origin[0], s.origin[1], s.origin[2], world[0, q], world[1, q], world[2, q])
-    ni, nj, nk = _index(s.to_index, 0.0, 0.0, 0.0, normal[0, q], normal[1, q], normal[2, q])
-    for k in range(offsets.shape[0]):
+    pi, pj, pk = _index(s.to_index, s.origin[0], s.origin[1], s.origin[2], world[q], world[n + q], world[2 * n + q])
+    ni, nj, nk = _index(s.to_index, 0.0, 0.0, 0.0, normal[q], normal[n + q], normal[2 * n + q])
+    for k in range(n_offsets):
         t = offsets[k]
         v = _sample_at(s, pi + t * ni, pj + t * nj, pk + t * nk)
         if exponent != 0.0:
             v = exp(exponent * v)
         if not isnan(v):
             total += v
-            n += 1
-    count[0] = n
-    return total / n if n else NAN
+            found += 1
+    count[0] = found
+    return total / found if found else NAN
 
 
-cdef double _one_along(const Sampler* s, const double[:, :] world, const double[:, :] normal, Py_ssize_t q,
+cdef double _one_along(const Sampler* s, const double* world, const double* normal, Py_ssize_t n, Py_ssize_t q,
                        double offset, double exponent) noexcept nogil:
     cdef double pi, pj, pk, ni, nj, nk, v
-    pi, pj, pk = _index(s.to_index, s.origin[0], s.origin[1], s.origin[2], world[0, q], world[1, q], world[2, q])
-    ni, nj, nk = _index(s.to_index, 0.0, 0.0, 0.0, normal[0, q], normal[1, q], normal[2, q])
+    pi, pj, pk = _index(s.to_index, s.origin[0], s.origin[1], s.origin[2], world[q], world[n + q], world[2 * n + q])
+    ni, nj, nk = _index(s.to_index, 0.0, 0.0, 0.0, normal[q], normal[n + q], normal[2 * n + q])
     v = _sample_at(s, pi + offset * ni, pj + offset * nj, pk + offset * nk)
     if exponent != 0.0:
         v = exp(exponent * v)
     return v
 
 
-cdef void _sample_along(const Sampler* s, const double[:, :] world, const double[:, :] normal,
-                        const int64_t[:] rows, const double[:] offsets, double exponent, double[:] out_mean,
+cdef void _sample_along(const Sampler* s, const double[:, ::1] world, const double[:, ::1] normal,
+                        const int64_t[::1] rows, const double[::1] offsets, double exponent, double[:] out_mean,
                         int64_t[:] out_count, int threads) noexcept nogil:
-    cdef Py_ssize_t r
+    """:func:`sample_along` on (3, n) C-order points and normals."""
+    cdef Py_ssize_t r, n = world.shape[1], n_offsets = offsets.shape[0]
+    cdef const double* w = &world[0, 0]
+    cdef const double* m = &normal[0, 0]
+    cdef const int64_t* q = &rows[0] if rows.shape[0] else NULL
+    cdef const double* o = &offsets[0] if n_offsets else NULL
     cdef double offset, v
-    cdef int64_t count
-    if offsets.shape[0] == 1:
+    if n_offsets == 1:
         # the surface's own samples, every iteration: a loop without an inner one
         offset = offsets[0]
         for r in prange(rows.shape[0], schedule="static", num_threads=threads):
-            v = _one_along(s, world, normal, rows[r], offset, exponent)
+            v = _one_along(s, w, m, n, q[r], offset, exponent)
             out_mean[r] = v  # NaN: no finite sample
             out_count[r] = not isnan(v)
         return
     for r in prange(rows.shape[0], schedule="static", num_threads=threads):
-        out_mean[r] = _mean_along(s, world, normal, rows[r], offsets, exponent, &out_count[r])
+        out_mean[r] = _mean_along(s, w, m, n, q[r], o, n_offsets, exponent, &out_count[r])
 
 
 def sample_along(const float[::1] image, const int64_t[::1] strides, const double[::1] upper,
-                 const double[:, :] to_index, const double[::1] image_origin, beam, const double[:, :] world,
-                 const double[:, :] normal, const int64_t[:] rows, const double[:] offsets, double exponent,
-                 double[:] out_mean, int64_t[:] out_count):
+                 const double[:, :] to_index, const double[::1] image_origin, beam, world, normal, rows, offsets,
+                 double exponent, double[:] out_mean, int64_t[:] out_count):
     """For each ``q`` in ``rows``: the mean (NaN if none) and the number of the
     finite samples at ``world[:, q] + s normal[:, q]`` for ``s`` in
     ``offsets`` (mm); with a non-zero ``exponent`` ``a``, of ``exp(a v)`` for
@@ -442,8 +457,13 @@ def sample_along(const float[::1] image, const int64_t[::1] strides, const doubl
     :func:`sampler`'s, of a Cartesian or a beam-space volume."""
     cdef Sampler s = _sampler(image, strides, upper, to_index, image_origin, beam)
     cdef int threads = _current_threads()
+    cdef const double[:, ::1] w = _c_order(world), m = _c_order(normal)
+    cdef const int64_t[::1] q = np.ascontiguousarray(rows, dtype=np.int64)
+    cdef const double[::1] o = _c_order(offsets)
+    if q.shape[0] > out_mean.shape[0] or q.shape[0] > out_count.shape[0]:
+        raise ValueError("the outputs are shorter than the rows")
     with nogil:
-        _sample_along(&s, world, normal, rows, offsets, exponent, out_mean, out_count, threads)
+        _sample_along(&s, w, m, q, o, exponent, out_mean, out_count, threads)
 
 
 def samples_at(const float[::1] image, const int64_t[::1] strides, const double[::1] upper,
@@ -472,19 +492,19 @@ def samples_at(const float[::1] image, const int64_t[::1] strides, const double[
                     out[r, k] = _sample_at(s, pi + t * ni, pj + t * nj, pk + t * nk)
 
 
-cdef void _cavity_row(const Sampler* s, const double[:] f, double ct, double st, double cm, double sm, double d,
-                      const double[:, :] rotation, const double[:] origin, Py_ssize_t q, const double[:] fractions,
+cdef void _cavity_row(const Sampler* s, double fq, double ct, double st, double cm, double sm, double d,
+                      const double* rotation, const double* origin, const double* fractions, Py_ssize_t n_fractions,
                       double* out_sum, double* out_weight) noexcept nogil:
     cdef double total = 0.0, weight = 0.0, e, sh, ch, x0, rho, x1, x2, wx, wy, wz, fi, fj, fk, v, volume
     cdef Py_ssize_t k
-    for k in range(fractions.shape[0]):
-        e = exp(fractions[k] * f[q])
+    for k in range(n_fractions):
+        e = exp(fractions[k] * fq)
         sh, ch = 0.5 * (e - 1.0 / e), 0.5 * (e + 1.0 / e)
         x0, rho = d * ch * cm, d * sh * sm
         x1, x2 = rho * ct, rho * st
-        wx = rotation[0, 0] * x0 + rotation[0, 1] * x1 + rotation[0, 2] * x2 + origin[0]
-        wy = rotation[1, 0] * x0 + rotation[1, 1] * x1 + rotation[1, 2] * x2 + origin[1]
-        wz = rotation[2, 0] * x0 + rotation[2, 1] * x1 + rotation[2, 2] * x2 + origin[2]
+        wx = rotation[0] * x0 + rotation[1] * x1 + rotation[2] * x2 + origin[0]
+        wy = rotation[3] * x0 + rotation[4] * x1 + rotation[5] * x2 + origin[1]
+        wz = rotation[6] * x0 + rotation[7] * x1 + rotation[8] * x2 + origin[2]
         fi, fj, fk = _index(s.to_index, s.origin[0], s.origin[1], s.origin[2], wx, wy, wz)
         v = _sample_at(s, fi, fj, fk)
         if not isnan(v):
@@ -495,31 +515,41 @@ cdef void _cavity_row(const Sampler* s, const double[:] f, double ct, double st,
     out_weight[0] = weight
 
 
-cdef void _cavity_sums(const Sampler* s, const double[:] f, const double[:] cos_th, const double[:] sin_th,
-                       const double[:] cos_mu, const double[:] sin_mu, double d, const double[:, :] rotation,
-                       const double[:] origin, const int64_t[:] rows, const double[:] fractions, double[:] out_sum,
-                       double[:] out_weight, int threads) noexcept nogil:
-    cdef Py_ssize_t r, q
+cdef void _cavity_sums(const Sampler* s, const double[::1] f, const double[::1] cos_th, const double[::1] sin_th,
+                       const double[::1] cos_mu, const double[::1] sin_mu, double d, const double[:, :] rotation,
+                       const double[:] origin, const int64_t[::1] rows, const double[::1] fractions,
+                       double[:] out_sum, double[:] out_weight, int threads) noexcept nogil:
+    cdef Py_ssize_t r, q, i
+    cdef double rot[9]
+    cdef double o[3]
+    for i in range(9):
+        rot[i] = rotation[i // 3, i % 3]
+    for i in range(3):
+        o[i] = origin[i]
+    cdef const double* fr = &fractions[0] if fractions.shape[0] else NULL
     for r in prange(rows.shape[0], schedule="static", num_threads=threads):
         q = rows[r]
-        _cavity_row(s, f, cos_th[q], sin_th[q], cos_mu[q], sin_mu[q], d, rotation, origin, q, fractions,
+        _cavity_row(s, f[q], cos_th[q], sin_th[q], cos_mu[q], sin_mu[q], d, rot, o, fr, fractions.shape[0],
                     &out_sum[r], &out_weight[r])
 
 
 def cavity_sums(const float[::1] image, const int64_t[::1] strides, const double[::1] upper,
-                const double[:, :] to_index, const double[::1] image_origin, beam, const double[:] f,
-                const double[:] cos_th, const double[:] sin_th, const double[:] cos_mu, const double[:] sin_mu,
-                double d, const double[:, :] rotation, const double[:] origin, const int64_t[:] rows,
-                const double[:] fractions, double[:] out_sum, double[:] out_weight):
+                const double[:, :] to_index, const double[::1] image_origin, beam, f, cos_th, sin_th, cos_mu, sin_mu,
+                double d, const double[:, :] rotation, const double[:] origin, rows, fractions, double[:] out_sum,
+                double[:] out_weight):
     """For each ``q`` in ``rows``, samples at ``lambda = t f[q]`` for ``t`` in
     ``fractions``, weighted by the volume element ``V = h0 h1 h2``: the sums
     of ``V u`` and of ``V`` over the finite samples.  The image arguments
     are :func:`sampler`'s."""
     cdef Sampler s = _sampler(image, strides, upper, to_index, image_origin, beam)
     cdef int threads = _current_threads()
+    cdef const double[::1] fv = _c_order(f), ct = _c_order(cos_th), st = _c_order(sin_th)
+    cdef const double[::1] cm = _c_order(cos_mu), sm = _c_order(sin_mu), fr = _c_order(fractions)
+    cdef const int64_t[::1] q = np.ascontiguousarray(rows, dtype=np.int64)
+    if q.shape[0] > out_sum.shape[0] or q.shape[0] > out_weight.shape[0]:
+        raise ValueError("the outputs are shorter than the rows")
     with nogil:
-        _cavity_sums(&s, f, cos_th, sin_th, cos_mu, sin_mu, d, rotation, origin, rows, fractions, out_sum,
-                     out_weight, threads)
+        _cavity_sums(&s, fv, ct, st, cm, sm, d, rotation, origin, q, fr, out_sum, out_weight, threads)
 
 
 cdef void _csr(const index_t[::1] indptr, const index_t[::1] indices, const double[::1] data, const double[::1] x,
@@ -877,12 +907,13 @@ def descend(double[::1] p, const double[::1] reference, int max_iterations, doub
     L.threads = _current_threads()
     cdef const double[:, :, ::1] tables_1 = surface.tables_1, tables_2 = surface.tables_2
     cdef const double[:, :, ::1] band_tables_1 = surface.band_tables_1, band_tables_2 = surface.band_tables_2
-    cdef const double[:] cos_th = surface.trig[0], sin_th = surface.trig[1]
-    cdef const double[:] cos_mu = surface.trig[2], sin_mu = surface.trig[3]
+    cdef const double[::1] cos_th = _c_order(surface.trig[0]), sin_th = _c_order(surface.trig[1])
+    cdef const double[::1] cos_mu = _c_order(surface.trig[2]), sin_mu = _c_order(surface.trig[3])
     cdef const double[:, :] rotation = surface.rotation
     cdef const double[:] origin = surface.origin
     cdef const double[::1] weights = surface.weights, band_weights = surface.band_weights
-    cdef const int64_t[:] all_rows = surface.all_rows, band_rows = surface.band_rows
+    cdef const int64_t[::1] all_rows = np.ascontiguousarray(surface.all_rows, dtype=np.int64)
+    cdef const int64_t[::1] band_rows = np.ascontiguousarray(surface.band_rows, dtype=np.int64)
     cdef const double[:, ::1] mass_inverse = surface.mass_inverse, inverse = prior.inverse
     cdef const double[:, ::1] lm_basis = np.ascontiguousarray(prior.landmark_rows, dtype=float).reshape(
         -1, p.shape[0])
@@ -890,8 +921,8 @@ def descend(double[::1] p, const double[::1] reference, int max_iterations, doub
     cdef const double[:, ::1] lm_pull = np.ascontiguousarray(prior.landmark_pull, dtype=float).reshape(
         p.shape[0], -1)
     cdef const double[::1] fixed_in = term.fixed_in, fixed_out = term.fixed_out
-    cdef const double[:] fractions = term.fractions, shell_offsets = term.shell_offsets
-    cdef const double[:] band_offsets = term.band_offsets
+    cdef const double[::1] fractions = _c_order(term.fractions), shell_offsets = _c_order(term.shell_offsets)
+    cdef const double[::1] band_offsets = _c_order(term.band_offsets)
     cdef double[::1] f = obs.f, h0 = obs.h0, cos = obs.cos, area_element = obs.area, u = obs.u
     cdef double[:, ::1] world = obs.world, normal = obs.normal
     cdef double[::1] inside = obs.inside, outside = obs.outside
@@ -935,13 +966,14 @@ def descend(double[::1] p, const double[::1] reference, int max_iterations, doub
 cdef int _descend(const Loop* L, const Sampler* image, State* s, double[::1] p, const double[::1] reference,
                   int max_iterations, double tol, const double[:, :, ::1] tables_1, const double[:, :, ::1] tables_2,
                   const double[:, :, ::1] band_tables_1, const double[:, :, ::1] band_tables_2,
-                  const double[:] cos_th, const double[:] sin_th, const double[:] cos_mu, const double[:] sin_mu,
-                  const double[:, :] rotation, const double[:] origin, const double[::1] weights,
-                  const double[::1] band_weights, const int64_t[:] all_rows, const int64_t[:] band_rows,
+                  const double[::1] cos_th, const double[::1] sin_th, const double[::1] cos_mu,
+                  const double[::1] sin_mu, const double[:, :] rotation, const double[:] origin,
+                  const double[::1] weights, const double[::1] band_weights, const int64_t[::1] all_rows,
+                  const int64_t[::1] band_rows,
                   const double[:, ::1] mass_inverse, const double[:, ::1] inverse, const double[:, ::1] lm_basis,
                   const double[::1] lm_v0, const double[::1] lm_h0, const double[:, ::1] lm_pull,
-                  const double[::1] fixed_in, const double[::1] fixed_out, const double[:] fractions,
-                  const double[:] shell_offsets, const double[:] band_offsets, const double[::1] inner_offsets,
+                  const double[::1] fixed_in, const double[::1] fixed_out, const double[::1] fractions,
+                  const double[::1] shell_offsets, const double[::1] band_offsets, const double[::1] inner_offsets,
                   double[::1] f, double[::1] h0, double[::1] cos, double[::1] area_element, double[::1] u,
                   double[:, ::1] world, double[:, ::1] normal, double[::1] inside, double[::1] outside,
                   double[:, ::1] means, double[::1] previous, double[:, :, :, ::1] coefficients,
