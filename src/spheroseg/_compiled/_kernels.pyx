@@ -255,7 +255,7 @@ cdef void _gather_patch(const double* coefficients, Py_ssize_t n1, int order, co
 cdef void _gather(const double[:, :, :, ::1] coefficients, int order, const double[:, :, ::1] basis1,
                   const double[:, :, ::1] basis2, double[:, ::1] out, int threads) noexcept nogil:
     cdef Py_ssize_t n2 = coefficients.shape[1] - 1, n1 = coefficients.shape[2], i, k
-    for i in prange(out.shape[0] * n2 * n1, schedule="static", num_threads=threads):  # disjoint points
+    for i in prange(out.shape[0] * n2 * n1, schedule="static", num_threads=threads, use_threads_if=threads > 1):  # disjoint points
         k = i // (n2 * n1)
         _gather_patch(&coefficients[k, 0, 0, 0], n1, order, &basis1[0, 0, 0], &basis2[0, 0, 0], &out[k, 0], i % n1,
                       i // n1 % n2)
@@ -335,7 +335,7 @@ cdef void _prolate_surface(const double[:, :, ::1] coefficients, int order, cons
                            double[::1] out_area, double[:, ::1] out_world, double[:, ::1] out_normal,
                            int threads) noexcept nogil:
     cdef Py_ssize_t n2 = coefficients.shape[0] - 1, n1 = coefficients.shape[1], i, q
-    for i in prange(n2 * n1, schedule="static", num_threads=threads):  # the patches write disjoint points
+    for i in prange(n2 * n1, schedule="static", num_threads=threads, use_threads_if=threads > 1):  # the patches write disjoint points
         _surface_patch(&coefficients[0, 0, 0], n1, order, &basis1[0, 0, 0], &basis2[0, 0, 0], i % n1, i // n1,
                        &out_f[0], &out_h0[0], &out_cos[0], &out_area[0])
     cdef double r00 = rotation[0, 0], r01 = rotation[0, 1], r02 = rotation[0, 2]
@@ -344,7 +344,7 @@ cdef void _prolate_surface(const double[:, :, ::1] coefficients, int order, cons
     cdef double o0 = origin[0], o1 = origin[1], o2 = origin[2]
     cdef double e, f1, f2, ch, sh, ct, st, cm, sm, x0, rho, x1, x2, j00, j01, j02, j10, j11, j12, j20, j21, j22
     cdef double a0, a1, a2, b0, b1, b2, m0, m1, m2, area, along, sign, scale, h0
-    for q in prange(out_f.shape[0], schedule="static", num_threads=threads):
+    for q in prange(out_f.shape[0], schedule="static", num_threads=threads, use_threads_if=threads > 1):
         e, f1, f2 = out_area[q], out_h0[q], out_cos[q]
         ch, sh = 0.5 * (e + 1.0 / e), 0.5 * (e - 1.0 / e)
         ct, st, cm, sm = cos_th[q], sin_th[q], cos_mu[q], sin_mu[q]
@@ -438,12 +438,12 @@ cdef void _sample_along(const Sampler* s, const double[:, ::1] world, const doub
     if n_offsets == 1:
         # the surface's own samples, every iteration: a loop without an inner one
         offset = offsets[0]
-        for r in prange(rows.shape[0], schedule="static", num_threads=threads):
+        for r in prange(rows.shape[0], schedule="static", num_threads=threads, use_threads_if=threads > 1):
             v = _one_along(s, w, m, n, q[r], offset, exponent)
             out_mean[r] = v  # NaN: no finite sample
             out_count[r] = not isnan(v)
         return
-    for r in prange(rows.shape[0], schedule="static", num_threads=threads):
+    for r in prange(rows.shape[0], schedule="static", num_threads=threads, use_threads_if=threads > 1):
         out_mean[r] = _mean_along(s, w, m, n, q[r], o, n_offsets, exponent, &out_count[r])
 
 
@@ -527,7 +527,7 @@ cdef void _cavity_sums(const Sampler* s, const double[::1] f, const double[::1] 
     for i in range(3):
         o[i] = origin[i]
     cdef const double* fr = &fractions[0] if fractions.shape[0] else NULL
-    for r in prange(rows.shape[0], schedule="static", num_threads=threads):
+    for r in prange(rows.shape[0], schedule="static", num_threads=threads, use_threads_if=threads > 1):
         q = rows[r]
         _cavity_row(s, f[q], cos_th[q], sin_th[q], cos_mu[q], sin_mu[q], d, rot, o, fr, fractions.shape[0],
                     &out_sum[r], &out_weight[r])

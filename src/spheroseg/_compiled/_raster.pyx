@@ -439,7 +439,7 @@ cdef void _cavity_blocks(uint8_t[:, :, ::1] out, const Box* box, const double[:,
     cdef int64_t bk = (nk + size - 1) // size, bj = (nj + size - 1) // size, bi = (ni + size - 1) // size
     cdef Py_ssize_t block
     # dynamic: the blocks the surface crosses cost far more than the others
-    for block in prange(bk * bj * bi, schedule="dynamic", num_threads=threads):
+    for block in prange(bk * bj * bi, schedule="dynamic", num_threads=threads, use_threads_if=threads > 1):
         ties[block] = _fill_block(out, (block // (bj * bi)) * size, ((block // bi) % bj) * size, (block % bi) * size,
                                   box, coef, slopes)
 
@@ -540,7 +540,7 @@ cdef int64_t _row_ends(const float[:, :, ::1] values, uint8_t[:, :, ::1] out, in
     serial flood visits only the rows with zeros inside."""
     cdef Py_ssize_t nz = values.shape[0], ny = values.shape[1], nx = values.shape[2], k
     cdef int64_t total = 0
-    for k in prange(nz, schedule="static", num_threads=threads):
+    for k in prange(nz, schedule="static", num_threads=threads, use_threads_if=threads > 1):
         counts[k] = _plane_ends(values, out, first, last, inner, k)
     for k in range(nz):
         total += counts[k]
