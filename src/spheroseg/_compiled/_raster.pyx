@@ -53,6 +53,7 @@ import numpy as np
 from cython.parallel cimport prange
 from libc.math cimport INFINITY, asinh, atan2, copysign, fabs, floor, hypot, log, sqrt
 from libc.stdint cimport int64_t, uint8_t
+from libc.string cimport memset
 
 from spheroseg._compiled._runtime import PARALLEL_LOCK, current_threads
 from spheroseg.geometry.hermite import global_basis, patch_dofs
@@ -549,29 +550,33 @@ cdef int64_t _row_ends(const float[:, :, ::1] values, uint8_t[:, :, ::1] out, in
 
 cdef int64_t _plane_ends(const float[:, :, ::1] values, uint8_t[:, :, ::1] out, int64_t[:, ::1] first,
                          int64_t[:, ::1] last, int64_t[:, ::1] inner, Py_ssize_t k) noexcept nogil:
-    cdef Py_ssize_t ny = values.shape[1], nx = values.shape[2], j, i
-    cdef int64_t a, b, zeros, ends, count = 0
-    cdef bint data
+    cdef Py_ssize_t ny = values.shape[1], nx = values.shape[2], j
+    cdef int64_t a, b, ends, count = 0
     for j in range(ny):
-        # a loop without an exit or a branch (vectorised): the scans that
-        # stopped at the ends' first non-zero took longer
-        a, b, zeros = nx, -1, 0
-        for i in range(nx):
-            data = values[k, j, i] != 0
-            zeros += not data
-            a = min(a, i if data else nx)
-            b = max(b, i if data else -1)
+        a, b, inner[k, j] = _row_scan(&values[k, j, 0], nx)
         b = max(b, a - 1)
-        for i in range(a):
-            out[k, j, i] = 1
-        for i in range(b + 1, nx):
-            out[k, j, i] = 1
+        memset(&out[k, j, 0], 1, a)
+        memset(&out[k, j, 0] + b + 1, 1, nx - 1 - b)
         first[k, j] = a
         last[k, j] = b
         ends = a + nx - 1 - b
-        inner[k, j] = zeros - ends
+        inner[k, j] -= ends
         count += ends
     return count
+
+
+cdef inline (int64_t, int64_t, int64_t) _row_scan(const float* row, Py_ssize_t nx) noexcept nogil:
+    """A row's first and last non-zero (``nx`` and -1 for none) and its
+    zeros: a loop without an exit or a branch (vectorised), where the scans
+    that stopped at the ends' first non-zero took longer."""
+    cdef int64_t a = nx, b = -1, zeros = 0, i
+    cdef bint data
+    for i in range(nx):
+        data = row[i] != 0
+        zeros += not data
+        a = min(a, i if data else nx)
+        b = max(b, i if data else -1)
+    return a, b, zeros
 
 
 cdef int64_t _flood_zeros(const float[:, :, ::1] values, uint8_t[:, :, ::1] out, int64_t[::1] stack,
