@@ -266,7 +266,7 @@ def test_compiled_path_matches_numpy_reference(phantoms):
     from spheroseg.surfaces.surface import Surface
 
     if not compiled_available():
-        pytest.skip("numba not installed")
+        pytest.skip("the compiled kernels are not built")
     ph = phantoms[0]
     s = Surface.from_apex_base(ph.apex, ph.base)
     kw = dict(order=8, step=1.0, landmarks=ph.apex[None], landmark_weights=[1.0], nu=0.0, smoothness=1.0)
@@ -283,6 +283,7 @@ def test_compiled_path_matches_numpy_reference(phantoms):
     np.testing.assert_allclose(fast.p, ref.p, atol=1e-6)
 
 
+@pytest.mark.skipif(not compiled_available(), reason="the compiled kernels are not built")
 @pytest.mark.parametrize("mode", ["local", "chan-vese"])
 def test_compiled_segmentation_matches_numpy_reference(phantoms, monkeypatch, mode):
     """A whole segmentation (all levels: global means, local means, the
@@ -290,7 +291,7 @@ def test_compiled_segmentation_matches_numpy_reference(phantoms, monkeypatch, mo
     from spheroseg._compiled import _kernels
 
     if not _kernels.AVAILABLE:
-        pytest.skip("numba not installed")
+        pytest.skip("the compiled kernels are not built")
     ph = phantoms[1]
     # a landmark on the wall half-way down, where the truth has it
     axis = (ph.apex - ph.base) / np.linalg.norm(ph.apex - ph.base)
