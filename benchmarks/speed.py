@@ -36,7 +36,8 @@ from common import PEER_PARAMS, machine, median_time, run_sitk, run_skimage, wri
 from report import write_markdown  # noqa: E402
 
 import spheroseg  # noqa: E402
-from spheroseg.descent.backends import compiled_available, kernel_thread_count  # noqa: E402
+from spheroseg.descent.backends import compiled_available, kernel_thread_count, kernel_threads, usable_cores  # noqa: E402
+from spheroseg._compiled._runtime import current_threads  # noqa: E402
 from spheroseg.descent.dataterms import IntensityInterface, LocalMeans  # noqa: E402
 from spheroseg.descent.stepper import freeze_samples  # noqa: E402
 from spheroseg.descent.descent import Descent  # noqa: E402
@@ -194,38 +195,32 @@ def unseen_cases(seeds=(0, 1, 2)) -> list[dict]:
 
 
 def thread_medians(fn, counts, repeats: int, rounds: int = 5) -> dict:
-    """Median time (s) of ``fn()`` with numba's thread count at each of
+    """Median time (s) of ``fn()`` with the kernels' thread count at each of
     ``counts``, in ``rounds`` turns of ``repeats / rounds`` calls at each
     count, so that a change of the machine's load weighs on all alike (the
     count is set before each turn: a call pays nothing for it)."""
-    import numba
-
-    previous = numba.get_num_threads()
     times = {n: [] for n in counts}
     fn()  # warm-up
     for _ in range(rounds):
         for n in counts:
-            numba.set_num_threads(n)
-            for _ in range(max(1, repeats // rounds)):
-                t0 = time.perf_counter()
-                fn()
-                times[n].append(time.perf_counter() - t0)
-    numba.set_num_threads(previous)
+            with kernel_threads(n):
+                for _ in range(max(1, repeats // rounds)):
+                    t0 = time.perf_counter()
+                    fn()
+                    times[n].append(time.perf_counter() - t0)
     return {n: float(np.median(t)) for n, t in times.items()}
 
 
 def thread_counts(seeds=(0, 1, 2)) -> dict:
     """One thread against 2..cores for the compiled kernels (the ``threads``
-    option, numba's ``set_num_threads``), side by side in this process, on
+    option), side by side in this process, on
     the unseen-style cases of :func:`unseen_cases`: the whole default
     segmentation, its last-stage iteration (8 x 8 patches), and in that
     iteration the surface with its samples at the 4096 points and the
     samples alone."""
     import os
 
-    import numba
-
-    counts = list(range(1, numba.config.NUMBA_NUM_THREADS + 1))
+    counts = list(range(1, usable_cores() + 1))
     load_start = os.getloadavg()[0]
     rows = []
     for name in ("default", "psf_wide"):
@@ -245,7 +240,7 @@ def thread_counts(seeds=(0, 1, 2)) -> dict:
                 d.run(vol, term, tol=0.0, max_iterations=10)
 
             # the count set, not the default's idle cores (a busy moment would lower it)
-            seg = thread_medians(lambda: segment(vol, apex, base, threads=numba.get_num_threads()), counts, 10)
+            seg = thread_medians(lambda: segment(vol, apex, base, threads=current_threads()), counts, 10)
             it = thread_medians(iteration, counts, 100)
             observe = thread_medians(lambda: d.backend.observe(p0, vol), counts, 500)
             samples = thread_medians(lambda: d.backend.mean_along(vol, obs, at_surface, rows_all), counts, 500)
@@ -260,7 +255,7 @@ def thread_counts(seeds=(0, 1, 2)) -> dict:
     load_end = os.getloadavg()[0]
     busy = beside_a_busy_process(seeds)
     print("beside a busy process", busy, flush=True)
-    return {"counts": counts, "unseen": rows, "threading_layer": numba.threading_layer(),
+    return {"counts": counts, "unseen": rows, "threading_layer": "openmp",
             "load": [load_start, load_end], "busy": busy, "machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M")}
 
 
@@ -269,14 +264,12 @@ SPIN = "import time\nend = time.monotonic() + 600\nwhile time.monotonic() < end:
 
 def beside_a_busy_process(seeds=(0, 1, 2), repeats=20) -> dict:
     """Whole default segmentations of the unseen-style cases while another
-    process spins on one core: the default thread count (numba's, reduced to
-    the idle cores) against numba's whole count forced, call by call in
+    process spins on one core: the default thread count (the cores, reduced to
+    the idle cores) against the whole count forced, call by call in
     turn; the median and the worst of each."""
     import subprocess
 
-    import numba
-
-    forced = numba.config.NUMBA_NUM_THREADS
+    forced = usable_cores()
     spinner = subprocess.Popen([sys.executable, "-c", SPIN])
     times = {"default": [], "forced": []}
     try:
@@ -299,12 +292,8 @@ def beside_a_busy_process(seeds=(0, 1, 2), repeats=20) -> dict:
 
 
 def _kernel_threads() -> int:
-    """The compiled kernels' thread count (numba's; 1 without numba)."""
-    if not compiled_available():
-        return 1
-    import numba
-
-    return numba.get_num_threads()
+    """The compiled kernels' thread count (1 where they are not built)."""
+    return current_threads() if compiled_available() else 1
 
 
 def _previous(key: str) -> dict:
@@ -376,7 +365,7 @@ def main():
 
     load_start = os.getloadavg()[0]
     # the first segmentation in a process pays for loading the compiled
-    # kernels from numba's cache and for the per-resolution matrices
+    # kernels and SciPy, and for reading the per-resolution matrices
     ph = make_phantom(seed=0)
     started = time.perf_counter()
     segment(ph.volume, ph.apex, ph.base)
@@ -441,7 +430,7 @@ def main():
     full = median_time(lambda: track(seq.volumes, first.apex, first.base), 3)
 
     notes = [
-        f"numba {'is' if compiled_available() else 'is NOT'} installed: the compiled backend "
+        f"The compiled kernels {'are' if compiled_available() else 'are NOT'} built: the compiled backend "
         f"{'ran' if compiled_available() else 'did not run'} (the numpy backend is the reference; tests check both agree "
         "to 1e-6).",
         f"Whole tracking of the 10-frame sequence (first frame from apex and base, then up to 20 iterations per "

@@ -17,7 +17,7 @@ resampled to 256^3:
   segmentation, the mask, the meshes and surface files, the mask and JSON
   writes, the PNG report;
 - the wall time of ``python -m spheroseg segment`` with and without the
-  report, on a first run (an empty numba cache: ``NUMBA_CACHE_DIR`` set to a
+  report, on a first run (an empty matrix cache: ``SPHEROSEG_CACHE_DIR`` set to a
   new folder) and on later runs.
 
 Medians over ``--repeats`` runs; results in docs/userspeed.json by label.
@@ -152,9 +152,9 @@ def demo(env: dict) -> dict:
 
 def measure_demo(repeats: int) -> dict:
     """The README's first command after its install: a first run (empty
-    numba cache), then later runs (medians)."""
+    matrix cache), then later runs (medians)."""
     with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        env = dict(os.environ, SPHEROSEG_CACHE_DIR=cache)
         first = demo(env)
         later = [demo(env) for _ in range(repeats)]
     return {"first_run": first, "later": {k: float(np.median([r[k] for r in later])) for k in later[0]}}
@@ -163,13 +163,13 @@ def measure_demo(repeats: int) -> dict:
 def measure(repeats: int) -> dict:
     results = {}
     with tempfile.TemporaryDirectory() as warm:
-        env_warm = dict(os.environ, NUMBA_CACHE_DIR=warm)
+        env_warm = dict(os.environ, SPHEROSEG_CACHE_DIR=warm)
         for case in cases():
             entry = {}
             first = []
             for _ in range(max(1, repeats // 2)):
                 with tempfile.TemporaryDirectory() as cold:
-                    first.append(command(case, dict(os.environ, NUMBA_CACHE_DIR=cold), report=False))
+                    first.append(command(case, dict(os.environ, SPHEROSEG_CACHE_DIR=cold), report=False))
             entry["first_run_no_report"] = float(np.median(first))
             command(case, env_warm, report=True)  # fills the warm cache
             runs = [stages(case, env_warm) for _ in range(repeats)]
@@ -239,7 +239,7 @@ def report_section(data: dict) -> str:
         cells = [form.format(entry(lab, n)["stages"][key]) if entry(lab, n) and key in entry(lab, n)["stages"]
                  else "-" for n in names for lab in labels]
         lines.append(f"| {title} | " + " | ".join(cells) + " |")
-    for title, key in (("`spheroseg segment`, first run (empty numba cache), no report", "first_run_no_report"),
+    for title, key in (("`spheroseg segment`, first run (empty matrix cache), no report", "first_run_no_report"),
                        ("`spheroseg segment`, later runs, no report", "later_no_report"),
                        ("`spheroseg segment`, later runs, with report", "later_report")):
         cells = [f"{1000 * entry(lab, n)[key]:.0f}" if entry(lab, n) else "-" for n in names for lab in labels]
@@ -247,7 +247,7 @@ def report_section(data: dict) -> str:
     demos = {lab: data[lab]["demo"] for lab in labels if "demo" in data[lab]}
     if demos:
         lines += ["", "`spheroseg demo` (the README's first command after its install; `--quiet`, in a new folder), "
-                  "seconds: a first run with an empty numba cache, then the median of later runs.  Its own "
+                  "seconds: a first run with an empty matrix cache, then the median of later runs.  Its own "
                   "`seconds` in results.json: making the synthetic 10-frame sequence, loading (or compiling) the "
                   "kernels, segmenting its frames; the rest of the wall time is starting Python and importing, "
                   "the Dice and distance checks against the truth, the report and the files.", "",
@@ -265,7 +265,7 @@ def report_section(data: dict) -> str:
             ("the mask compiled, by blocks", "no separate figure"),
             ("the report drawn in a second process while a core is free", "no separate figure"),
             ("the command ending without the interpreter's teardown", "no separate figure"),
-            ("kernels on numba's threads", "no separate figure"),
+            ("kernels on OpenMP threads", "no separate figure"),
             ("the padding search on the float32 voxels in place", "no separate figure"),
             ("the mask's slopes bounded patch by patch only", "no separate figure"),
             ("the global means' blood-dark polarity", "without it the 256^3 case collapsed (see its volume)"),

@@ -14,7 +14,7 @@ GRID = HermiteGrid(4, 3, (0.0, np.pi / 2))
 
 @pytest.fixture
 def cache(tmp_path, monkeypatch):
-    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("SPHEROSEG_CACHE_DIR", str(tmp_path))
     return cache_directory()
 
 
@@ -35,7 +35,7 @@ def assert_same(a, b):
     assert fa.keys() == fb.keys() and len(fa) > 15
     for name in fa:
         assert fa[name].dtype == fb[name].dtype and np.array_equal(fa[name], fb[name]), name
-        # the same memory layout too: numba compiles a kernel per layout
+        # the same memory layout too: the kernels take C-contiguous arrays
         assert fa[name].flags.c_contiguous and fb[name].flags.c_contiguous, name
     assert np.array_equal(a.system_inverse(0.5), b.system_inverse(0.5))
 
@@ -62,7 +62,7 @@ def test_a_corrupted_file_is_computed_again(cache):
 def test_an_unwritable_directory_only_computes(tmp_path, monkeypatch):
     blocker = tmp_path / "file"
     blocker.write_text("not a directory")
-    monkeypatch.setenv("NUMBA_CACHE_DIR", str(blocker))
+    monkeypatch.setenv("SPHEROSEG_CACHE_DIR", str(blocker))
     assert_same(discretise(GRID, 5), discretise.__wrapped__(GRID, 5))
     assert blocker.read_text() == "not a directory"
 

@@ -8,7 +8,7 @@ from spheroseg.geometry.energy import SampledSurface
 from spheroseg.synthetic.phantom import make_phantom
 from spheroseg.surfaces.surface import Surface
 
-pytestmark = pytest.mark.skipif(not compiled_available(), reason="numba not installed")
+pytestmark = pytest.mark.skipif(not compiled_available(), reason="the compiled kernels are not built")
 
 
 @pytest.fixture(scope="module")

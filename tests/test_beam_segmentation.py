@@ -6,7 +6,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from spheroseg import track
-from spheroseg._compiled import _kernels
+from spheroseg._compiled._runtime import compiled_available
 from spheroseg import segment
 from spheroseg.volumes.beamspace import beam_mask, beam_mask_volume_ml, scan_convert, to_beam_space
 from spheroseg.synthetic.phantom import FORMATIONS, make_phantom, make_sequence, probe_sector
@@ -56,7 +56,7 @@ def test_phantom_formed_in_beam_space():
     assert direct.volume_ml == pytest.approx(ph.truth_volume_ml, rel=0.03)
 
 
-@pytest.mark.skipif(not _kernels.AVAILABLE, reason="numba not installed")
+@pytest.mark.skipif(not compiled_available(), reason="the compiled kernels are not built")
 def test_beam_space_compiled_and_numpy_backends_agree():
     ph = make_phantom(seed=2, spacing=1.5)
     beam = to_beam_space(ph.volume, probe_sector(ph.volume, convention="sin"))

@@ -1,8 +1,7 @@
 """The command line, end to end: through a real subprocess where the test is
 about the process (exit statuses, one-line errors, timings, a verb's whole
-run; a first run's message: tests/test_warmup.py), else
-:func:`spheroseg.cli.main` in this process (no interpreter, numba or SciPy
-to start, some 2 s a command)."""
+run), else :func:`spheroseg.cli.main` in this process (no interpreter or
+SciPy to start, some 2 s a command)."""
 
 import json
 import os
@@ -396,7 +395,6 @@ def test_profile_and_seconds_block(case, tmp_path):
     assert seconds["descent"] <= seconds["segment"]
     assert sum(seconds[k] for k in stages if k != "descent") < wall
     lines = proc.stderr.strip().splitlines()
-    lines = lines[1:] if lines[0].startswith("spheroseg: compiling") else lines  # a first run
     assert lines[0] == "spheroseg: seconds by stage"
     printed = {line.split()[0]: float(line.split()[1]) for line in lines[1:]}
     for k in stages:
@@ -404,7 +402,7 @@ def test_profile_and_seconds_block(case, tmp_path):
     assert printed["total"] == pytest.approx(sum(printed[k] for k in stages if k != "descent"), abs=0.5)
     # without --profile nothing is printed, the block is still written
     proc = run("segment", path, *points_args(ph, shift), "--out", tmp_path / "quiet", "--quiet", "--no-report")
-    assert proc.returncode == 0 and proc.stderr == ""  # the kernels were compiled above: no message
+    assert proc.returncode == 0 and proc.stderr == ""
     assert "report" not in json.loads((tmp_path / "quiet" / "results.json").read_text())["seconds"]
 
 

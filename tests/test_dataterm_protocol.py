@@ -60,7 +60,7 @@ def test_the_likelihoods_cross_where_the_statistics_say():
 @pytest.mark.parametrize("backend", ["numpy", "compiled"])
 def test_a_term_of_ones_own_segments_the_phantom(phantom, backend):
     if backend == "compiled" and not compiled_available():
-        pytest.skip("numba not installed")
+        pytest.skip("the compiled kernels are not built")
     Rayleigh.calls = 0
     term = Rayleigh(width=6.0, samples=3)
     result = spheroseg.segment(phantom.volume, phantom.apex, phantom.base, mode=term, backend=backend)
@@ -95,7 +95,7 @@ def test_a_term_class_still_runs_with_a_warning(phantom):
 
 def test_both_backends_agree(phantom):
     if not compiled_available():
-        pytest.skip("numba not installed")
+        pytest.skip("the compiled kernels are not built")
     results = [spheroseg.segment(phantom.volume, phantom.apex, phantom.base, mode=Rayleigh(), backend=b)
                for b in ("numpy", "compiled")]
     assert results[0].iterations == results[1].iterations

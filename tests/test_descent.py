@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from spheroseg import Tracker, Volume
+from spheroseg._compiled._runtime import compiled_available
 from spheroseg.descent.dataterms import FixedInterface, GlobalMeans, IntensityInterface, LocalMeans
 from spheroseg.descent.stepper import freeze_samples
 from spheroseg.descent.descent import Descent
@@ -14,6 +15,10 @@ from spheroseg.geometry.discretisation import ROUGHNESS_SCALE
 from spheroseg.tracking.epicardium import wall_term
 from spheroseg.synthetic.phantom import make_phantom
 from spheroseg.surfaces.surface import Surface
+
+
+#: the tests of the compiled loop, where the package is built (not a source tree)
+needs_compiled = pytest.mark.skipif(not compiled_available(), reason="the compiled kernels are not built")
 
 
 @pytest.fixture(scope="module")
@@ -89,6 +94,7 @@ def _stepped(descent, volume, term, state, *, tol, max_iterations):
                          [(GlobalMeans(), (2, 2), True), (GlobalMeans(), (4, 4), False), (LocalMeans(), (8, 8), True),
                           (IntensityInterface(), (8, 8), True), (FixedInterface(), (4, 4), True),
                           (wall_term(15.0), (8, 8), True), (wall_term(), (8, 8), True)])
+@needs_compiled
 def test_a_level_in_one_compiled_loop_equals_its_iterations(phantom, term, patches, adaptive_step):
     """:meth:`Descent.run` (one compiled loop) against observe, force and
     iterate repeated, from the same start with two landmarks: the same
@@ -144,6 +150,7 @@ def test_a_level_in_one_compiled_loop_equals_its_iterations(phantom, term, patch
         for a, b in zip(run.force.grey_means, force.grey_means):
             np.testing.assert_allclose(a, b, **close)
 
+@needs_compiled
 def test_a_compiled_loop_without_image_data_says_so(phantom):
     """The local means off the image: the loop's error is the reference's."""
     ph = phantom

@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-from spheroseg._compiled import _kernels
 from spheroseg.descent.backends import MIN_COS, CompiledBackend, NumpyBackend, Observation
 from spheroseg.volumes.beamspace import to_beam_space
 from spheroseg.geometry.discretisation import discretise
@@ -11,14 +10,15 @@ from spheroseg.geometry.energy import SampledSurface
 from spheroseg.synthetic.phantom import make_phantom, probe_sector
 from spheroseg.surfaces.surface import Surface
 
-pytestmark = pytest.mark.skipif(not _kernels.AVAILABLE, reason="numba not installed")
+# not built (a source tree on PYTHONPATH): nothing to test here; that an
+# installed package has them is tests/test_warmup.py's
+_kernels = pytest.importorskip("spheroseg._compiled._kernels", reason="the compiled kernels are not built")
 
 
 
 def read_only(rows):
-    """A row index read-only, as a segmentation's band rows: the kernels'
-    signature of a real run (a writable one is another specialisation,
-    compiled for the test alone)."""
+    """A row index read-only, as a segmentation's band rows: the kernels
+    take both."""
     rows.flags.writeable = False
     return rows
 
@@ -220,3 +220,64 @@ def test_compiled_backend_samples_beam_space_as_the_numpy_backend(beam_case):
     assert (ref_weight > 0).mean() > 0.9
     np.testing.assert_allclose(total, ref_total, rtol=1e-7)
     np.testing.assert_allclose(weight, ref_weight, rtol=1e-9)
+
+
+def edge_indices(upper, rng, n=400):
+    """Continuous indices on and about the faces of a box ``[0, upper]``
+    (x, y, z): each coordinate on a face, within the samplers' tolerance
+    outside it (``INDEX_TOLERANCE``), just beyond it, or anywhere inside;
+    corners and edges included."""
+    from spheroseg._compiled import INDEX_TOLERANCE
+
+    upper = np.asarray(upper, float)
+    choices = np.array([0.0, 0.5, 2.0])  # on, within the tolerance, beyond: in tolerances
+    index = rng.uniform(0, 1, (n, 3)) * upper
+    face = rng.integers(0, 3, (n, 3))  # 0: inside, 1: the low face, 2: the high face
+    step = choices[rng.integers(0, 3, (n, 3))] * INDEX_TOLERANCE
+    index = np.where(face == 1, -step, index)
+    index = np.where(face == 2, upper + step, index)
+    return index
+
+
+def test_samples_at_the_faces_of_the_image_are_the_reference(case, rng):
+    """Random points on, just inside the tolerance of and just beyond the
+    image's faces, edges and corners: NaN where the reference says so, the
+    nearest voxel to the last bit and trilinear to 1e-12 relative."""
+    ph, _, _, _ = case
+    vol = ph.volume
+    index = edge_indices(np.array(vol.shape[::-1]) - 1, rng)
+    world = np.ascontiguousarray(vol.grid.index_to_world(index).T)
+    rows = np.arange(world.shape[1])
+    for order in (0, 1):
+        out = np.empty((len(rows), 1))
+        _kernels.samples_at(*_kernels.sampler(vol.sampling_view()), world, np.zeros_like(world), rows,
+                            np.zeros(1), order == 0, out)
+        expected = vol.sample(world.T, order=order)
+        assert 0 < np.isnan(expected).sum() < 0.9 * expected.size  # on and off the image
+        np.testing.assert_array_equal(np.isnan(out[:, 0]), np.isnan(expected))
+        if order == 0:
+            np.testing.assert_array_equal(out[:, 0], expected)
+        else:
+            np.testing.assert_allclose(out[:, 0], expected, rtol=1e-12, atol=0)
+    mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
+    _kernels.sample_along(*_kernels.sampler(vol.sampling_view()), world, np.zeros_like(world), rows, np.zeros(1),
+                          0.0, mean, count)
+    np.testing.assert_array_equal(np.isnan(mean), np.isnan(expected))
+    np.testing.assert_allclose(mean, expected, rtol=1e-12, atol=0)
+
+
+def test_samples_at_the_edges_of_the_sector_are_the_reference(beam_case, rng):
+    """Random points on and about the beam-space volume's faces (the
+    sector's range and angle ends, corners included): as
+    BeamVolume.sample, NaN outside, to 1e-9 relative (the angles' atan)."""
+    beam = beam_case[0]
+    index = edge_indices(np.array(beam.shape[::-1]) - 1, rng)  # (a, e, r) order is x, y, z of the samples
+    world = np.ascontiguousarray(beam.index_to_world(index[:, ::-1]).T)
+    rows = np.arange(world.shape[1])
+    mean, count = np.empty(len(rows)), np.empty(len(rows), np.int64)
+    _kernels.sample_along(*_kernels.sampler(beam.sampling_view()), world, np.zeros_like(world), rows, np.zeros(1),
+                          0.0, mean, count)
+    expected = beam.sample(world.T)
+    assert 0 < np.isnan(expected).sum() < 0.9 * expected.size
+    np.testing.assert_array_equal(np.isnan(mean), np.isnan(expected))
+    np.testing.assert_allclose(mean, expected, rtol=1e-9, atol=0)

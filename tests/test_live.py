@@ -527,3 +527,22 @@ def test_replay_and_live_commands(seq, tmp_path, capsys):
     assert "tracking the images of" in err and " tracked, " in err and "streaming" not in err  # (--quiet)
     tracked = int(err.rsplit(" tracked,", 1)[0].rsplit(",", 1)[1])
     assert tracked >= 1
+
+
+def test_the_crc_is_ecma_182_and_the_compiled_kernel_is_its_reference():
+    """The CRC-64 check value of ECMA-182 (``"123456789"`` gives
+    0x6C40DF5F0B497347), and the compiled kernel equal to the byte-at-a-time
+    reference on random lengths (every remainder of the eight-byte steps)."""
+    from spheroseg._compiled._runtime import compiled_available
+    from spheroseg.apps.live.crc import crc64, crc64_reference
+
+    assert crc64_reference(b"123456789") == 0x6C40DF5F0B497347
+    assert crc64(b"123456789") == 0x6C40DF5F0B497347 and crc64(b"") == 0
+    rng = np.random.default_rng(4)
+    for n in [1, 7, 8, 9, 15, 16, 17, 1000, 4099]:
+        data = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+        assert crc64(data) == crc64_reference(data), n
+    if compiled_available():
+        import spheroseg._compiled._crc as compiled
+
+        assert compiled.__file__.endswith(".so")

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SUBPROCESS_PATH
 from scipy import ndimage
 
 from spheroseg import Located, NoVentricleError, Volume, locate, save_volume, segment
@@ -155,8 +156,7 @@ def test_segment_without_points_locates_first(p157):
 def test_cli_segment_without_points_records_the_located_points(tmp_path, p157):
     image = tmp_path / "p1.mha"
     save_volume(image, p157.volume)
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1] / "src") + os.pathsep
-               + os.environ.get("PYTHONPATH", ""))
+    env = dict(os.environ, PYTHONPATH=SUBPROCESS_PATH)
     out = tmp_path / "out"
     run = subprocess.run([sys.executable, "-m", "spheroseg", "segment", str(image), "--out", str(out), "--no-report"],
                          capture_output=True, text=True, env=env)

@@ -35,7 +35,7 @@ def test_defaults_round_trip_through_json():
     (dict(nu=-0.1), "nu must be a number >= 0"),
     (dict(radius_ratio=1.5), r"radius_ratio must be in \(0, 1\)"),
     (dict(interface=float("inf")), "interface must be a finite grey level"),
-    (dict(threads=0), r"threads must be a positive integer \(or None: numba's setting\), got 0"),
+    (dict(threads=0), r"threads must be a positive integer \(or None: the default\), got 0"),
     (dict(threads=2.0), "threads must be a positive integer"),
     (dict(threads=True), "threads must be a positive integer"),
 ])

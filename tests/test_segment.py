@@ -119,28 +119,28 @@ def test_deterministic(phantoms):
     np.testing.assert_array_equal(a.surface.coefficients, b.surface.coefficients)
 
 
-@pytest.mark.skipif(not compiled_available(), reason="the thread count is numba's")
+@pytest.mark.skipif(not compiled_available(), reason="the compiled kernels are not built")
 def test_thread_count_changes_no_bit(phantoms):
     """The compiled kernels split their sample points among the threads and
     compute each point as on one: the coefficients are equal to the last bit
     (the default mode runs every kernel: cavity sums, band samples, the
-    surface), and numba's count is as before the call."""
-    import numba
+    surface), and the count is as before the call."""
+    from spheroseg._compiled._runtime import current_threads
 
-    before = numba.get_num_threads()
+    before = current_threads()
     ph = phantoms[0]
     one, two = (segment(ph.volume, ph.apex, ph.base, threads=n) for n in (1, 2))
     assert one.iterations == two.iterations
     np.testing.assert_array_equal(one.surface.coefficients, two.surface.coefficients)
-    assert numba.get_num_threads() == before
+    assert current_threads() == before
     seq = make_sequence(seed=31, n_frames=3, spacing=2.0)
     one, two = (track(seq.volumes, seq.frames[0].apex, seq.frames[0].base, threads=n) for n in (1, 2))
     for a, b in zip(one.frames, two.frames):
         np.testing.assert_array_equal(a.surface.coefficients, b.surface.coefficients)
-    assert numba.get_num_threads() == before
+    assert current_threads() == before
     with pytest.raises(ValueError, match="constant"):  # raised while the count is set: restored all the same
         segment(Volume(np.full((40, 40, 40), 80.0, np.float32)), (20, 20, 35), (20, 20, 5), threads=1)
-    assert numba.get_num_threads() == before
+    assert current_threads() == before
 
 
 def test_an_end_systolic_cavity_is_smoothed_from_its_fitted_shape_not_the_clicked_one():
@@ -268,7 +268,7 @@ def test_compiled_path_matches_numpy_reference(phantoms):
     from spheroseg.surfaces.surface import Surface
 
     if not compiled_available():
-        pytest.skip("numba not installed")
+        pytest.skip("the compiled kernels are not built")
     ph = phantoms[0]
     s = Surface.from_apex_base(ph.apex, ph.base)
     kw = dict(order=8, step=1.0, landmarks=ph.apex[None], landmark_weights=[1.0], nu=0.0, smoothness=1.0)
@@ -286,6 +286,7 @@ def test_compiled_path_matches_numpy_reference(phantoms):
     np.testing.assert_allclose(fast.p, ref.p, atol=1e-6)
 
 
+@pytest.mark.skipif(not compiled_available(), reason="the compiled kernels are not built")
 @pytest.mark.parametrize("mode", ["local", "chan-vese"])
 def test_compiled_segmentation_matches_numpy_reference(phantoms, monkeypatch, mode):
     """A whole segmentation (all levels: global means, local means, the
@@ -293,7 +294,7 @@ def test_compiled_segmentation_matches_numpy_reference(phantoms, monkeypatch, mo
     from spheroseg._compiled import _kernels
 
     if not _kernels.AVAILABLE:
-        pytest.skip("numba not installed")
+        pytest.skip("the compiled kernels are not built")
     ph = phantoms[1]
     # a landmark on the wall half-way down, where the truth has it
     axis = (ph.apex - ph.base) / np.linalg.norm(ph.apex - ph.base)

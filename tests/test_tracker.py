@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import spheroseg
 from spheroseg import Tracker, track
 from spheroseg import segment
 from spheroseg.descent.dataterms import FixedInterface, GlobalMeans, IntensityInterface, LocalMeans
@@ -19,7 +18,8 @@ from spheroseg.surfaces.surface import Surface
 from spheroseg.tracking.tracker import BASE_RING_MM, schedule
 
 DATA = Path(__file__).parent / "data"
-SRC = Path(spheroseg.__file__).parent
+# the sources under test, from the repository (an installed package lies elsewhere)
+SRC = Path(__file__).resolve().parents[1] / "src" / "spheroseg"
 # options added after the reference was recorded, as they reproduce the descent it recorded
 LEGACY = dict(adaptive_step=False, coarse_tol=0.05)
 KERNEL_MODULES = ("_kernels",)

@@ -1,8 +1,8 @@
-"""The numba runtime: whether the compiled kernels can run, how many
-threads they get, the lock around their parallel regions, and what numba
-compiled rather than loaded from its on-disk cache.
+"""The compiled kernels' runtime: whether they can run (the package was
+built), how many threads their OpenMP loops get, and the lock around their
+parallel regions.
 
-Nothing here imports numba at module level: ``import spheroseg`` stays light.
+Nothing here imports the kernels: ``import spheroseg`` stays light.
 """
 
 from __future__ import annotations
@@ -15,39 +15,30 @@ from typing import Iterator
 
 import numpy as np
 
-__all__ = ["die_with_parent", "PARALLEL_LOCK", "compiled_available", "compilations", "usable_cores", "idle_cores",
-           "kernel_thread_count", "kernel_threads", "LOAD_MAX_AGE"]
+__all__ = ["die_with_parent", "PARALLEL_LOCK", "compiled_available", "usable_cores", "idle_cores", "default_threads",
+           "set_default_threads", "current_threads", "kernel_thread_count", "kernel_threads", "LOAD_MAX_AGE"]
 
 #: held by a caller of a parallel kernel (the iteration's and the
-#: rasteriser's): numba releases the GIL in a parallel region, and its
-#: fallback threading layer (workqueue, where neither TBB nor an OpenMP
-#: runtime is installed) aborts the process when two Python threads enter
-#: one at once, as the viewer's worker and its HTTP thread (a mask on save)
-#: could
+#: rasteriser's): the kernels release the GIL, and two Python threads (the
+#: viewer's worker and its HTTP thread, a mask on save) each opening an
+#: OpenMP team of the cores' size would put two threads on every core,
+#: where a parallel region waits for its slowest thread
 PARALLEL_LOCK = threading.Lock()
 # a segmentation or a frame reads the machine's load when the last reading
 # is older than this (s): a back-to-back series (a cohort, a sequence)
 # need not read it at every frame
 LOAD_MAX_AGE = 0.1
 _LOAD_SAMPLE = (-np.inf, 1)  # (time.monotonic(), idle cores) of the last reading
-
-
-def compilations(module) -> int:
-    """Kernels of ``module`` that numba compiled in this process, i.e. that
-    missed its on-disk cache (``Dispatcher.stats.cache_misses``)."""
-    count = 0
-    for value in vars(module).values():
-        misses = getattr(getattr(value, "stats", None), "cache_misses", None)
-        if misses:
-            count += sum(misses.values()) if isinstance(misses, dict) else len(misses)
-    return count
+_LOCAL = threading.local()  # .threads: kernel_threads' count in this Python thread
+_DEFAULT = [None]  # default_threads, once read
 
 
 def compiled_available() -> bool:
-    """Whether the compiled kernels can run (numba is installed)."""
+    """Whether the compiled kernels can run: the package was built (its
+    extension modules are beside this one), not run from a source tree."""
     from importlib.util import find_spec
 
-    return find_spec("numba") is not None
+    return find_spec("spheroseg._compiled._kernels") is not None
 
 
 def usable_cores() -> int:
@@ -108,48 +99,60 @@ def _own_running_threads() -> int:
     return max(running, 1)
 
 
-def kernel_thread_count(threads: int | None) -> int | None:
+def default_threads() -> int:
+    """The kernels' thread count outside :func:`kernel_threads`: that of
+    :func:`set_default_threads`, else the :func:`usable_cores`
+    (``OMP_NUM_THREADS``, which ``spheroseg batch`` sets to 1 for BLAS,
+    does not apply)."""
+    if _DEFAULT[0] is None:
+        _DEFAULT[0] = usable_cores()
+    return _DEFAULT[0]
+
+
+def set_default_threads(threads: int) -> None:
+    """Set :func:`default_threads` for the process (a batch worker's one
+    thread)."""
+    if int(threads) < 1:
+        raise ValueError(f"threads must be a positive integer, got {threads!r}")
+    _DEFAULT[0] = int(threads)
+
+
+def current_threads() -> int:
+    """The thread count the kernels run on now, in this Python thread:
+    :func:`kernel_threads`' inside one, else :func:`default_threads`."""
+    return getattr(_LOCAL, "threads", None) or default_threads()
+
+
+def kernel_thread_count(threads: int | None) -> int:
     """The compiled kernels' thread count for a segmentation or a frame.
 
-    ``threads`` when given; otherwise numba's count, reduced to the
-    :func:`idle_cores` (a reading at most ``LOAD_MAX_AGE`` s old): a
-    parallel region waits for its slowest thread, and a thread that shares
-    its core with another process's work made whole segmentations 2 to 90
-    times slower than on one thread (measured beside one busy process on 2
-    cores).  None without numba."""
+    ``threads`` when given; otherwise the current count
+    (:func:`current_threads`), reduced to the :func:`idle_cores` (a reading
+    at most ``LOAD_MAX_AGE`` s old): a parallel region waits for its slowest
+    thread, and a thread that shares its core with another process's work
+    made whole segmentations 2 to 90 times slower than on one thread
+    (measured beside one busy process on 2 cores)."""
     if threads is not None:
         return threads
-    try:
-        import numba
-    except ImportError:  # pragma: no cover - numba is a dependency
-        return None
-    count = numba.get_num_threads()
+    count = current_threads()
     return count if count == 1 else min(count, idle_cores(max_age=LOAD_MAX_AGE))
 
 
 @contextmanager
 def kernel_threads(threads: int | None) -> Iterator[None]:
     """Run the compiled kernels inside on ``threads`` threads, then restore
-    numba's count (also on an exception); None, or without numba, changes
-    nothing.  numba's count belongs to the calling Python thread, so two
-    threads (the viewer's worker and its HTTP thread) do not change each
-    other's.  A count above ``NUMBA_NUM_THREADS`` is capped at it."""
-    try:
-        import numba
-    except ImportError:
-        numba = None
-    if threads is None or numba is None:
+    the count before (also on an exception); None changes nothing.  The
+    count belongs to the calling Python thread, so two threads (the
+    viewer's worker and its HTTP thread) do not change each other's."""
+    if threads is None:
         yield
         return
-    previous, wanted = numba.get_num_threads(), min(int(threads), numba.config.NUMBA_NUM_THREADS)
-    if wanted == previous:  # nested (a run's iterations): nothing to set
-        yield
-        return
-    numba.set_num_threads(wanted)
+    previous = getattr(_LOCAL, "threads", None)
+    _LOCAL.threads = max(1, int(threads))
     try:
         yield
     finally:
-        numba.set_num_threads(previous)
+        _LOCAL.threads = previous
 
 
 #: Linux's prctl option that sends the calling process a signal when its

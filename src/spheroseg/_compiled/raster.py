@@ -3,7 +3,7 @@ scan-converted sector, and an image's means over blocks of voxels.
 
 A service beside :class:`~spheroseg.Surface` and
 :class:`~spheroseg.Volume`, which stay numpy types: the loops over voxels
-are compiled (:mod:`spheroseg._raster`), imported only when called, and run
+are compiled (:mod:`spheroseg._compiled._raster`), imported only when called, and run
 under the runtime's lock on parallel regions.  Nothing here imports the
 surface or the volume modules: the surface and the grid are read through
 their attributes.
@@ -25,7 +25,7 @@ def surface_mask(surface, grid) -> np.ndarray:
     range and ``v0 <= f(v1, v2)``).  The compiled rasteriser decides whole
     blocks of voxels from one evaluation where the surface is provably far,
     and single voxels only near it, so its cost grows with the surface's
-    area in voxels, not with the grid; without numba every voxel of the box
+    area in voxels, not with the grid; without the built extension every voxel of the box
     is converted.
 
     Parameters
@@ -43,7 +43,7 @@ def surface_mask(surface, grid) -> np.ndarray:
         return np.zeros(grid.shape, dtype=bool)
     try:
         from ._raster import cavity_mask
-    except ImportError:  # pragma: no cover - numba is a dependency
+    except ImportError:  # not built (a source tree): the reference
         k, j, i = np.meshgrid(*(np.arange(a, b) for a, b in zip(start[::-1], stop[::-1])), indexing="ij")
         world = grid.index_to_world(np.stack([i, j, k], axis=-1).reshape(-1, 3))
         out = np.zeros(grid.shape, dtype=bool)
@@ -99,7 +99,7 @@ def outside_sector(array: np.ndarray, *, min_fraction: float = 0.01) -> np.ndarr
     # few zeros means too little padding, and the search is no dearer)
     try:
         from ._raster import face_connected_zeros
-    except ImportError:  # pragma: no cover - numba is a dependency
+    except ImportError:  # not built (a source tree): the reference
         from scipy import ndimage
 
         labels, _ = ndimage.label(array == 0)

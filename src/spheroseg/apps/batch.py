@@ -323,13 +323,10 @@ def _pool_worker_init(threads: int | None, parent: int | None = None) -> None:
     if parent is not None:  # a worker dies with the command (kill -9 of it included), not under PID 1
         die_with_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: running studies finish, then it stops
-    if threads is not None:
-        try:
-            import numba
-        except ImportError:
-            pass
-        else:  # this (main) thread runs the studies; a study's own threads option still applies
-            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    if threads is not None:  # this (main) thread runs the studies; a study's own threads option still applies
+        from .._compiled._runtime import set_default_threads
+
+        set_default_threads(threads)
     warm_up()
 
 
@@ -435,11 +432,11 @@ def segment_many(studies: Iterable, *, out: str | os.PathLike, executor: Executo
         ``spheroseg batch`` sets ``OMP_NUM_THREADS=1`` (and OpenBLAS's, MKL's)
         unless given, as Dask does for its workers, so that the two give the
         same numbers to the last bit.  With more than one worker each runs
-        the compiled kernels on one thread (numba's ``set_num_threads(1)``;
-        the option ``threads`` overrides it), so that the workers do not
-        contend for the cores; a single worker uses all of them.  A Dask
-        cluster's workers do not get this: give them ``NUMBA_NUM_THREADS=1``
-        in their environment, or ``threads=1`` in ``options``.
+        the compiled kernels on one thread
+        (:func:`spheroseg._compiled._runtime.set_default_threads`; the option
+        ``threads`` overrides it), so that the workers do not contend for
+        the cores; a single worker uses all of them.  A Dask cluster's
+        workers do not get this: give them ``threads=1`` in ``options``.
     timeout : float, optional
         Seconds a study may take; over it the study fails.
     options : dict, optional

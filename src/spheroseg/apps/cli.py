@@ -345,36 +345,10 @@ def _mask_suffix(args, source: Path) -> str:
 
 
 def _kernels_loaded(seconds: dict) -> None:
-    """Compile or load the kernels before any timed work (a first run says so)."""
-    seconds["kernels"] = _load_kernels_saying()["seconds"]
-
-
-#: a first run's one line, begun as compiling starts, ended with its time
-COMPILING = ("spheroseg: compiling the numerical kernels for this machine, once "
-             "(later runs load them from numba's cache):")
-
-
-def _load_kernels_saying():
-    """``load_kernels``; on a first run one line on stderr, its start printed
-    as compiling starts (a user sees why the command waits) and its end, the
-    seconds it took, when done."""
+    """Load the numerical path before any timed work (:func:`~spheroseg.apps.warmup.load_kernels`)."""
     from .warmup import load_kernels
 
-    said = []
-
-    def start():
-        print(COMPILING, end="", file=sys.stderr, flush=True)
-        said.append(True)
-
-    try:
-        loaded = load_kernels(on_compile=start)
-    except BaseException:
-        if said:  # an error (or Ctrl-C) gets a line of its own
-            print(file=sys.stderr)
-        raise
-    if loaded["compiled"]:
-        print(("" if said else COMPILING) + f" {loaded['seconds']:.1f} s", file=sys.stderr)
-    return loaded
+    seconds["kernels"] = load_kernels()["seconds"]
 
 
 def _load_timed(source, args, seconds: dict):
@@ -442,7 +416,7 @@ def _report_worker(args):
 
 def cmd_segment(args) -> int:
     # CPU time of the main thread so far: the interpreter and the package
-    # imports (the process's would add BLAS's and numba's threads, and could
+    # imports (the process's would add BLAS's and OpenMP's threads, and could
     # exceed the wall time it stands for)
     seconds = {"import": time.thread_time()}
     t0 = time.perf_counter()
@@ -724,10 +698,11 @@ def cmd_view(args) -> int:
         if exc.errno is not None and exc.filename is None:  # the socket, not a file
             raise CliError(f"cannot listen on 127.0.0.1:{args.port}: {exc.strerror}") from None
         raise
-    # said before it starts: a first run compiles the kernels for a minute or more
-    print(f"spheroseg: {args.image} read; loading the numerical kernels (a first run compiles them)",
-          file=sys.stderr, flush=True)
-    _load_kernels_saying()
+    # said before it starts: the kernels load (and the reference path's matrices are made) meanwhile
+    print(f"spheroseg: {args.image} read; loading the numerical kernels", file=sys.stderr, flush=True)
+    from .warmup import load_kernels
+
+    load_kernels()
     print(server.url, flush=True)  # once the kernels are loaded: a pasted address answers at once
     if not args.no_browser:
         import webbrowser
@@ -757,7 +732,7 @@ def cmd_live(args) -> int:
     _check_options(args)
     apex, base, landmarks, annulus = _points(args)
     return run(args, points=dict(apex=apex, base=base, landmarks=landmarks, annulus=annulus),
-               options=_segment_kwargs(args), prepare=_load_kernels_saying)
+               options=_segment_kwargs(args), prepare=lambda: _kernels_loaded({}))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -806,8 +781,8 @@ _QUICK_EXIT = ("segment", "track", "scan-convert", "demo")
 def console() -> None:
     """The ``spheroseg`` command: :func:`main`, then exit.  After a command
     that leaves nothing running, the process ends without tearing the
-    interpreter down (numba's and LLVM's finalisers take some 0.15 s, a
-    tenth of a segmentation command), its outputs written and closed and the
+    interpreter down (the finalisers of the modules it loaded; they took
+    a tenth of a segmentation command), its outputs written and closed and the
     standard streams flushed."""
     argv = sys.argv[1:]
     code = main(argv)

@@ -1,12 +1,12 @@
 """Draw the PNG report in a second process started with the command.
 
 Importing matplotlib takes about 0.35 s and drawing a report about 0.2 s,
-while the command itself spends a second loading numba's kernels and
+while the command itself spends a second loading the numerical path and
 segmenting on one core.  When a core is free, :class:`ReportWorker` starts
 a process that imports matplotlib at once and later draws the report
 (:func:`spheroseg.report.save_parts`) from the few arrays it shows, so
 neither lies on the command's path.  On Linux the process is forked as the
-command starts (before numba is loaded), so it needs no imports but
+command starts (before SciPy and the kernels are loaded), so it needs no imports but
 matplotlib's; elsewhere it is spawned.  Without a free core, or when the
 process cannot start or dies, the report is drawn in this process.
 """

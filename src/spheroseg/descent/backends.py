@@ -3,7 +3,7 @@
 :class:`NumpyBackend` is the readable reference: it calls
 :meth:`SampledSurface.geometry`, :meth:`Volume.sample` and
 :func:`spheroseg.energy.normal_speed` and restates none of them.
-:class:`CompiledBackend` does the same work in the numba kernels of
+:class:`CompiledBackend` does the same work in the compiled kernels of
 :mod:`spheroseg._kernels` (prolate spheroidal system only), writing into
 arrays allocated once (a :class:`~spheroseg.beamspace.BeamVolume` too: the
 kernels take either's arrays); the tests require both to give
@@ -241,7 +241,7 @@ class NumpyBackend:
 
 
 class CompiledBackend(NumpyBackend):
-    """The same work in numba kernels (prolate spheroidal system); falls back
+    """The same work in the compiled kernels (prolate spheroidal system); falls back
     to the reference for what they do not compute (the full geometry that
     the area term needs)."""
 
@@ -254,7 +254,6 @@ class CompiledBackend(NumpyBackend):
         self.kernels = _kernels
         n, nb = model.n_samples, len(self.discretisation.band_rows)
         self._all_rows = np.arange(n)
-        self._all_rows.flags.writeable = False  # as the band rows: one kernel signature for both
         self._buffers = dict(f=np.empty(n), h0=np.empty(n), cos=np.empty(n), area=np.empty(n),
                              world=np.empty((3, n)), normal=np.empty((3, n)), u=np.empty(n),
                              inside=np.empty(nb), outside=np.empty(nb))
@@ -309,9 +308,6 @@ class CompiledBackend(NumpyBackend):
             rows = self._all_rows
         if isinstance(volume, BeamVolume) or exponent or isinstance(rows, slice) or order not in (0, 1):
             return super().samples_along(volume, obs, offsets, rows, exponent=exponent, order=order)
-        if rows.flags.writeable:  # read-only as the band rows: one kernel signature whoever calls
-            rows = rows.view()
-            rows.flags.writeable = False
         offsets = np.ascontiguousarray(offsets, dtype=float)
         out = np.empty((len(rows), len(offsets)))
         image = self._sampling(volume)
@@ -394,7 +390,7 @@ class CompiledBackend(NumpyBackend):
 
 
 def select_backend(model: SampledSurface, *, compiled: bool = True) -> NumpyBackend:
-    """The compiled backend where it applies (numba installed, prolate
+    """The compiled backend where it applies (the package built, prolate
     spheroidal system, ``compiled``), else the numpy reference."""
     if compiled and isinstance(model.system, ProlateSpheroidal) and compiled_available():
         return CompiledBackend(model)
@@ -403,7 +399,7 @@ def select_backend(model: SampledSurface, *, compiled: bool = True) -> NumpyBack
 
 def sample_points(volume, points, *, order: int = 1) -> np.ndarray:
     """``volume.sample(points, order=order)`` (world mm, shape ``(..., 3)``),
-    in the compiled sampler where it applies (numba installed, a Cartesian
+    in the compiled sampler where it applies (the package built, a Cartesian
     volume, ``order`` 0 or 1): equal to rounding, without the reference's
     temporary arrays."""
     points = np.asarray(points, dtype=float)
@@ -414,7 +410,6 @@ def sample_points(volume, points, *, order: int = 1) -> np.ndarray:
 
     world = np.ascontiguousarray(points.reshape(-1, 3).T)
     rows = np.arange(world.shape[1])
-    rows.flags.writeable = False  # as the band rows: one kernel signature for both
     out = np.empty((world.shape[1], 1))
     _kernels.samples_at(*_kernels.sampler(volume.sampling_view()), world, np.zeros_like(world), rows,
                         _SURFACE_OFFSETS, order == 0, out)

@@ -135,18 +135,17 @@ class SegmentOptions:
         Base radius of the initial half-ellipsoid over the apex-base distance.
     backend : {"auto", "compiled", "numpy"}
         The iteration's array work (:mod:`spheroseg.backends`): ``"auto"``
-        compiles it where numba and the system allow, ``"numpy"`` runs the
-        reference.
+        runs it in the compiled kernels where the package was built and
+        the system is prolate spheroidal, ``"numpy"`` runs the reference.
     threads : int, optional
-        Threads of the compiled kernels during the descent (numba's
-        ``set_num_threads``, restored afterwards): each splits its sample
-        points among them.  None takes numba's setting (all cores unless
-        ``NUMBA_NUM_THREADS`` or ``numba.set_num_threads`` said otherwise),
+        Threads of the compiled kernels during the descent (their OpenMP
+        loops' count, restored afterwards): each splits its sample points
+        among them.  None takes the default (the cores this process may
+        run on, or :func:`spheroseg._compiled._runtime.set_default_threads`'s),
         reduced at the start of each segmentation and frame to the cores no
         other process is using (:func:`spheroseg.backends.idle_cores`, read
         at most ten times a second): a thread that shares a core with other
-        work slows every parallel step to its pace.  A count above
-        ``NUMBA_NUM_THREADS`` is capped at it.  The result is the same to
+        work slows every parallel step to its pace.  The result is the same to
         the last bit whatever the count.
     """
 
@@ -224,7 +223,7 @@ class SegmentOptions:
                 raise ValueError(f"{name} must be an integer, got {value!r}")  # its range below
         if self.threads is not None and not (isinstance(self.threads, (int, np.integer))
                                              and not isinstance(self.threads, bool) and self.threads >= 1):
-            raise ValueError(f"threads must be a positive integer (or None: numba's setting), got {self.threads!r}")
+            raise ValueError(f"threads must be a positive integer (or None: the default), got {self.threads!r}")
         if self.threads is not None:
             object.__setattr__(self, "threads", int(self.threads))  # JSON-ready
         if self.max_iterations < 1 or self.max_iterations > LIMITS["max_iterations"]:

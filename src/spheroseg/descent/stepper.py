@@ -7,7 +7,7 @@ on one frame: each level starts from the previous one's surface refined
 exactly (a Hermite surface on ``N`` patches is one on ``2N``), or on the
 same grid hands the data term's band means over to the next stage.  It
 keeps what a result reports (the region means, the last observation) and
-the numba thread count the machine's load leaves it.  It knows nothing of
+the kernels' thread count the machine's load leaves it.  It knows nothing of
 how the model was built nor of the frames before; :class:`spheroseg.Tracker`
 puts those parts together.
 """

@@ -1,4 +1,4 @@
-"""Arrays computed once per machine: cached on disk beside numba's cache.
+"""Arrays computed once per machine: cached on disk.
 
 A segmentation's first call in a process builds the matrices of each grid
 it uses (:func:`spheroseg.discretisation.discretise`: about 40 ms for the
@@ -6,8 +6,8 @@ default 2 x 2, 4 x 4 and 8 x 8 patches, more than the segmentation).  They
 depend on the grid and the code only, so they are written once to an
 ``.npz`` file and read back by every later process (a few ms).
 
-The files live where numba keeps its compiled kernels: ``$NUMBA_CACHE_DIR``
-when set, else the package's ``__pycache__``.  A file's name hashes the
+The files live in ``$SPHEROSEG_CACHE_DIR`` when set, else the package's
+``__pycache__``.  A file's name hashes the
 key, spheroseg's version and the size and modification time of the source
 files that compute the arrays, so an edited formula is never read from an
 old file.  Writes are atomic (a temporary file renamed); a file that cannot
@@ -32,8 +32,8 @@ _SUBDIRECTORY = "spheroseg-arrays"
 
 def cache_directory() -> Path:
     """The directory of the cached arrays (it may not exist yet)."""
-    numba_dir = os.environ.get("NUMBA_CACHE_DIR")
-    root = Path(numba_dir) if numba_dir else Path(__file__).resolve().parent / "__pycache__"
+    chosen = os.environ.get("SPHEROSEG_CACHE_DIR")
+    root = Path(chosen) if chosen else Path(__file__).resolve().parent / "__pycache__"
     return root / _SUBDIRECTORY
 
 

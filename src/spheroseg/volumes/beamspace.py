@@ -419,12 +419,12 @@ def _grid_slice_points(grid: ImageGrid, k: int) -> np.ndarray:
 
 def _sample_points(volume: BeamVolume, points: np.ndarray, order: int) -> np.ndarray:
     """``volume.sample(points, order=order)``, trilinear through the compiled
-    kernel when numba is installed (tested equal)."""
-    from .._compiled import _kernels  # numba only when sampling: import spheroseg stays light
-    from .._compiled._runtime import PARALLEL_LOCK
+    kernel where the package was built (tested equal)."""
+    from .._compiled._runtime import PARALLEL_LOCK, compiled_available
 
-    if order != 1 or not _kernels.AVAILABLE:
+    if order != 1 or not compiled_available():
         return volume.sample(points, order=order)
+    from .._compiled import _kernels
     n = len(points)
     out, count = np.empty(n), np.empty(n, np.int64)
     with PARALLEL_LOCK:

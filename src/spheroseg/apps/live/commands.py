@@ -151,9 +151,9 @@ def _live(args, points: dict, options: dict, prepare) -> int:
     source, serve = parse_address(args.source), parse_address(args.serve)
     if prepare is not None:
         prepare()
-    from ._crc import crc64
+    from .crc import crc64
 
-    crc64(b"\0")  # compiled (or loaded from numba's cache) before the first frame waits for it
+    crc64(b"\0")  # the compiled kernel loaded before the first frame waits for it
     server = _listening(lambda: LiveServer(
         source, serve=serve, device=args.device, coordinates=args.coordinates, label=not args.no_label,
         record=args.record, no_data_value=args.no_data, stall_seconds=args.stall,

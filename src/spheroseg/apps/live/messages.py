@@ -5,7 +5,7 @@ The framing is this module's own rather than pyigtl's: a reader that
 checks every header, body size and CRC and finds the next header after
 garbage bytes (pyigtl checks no CRC, and loses step after garbage), an
 IMAGE decoder that says why an image cannot be a frame, a compiled CRC
-(:mod:`spheroseg.apps.live._crc`, a tenth of crcmod's time on a frame: every
+(:mod:`spheroseg.apps.live.crc`, compiled with the package: every
 frame is checked as it is read, every labelmap sent) and a POLYDATA body as
 the specification lays it out (pyigtl 0.3 reads no POLYDATA, carries no
 attributes and writes vertices in the machine's byte order).  pyigtl is
@@ -92,7 +92,7 @@ class Message:
 
 
 def _crc64():
-    from ._crc import crc64
+    from .crc import crc64
 
     return crc64
 

@@ -449,8 +449,9 @@ class Session:
 
     def close(self) -> None:
         """Stop the running job and the worker; end the event streams; wait
-        for the worker to return (a process that exits while it is in numba's
-        compiler or loader can abort in LLVM's teardown)."""
+        for the worker to return (a process that exits while its worker thread
+        is inside a kernel's parallel region can abort in the OpenMP runtime's
+        teardown)."""
         with self._lock:
             self._generation += 1
         self._jobs.put(None)
