@@ -455,7 +455,7 @@ def test_pyigtl_reads_what_is_sent_and_is_read():
     igtl = pyigtl()
     from pyigtl.messages import CRC64
 
-    from spheroseg.apps.live._crc import crc64
+    from spheroseg.apps.live.crc import crc64
 
     rng = np.random.default_rng(5)
     for n in (0, 1, 7, 8, 9, 4095, 100003):
