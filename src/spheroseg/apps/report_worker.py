@@ -1,8 +1,8 @@
 """Draw the PNG report in a second process started with the command.
 
-Importing matplotlib takes about 0.35 s and drawing a report about 0.2 s,
-while the command itself spends a second loading the numerical path and
-segmenting on one core.  When a core is free, :class:`ReportWorker` starts
+Importing matplotlib and drawing a report take about as long as the
+command's own work of loading the numerical path and segmenting on one core
+(docs/benchmarks.md).  When a core is free, :class:`ReportWorker` starts
 a process that imports matplotlib at once and later draws the report
 (:func:`spheroseg.report.save_parts`) from the few arrays it shows, so
 neither lies on the command's path.  On Linux the process is forked as the

@@ -1,10 +1,10 @@
 """Arrays computed once per machine: cached on disk.
 
 A segmentation's first call in a process builds the matrices of each grid
-it uses (:func:`spheroseg.discretisation.discretise`: about 40 ms for the
-default 2 x 2, 4 x 4 and 8 x 8 patches, more than the segmentation).  They
-depend on the grid and the code only, so they are written once to an
-``.npz`` file and read back by every later process (a few ms).
+it uses (:func:`spheroseg.geometry.discretisation.discretise`: for the
+default 2 x 2, 4 x 4 and 8 x 8 patches, longer than the segmentation).
+They depend on the grid and the code only, so they are written once to an
+``.npz`` file and read back by every later process.
 
 The files live in ``$SPHEROSEG_CACHE_DIR`` when set, else the package's
 ``__pycache__``.  A file's name hashes the
