@@ -54,6 +54,8 @@ from cython.parallel cimport prange
 from libc.math cimport NAN, atan, exp, isfinite, isnan, log, log1p, rint, sqrt
 from libc.stdint cimport int32_t, int64_t, uint64_t
 
+from ._layout cimport node_offset, prolate_point
+
 from spheroseg._compiled import INDEX_TOLERANCE
 from spheroseg._compiled._runtime import current_threads as _current_threads
 
@@ -207,14 +209,12 @@ cdef inline void _patch(const double* coefficients, Py_ssize_t n1, Py_ssize_t i1
     derivative ``e`` along v1, v2), so that ``f = sum_jm basis1[a, j]
     out[j, m] basis2[b, m]``.  (Pointers, not memoryviews, in the loops'
     helpers: passing a memoryview counts a reference, atomically.)"""
-    cdef Py_ssize_t node1
     cdef int a1, e1, a2, e2
     for a1 in range(2):
-        node1 = i1 + a1 if i1 + a1 < n1 else 0  # theta is periodic
         for e1 in range(2):
             for a2 in range(2):
                 for e2 in range(2):
-                    out[4 * (2 * a1 + e1) + 2 * a2 + e2] = coefficients[((i2 + a2) * n1 + node1) * 4 + e1 + 2 * e2]
+                    out[4 * (2 * a1 + e1) + 2 * a2 + e2] = coefficients[node_offset(n1, i1, i2, a1, a2, e1, e2)]
 
 
 cdef inline void _contract(const double* patch, const double* basis, double* out) noexcept nogil:
@@ -348,8 +348,7 @@ cdef void _prolate_surface(const double[:, :, ::1] coefficients, int order, cons
         e, f1, f2 = out_area[q], out_h0[q], out_cos[q]
         ch, sh = 0.5 * (e + 1.0 / e), 0.5 * (e - 1.0 / e)
         ct, st, cm, sm = cos_th[q], sin_th[q], cos_mu[q], sin_mu[q]
-        x0, rho = d * ch * cm, d * sh * sm
-        x1, x2 = rho * ct, rho * st
+        x0, x1, x2 = prolate_point(d, ch, sh, ct, st, cm, sm)
         # columns of the Jacobian: dx/dlambda, dx/dtheta, dx/dmu
         j00, j01, j02 = d * sh * cm, d * ch * sm * ct, d * ch * sm * st
         j10, j11, j12 = 0.0, -d * sh * sm * st, d * sh * sm * ct
@@ -500,8 +499,7 @@ cdef void _cavity_row(const Sampler* s, double fq, double ct, double st, double 
     for k in range(n_fractions):
         e = exp(fractions[k] * fq)
         sh, ch = 0.5 * (e - 1.0 / e), 0.5 * (e + 1.0 / e)
-        x0, rho = d * ch * cm, d * sh * sm
-        x1, x2 = rho * ct, rho * st
+        x0, x1, x2 = prolate_point(d, ch, sh, ct, st, cm, sm)
         wx = rotation[0] * x0 + rotation[1] * x1 + rotation[2] * x2 + origin[0]
         wy = rotation[3] * x0 + rotation[4] * x1 + rotation[5] * x2 + origin[1]
         wz = rotation[6] * x0 + rotation[7] * x1 + rotation[8] * x2 + origin[2]

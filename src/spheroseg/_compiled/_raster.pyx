@@ -55,6 +55,8 @@ from libc.math cimport INFINITY, asinh, atan2, copysign, fabs, floor, hypot, log
 from libc.stdint cimport int64_t, uint8_t
 from libc.string cimport memset
 
+from ._layout cimport node_offset
+
 from spheroseg._compiled._runtime import PARALLEL_LOCK, current_threads
 from spheroseg.geometry.hermite import global_basis, patch_dofs
 
@@ -277,7 +279,7 @@ cdef inline (double, double) _surface(double x2, double x3, double v2, const dou
     cdef double v1 = atan2(x3, x2)
     if v1 < 0:
         v1 += 2 * PI
-    cdef Py_ssize_t n2 = coef.shape[0] - 1, n1 = coef.shape[1], node1
+    cdef Py_ssize_t n2 = coef.shape[0] - 1, n1 = coef.shape[1]
     cdef double u1 = v1 * (n1 / (2 * PI))
     cdef double u2 = (v2 - lo) * (n2 / (hi - lo))
     cdef Py_ssize_t i1 = min(max(<Py_ssize_t>floor(u1), 0), n1 - 1)
@@ -288,12 +290,12 @@ cdef inline (double, double) _surface(double x2, double x3, double v2, const dou
     _hermite_at(u2 - i2, (hi - lo) / n2, 0, b2)
     cdef double f = 0.0
     cdef int a1, a2, e1, e2
+    cdef const double* nodes = &coef[0, 0, 0]
     for a1 in range(2):
-        node1 = i1 + a1 if i1 + a1 < n1 else 0
         for a2 in range(2):
             for e1 in range(2):
                 for e2 in range(2):
-                    f += b1[2 * a1 + e1] * b2[2 * a2 + e2] * coef[i2 + a2, node1, e1 + 2 * e2]
+                    f += b1[2 * a1 + e1] * b2[2 * a2 + e2] * nodes[node_offset(n1, i1, i2, a1, a2, e1, e2)]
     return f, v1
 
 
