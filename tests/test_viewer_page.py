@@ -64,6 +64,16 @@ def crosshair_lps(page) -> np.ndarray:
     return np.array(page.evaluate("viewer.crosshairLPS()"))
 
 
+
+def click_apex_and_base(page, ph) -> int:
+    """Apex then base clicked on the coronal slice, as a user places them;
+    the job of the segmentation they start, once done."""
+    page.mouse.click(*screen_xy(page, 1, ph.apex))
+    page.wait_for_function("Number(document.body.dataset.sent) >= 1", polling=100, timeout=TIMEOUT_MS)
+    page.mouse.click(*screen_xy(page, 1, ph.base))
+    return wait_done(page)
+
+
 @pytest.fixture(scope="module")
 def phantom_file(tmp_path_factory):
     ph = make_phantom(seed=1, spacing=1.5)
@@ -614,10 +624,7 @@ def test_a_drag_released_in_the_padding_keeps_one_state(browser, phantom_file, t
     session = server.session
     try:
         page, errors = open_page(browser, server)
-        page.mouse.click(*screen_xy(page, 1, ph.apex))
-        page.wait_for_function("Number(document.body.dataset.sent) >= 1", polling=100, timeout=TIMEOUT_MS)
-        page.mouse.click(*screen_xy(page, 1, ph.base))
-        job = wait_done(page)
+        job = click_apex_and_base(page, ph)
         apex = session.points.apex.copy()
         lo, hi = session.display[0].bounds
         corner = lo + 0.03 * (hi - lo)
@@ -684,10 +691,7 @@ def test_undo_prompts_notes_clear_labels_and_wording(browser, phantom_file, tmp_
         # the coronal tile's top and bottom letters in the echo view: the probe (S of LPS z...) and its opposite
         coronal = [text for k, text in labels if k == 1]
         assert set(coronal[:4]) == {"S", "I", "R", "L"}
-        page.mouse.click(*screen_xy(page, 1, ph.apex))
-        page.wait_for_function("Number(document.body.dataset.sent) >= 1", polling=100, timeout=TIMEOUT_MS)
-        page.mouse.click(*screen_xy(page, 1, ph.base))
-        job = wait_done(page)
+        job = click_apex_and_base(page, ph)
         detail = page.text_content("#detail")
         assert not detail.startswith("frame") and "((" not in detail and "))" not in detail, detail
         _shot(page, "labels-and-wording.png")
@@ -723,10 +727,7 @@ def test_standard_views_drawn_and_clicked(browser, phantom_file, tmp_path):
     session = server.session
     try:
         page, errors = open_page(browser, server)
-        page.mouse.click(*screen_xy(page, 1, ph.apex))
-        page.wait_for_function("Number(document.body.dataset.sent) >= 1", polling=100, timeout=TIMEOUT_MS)
-        page.mouse.click(*screen_xy(page, 1, ph.base))
-        job = wait_done(page)
+        job = click_apex_and_base(page, ph)
         page.click("#standard")
         page.wait_for_function(f"Number(document.body.dataset.views) >= {job}", polling=100, timeout=TIMEOUT_MS)
         names = page.evaluate("Array.from(document.querySelectorAll('#standardviews figcaption'), (f) => f.textContent)")
